@@ -1,0 +1,1 @@
+"""Diagram builders: plain functions from config dataclasses."""

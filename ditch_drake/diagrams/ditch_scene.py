@@ -1,0 +1,216 @@
+"""The Husky and a ditch in one MultibodyPlant, with drive and episode monitor."""
+
+import math
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+from pydrake.common.eigen_geometry import Quaternion_
+from pydrake.geometry import Box, Meshcat, ProximityProperties, SceneGraph
+from pydrake.math import RigidTransform, RotationMatrix
+from pydrake.multibody.parsing import Parser
+from pydrake.multibody.plant import (
+    AddMultibodyPlant,
+    CoulombFriction,
+    MultibodyPlant,
+    MultibodyPlantConfig,
+)
+from pydrake.multibody.tree import JointActuatorIndex, ModelInstanceIndex, PdControllerGains, QuaternionFloatingJoint
+from pydrake.symbolic import Expression, Variable, cos, sin
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.visualization import ApplyVisualizationConfig, VisualizationConfig
+
+from ditch_drake import robot
+from ditch_drake.environments import ConfigError, Environment, Task, get_environment, get_task
+from ditch_drake.systems.episode_monitor import EpisodeConfig, EpisodeMonitor
+from ditch_drake.systems.skid_steer_drive import SkidSteerDrive
+from ditch_drake.terrain import DitchTerrain
+
+HUSKY_URL = "package://ditch_drake/husky.sdf"
+
+TERRAIN_COLORS = {
+    "ground": np.array([0.45, 0.62, 0.33, 1.0]),
+    "wall": np.array([0.55, 0.42, 0.28, 1.0]),
+    "floor": np.array([0.48, 0.37, 0.25, 1.0]),
+}
+
+
+def DefaultPlantConfig() -> MultibodyPlantConfig:
+    """Point contact on box pieces with a 10 ms discrete step (docs/physics.md)."""
+    return MultibodyPlantConfig(time_step=0.01, contact_model="point", discrete_contact_approximation="lagged")
+
+
+@dataclass
+class StartJitter:
+    """Uniform start-pose perturbation half-widths (m, deg), drawn from the context's seed."""
+
+    xy_m: float = 0.25
+    yaw_deg: float = 3.0
+
+
+@dataclass
+class SceneConfig:
+    """What `MakeDitchDiagram` builds.
+
+    Attributes:
+        environment: a name from the environments file.
+        task: index of the environment's start/goal task.
+        environments_file: a YAML file of environments; empty for the packaged one.
+        plant: Drake's own plant configuration.
+        start_jitter: seeded start perturbation (see `SetEpisodeSeed`).
+        episode: when the episode ends.
+    """
+
+    environment: str = "wide"
+    task: int = 0
+    environments_file: str = ""
+    plant: MultibodyPlantConfig = field(default_factory=DefaultPlantConfig)
+    start_jitter: StartJitter = field(default_factory=StartJitter)
+    episode: EpisodeConfig = field(default_factory=EpisodeConfig)
+
+
+@dataclass
+class DitchScene:
+    """Handles to the parts of a built scene."""
+
+    plant: MultibodyPlant
+    scene_graph: SceneGraph
+    husky: ModelInstanceIndex
+    drive: SkidSteerDrive
+    monitor: EpisodeMonitor
+    terrain: DitchTerrain
+    environment: Environment
+    task: Task
+
+
+def models_package_xml() -> Path:
+    """The `package.xml` of `models_sdf/` (installed as `ditch_drake.models_sdf`)."""
+    return Path(str(resources.files("ditch_drake.models_sdf") / "package.xml"))
+
+
+def MakeParser(plant: MultibodyPlant) -> Parser:
+    """A parser that resolves `package://ditch_drake/...` to `models_sdf/`."""
+    parser = Parser(plant)
+    parser.package_map().AddPackageXml(str(models_package_xml()))
+    return parser
+
+
+def AddDitchTerrain(plant: MultibodyPlant, terrain: DitchTerrain) -> int:
+    """Welds the terrain's box pieces to the world as collision and visual geometry.
+
+    Returns the number of pieces.
+    """
+    ground_friction = CoulombFriction(robot.TERRAIN_FRICTION, robot.TERRAIN_FRICTION)
+    properties = ProximityProperties()
+    properties.AddProperty("material", "coulomb_friction", ground_friction)
+    pieces = terrain.box_pieces()
+    world = plant.world_body()
+    for index, piece in enumerate(pieces):
+        X_WP = RigidTransform(RotationMatrix(piece.R_WP), piece.p_WP)
+        shape = Box(*piece.size)
+        name = f"terrain_{piece.kind}_{index}"
+        plant.RegisterCollisionGeometry(world, X_WP, shape, name, properties)
+        plant.RegisterVisualGeometry(world, X_WP, shape, name, TERRAIN_COLORS[piece.kind])
+    return len(pieces)
+
+
+def AddHusky(plant: MultibodyPlant) -> ModelInstanceIndex:
+    """Adds the Husky from `models_sdf/husky.sdf` with velocity-controlled wheels.
+
+    The chassis gets an explicit quaternion floating joint so that start-pose
+    distributions can be attached to it.
+    """
+    (husky,) = MakeParser(plant).AddModels(url=HUSKY_URL)
+    chassis = plant.GetBodyByName("chassis", husky)
+    plant.AddJoint(QuaternionFloatingJoint("husky_floating", plant.world_frame(), chassis.body_frame()))
+    # GetJointActuatorIndices() is empty before Finalize(), so scan all actuators.
+    for index in range(plant.num_actuators()):
+        actuator = plant.get_mutable_joint_actuator(JointActuatorIndex(index))
+        if actuator.model_instance() == husky:
+            actuator.set_controller_gains(PdControllerGains(p=0.0, d=robot.WHEEL_SPEED_GAIN_NMS))
+    return husky
+
+
+def chassis_height_on_flat_ground() -> float:
+    """z of the chassis frame B when the wheels rest on flat ground at z = 0 (m)."""
+    return robot.WHEEL_RADIUS_M
+
+
+def SetStartPoseDistribution(plant: MultibodyPlant, husky: ModelInstanceIndex, task: Task,
+                             jitter: StartJitter) -> None:
+    """Nominal start pose as the default; seeded uniform jitter for random contexts."""
+    x, y, yaw_deg = task.start
+    z = chassis_height_on_flat_ground() + 0.005
+    joint = plant.GetJointByName("husky_floating", husky)
+    joint.SetDefaultPose(RigidTransform(RotationMatrix.MakeZRotation(math.radians(yaw_deg)), [x, y, z]))
+    u = [Variable(f"start_jitter_{axis}", Variable.Type.RANDOM_UNIFORM) for axis in "xyw"]
+    joint.set_random_translation_distribution([
+        x + jitter.xy_m * (2 * u[0] - 1), y + jitter.xy_m * (2 * u[1] - 1), Expression(z)])
+    half_yaw = (math.radians(yaw_deg) + math.radians(jitter.yaw_deg) * (2 * u[2] - 1)) / 2
+    joint.set_random_quaternion_distribution(
+        Quaternion_[Expression](cos(half_yaw), Expression(0), Expression(0), sin(half_yaw)))
+
+
+def AddDitchScene(builder: DiagramBuilder, config: SceneConfig, meshcat: Meshcat | None = None) -> DitchScene:
+    """Adds plant, scene graph, drive and episode monitor for `config` to `builder`.
+
+    The drive's `command` input is left for the caller to connect or export.
+    """
+    environment = get_environment(config.environment, config.environments_file or None)
+    task = get_task(environment, config.task)
+    if config.plant.time_step <= 0:
+        raise ConfigError(f"plant.time_step={config.plant.time_step} must be > 0: the scene needs a discrete plant")
+    terrain = DitchTerrain(environment.terrain)
+    plant, scene_graph = AddMultibodyPlant(config.plant, builder)
+    AddDitchTerrain(plant, terrain)
+    husky = AddHusky(plant)
+    plant.Finalize()
+    SetStartPoseDistribution(plant, husky, task, config.start_jitter)
+
+    wheel_is_left = [
+        plant.get_joint_actuator(index).joint().name().endswith("left_wheel_joint")
+        for index in plant.GetJointActuatorIndices(husky)
+    ]
+    drive = builder.AddNamedSystem("skid_steer_drive", SkidSteerDrive(wheel_is_left))
+    builder.Connect(drive.GetOutputPort("wheel_desired_state"), plant.get_desired_state_input_port(husky))
+
+    chassis = plant.GetBodyByName("chassis", husky)
+    monitor = builder.AddNamedSystem("episode_monitor", EpisodeMonitor(chassis.index(), task.goal, config.episode))
+    builder.Connect(plant.get_body_poses_output_port(), monitor.GetInputPort("body_poses"))
+
+    if meshcat is not None:
+        ApplyVisualizationConfig(VisualizationConfig(publish_contacts=False), builder, meshcat=meshcat)
+    return DitchScene(plant, scene_graph, husky, drive, monitor, terrain, environment, task)
+
+
+def MakeDitchDiagram(config: SceneConfig, meshcat: Meshcat | None = None) -> tuple[Diagram, DitchScene]:
+    """A diagram of the scene whose `command` input port ([v m/s, w rad/s]) any controller drives.
+
+    Exported ports: input `command`; outputs `husky_state` (plant state of the
+    Husky), `body_poses`, `episode_state`, `query_object`.
+    """
+    builder = DiagramBuilder()
+    scene = AddDitchScene(builder, config, meshcat)
+    builder.ExportInput(scene.drive.GetInputPort("command"), "command")
+    builder.ExportOutput(scene.plant.get_state_output_port(scene.husky), "husky_state")
+    builder.ExportOutput(scene.plant.get_body_poses_output_port(), "body_poses")
+    builder.ExportOutput(scene.monitor.GetOutputPort("episode_state"), "episode_state")
+    builder.ExportOutput(scene.scene_graph.get_query_output_port(), "query_object")
+    diagram = builder.Build()
+    diagram.set_name(f"ditch_scene_{config.environment}")
+    return diagram, scene
+
+
+def chassis_pose(diagram: Diagram, scene: DitchScene, context) -> RigidTransform:
+    """X_WB of the chassis in a root `context` of `diagram`."""
+    plant_context = scene.plant.GetMyContextFromRoot(context)
+    return scene.plant.EvalBodyPoseInWorld(plant_context, scene.plant.GetBodyByName("chassis", scene.husky))
+
+
+def planar_heading(X_WB: RigidTransform) -> float:
+    """Yaw of the chassis's forward axis projected on the ground plane (rad)."""
+    forward = X_WB.rotation().matrix()[:, 0]
+    return math.atan2(forward[1], forward[0])
+
+

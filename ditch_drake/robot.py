@@ -1,0 +1,95 @@
+"""The simulated Clearpath Husky's numbers (SPEC "Robot"), in one place.
+
+Every other module imports these; `models_sdf/husky.sdf` repeats them as data and
+`tests/test_robot_model.py` checks that the two agree.
+
+Frames: the chassis body frame B has its origin at the wheel-axle height, midway
+between the axles, +x forward, +y left, +z up. On flat ground B sits
+`WHEEL_RADIUS_M` above the ground plane.
+"""
+
+import numpy as np
+
+# Chassis box (SPEC: 0.990 x 0.670 x 0.39 m), lifted to the Husky's ground clearance.
+CHASSIS_SIZE_M = np.array([0.990, 0.670, 0.39])
+GROUND_CLEARANCE_M = 0.13
+
+# Wheels: four, skid-steer.
+WHEEL_RADIUS_M = 0.165
+WHEEL_WIDTH_M = 0.1
+WHEELBASE_M = 0.512
+TRACK_M = 0.555
+WHEEL_NAMES = ("front_left", "rear_left", "front_right", "rear_right")
+
+# Mass: about 50 kg in all; the centre of mass is kept low (see docs/physics.md).
+CHASSIS_MASS_KG = 40.0
+WHEEL_MASS_KG = 2.5
+TOTAL_MASS_KG = CHASSIS_MASS_KG + 4 * WHEEL_MASS_KG
+COM_HEIGHT_ABOVE_GROUND_M = 0.15
+
+# Friction (Coulomb, static = dynamic), chosen in docs/physics.md. These are the
+# effective coefficients between robot and terrain. Drake combines two
+# geometries' coefficients as 2 mu1 mu2 / (mu1 + mu2), so each geometry carries
+# the value that gives the effective one against `TERRAIN_FRICTION`.
+TERRAIN_FRICTION = 2.0
+WHEEL_FRICTION = 2.0
+CHASSIS_FRICTION = 0.3
+
+
+def geometry_friction(effective: float, other: float = TERRAIN_FRICTION) -> float:
+    """The coefficient a geometry needs for `effective` against one with `other`."""
+    if not 0 < effective < 2 * other:
+        raise ValueError(f"effective friction {effective} must be in (0, {2 * other})")
+    return effective * other / (2 * other - effective)
+
+# Drive: wheel-speed damping control with a torque limit.
+WHEEL_SPEED_GAIN_NMS = 300.0
+WHEEL_TORQUE_LIMIT_NM = 100.0
+# Skid-steer loses yaw rate to lateral wheel scrub; the kinematic map uses an
+# effective track wider than the geometric one by a factor that depends on the
+# commanded |w| (rad/s), interpolated in this table measured on flat ground
+# (docs/physics.md; `ditch-drake calibrate` re-measures the tracking).
+SKID_STEER_TRACK_FACTORS = (
+    np.array([0.15, 0.25, 0.45, 0.65, 0.85]),
+    np.array([2.12, 2.00, 1.93, 1.90, 1.885]),
+)
+
+# Lidar (SPEC): field of view and range, mounted on the chassis front-top.
+LIDAR_HORIZONTAL_FOV_RAD = np.deg2rad(120.0)
+LIDAR_VERTICAL_FOV_RAD = np.deg2rad(80.0)
+LIDAR_RANGE_M = 4.0
+# Mount frame L in B: just above the chassis top near its front edge.
+LIDAR_MOUNT_XYZ_M = np.array([0.40, 0.0, 0.42])
+
+CONTROL_PERIOD_S = 0.1  # 10 Hz (SPEC; the paper gives none)
+MAX_SPEED_MPS = 1.0
+MAX_ANGULAR_RATE_RADPS = 0.85
+
+
+def chassis_center_in_body_frame() -> np.ndarray:
+    """Returns p_BC, the chassis box centre in the body frame B (m)."""
+    z = GROUND_CLEARANCE_M + CHASSIS_SIZE_M[2] / 2 - WHEEL_RADIUS_M
+    return np.array([0.0, 0.0, z])
+
+
+def chassis_com_in_body_frame() -> np.ndarray:
+    """Returns p_BScm, the chassis body's centre of mass in B (m).
+
+    Placed so that the whole robot's centre of mass (chassis plus wheels at axle
+    height) sits `COM_HEIGHT_ABOVE_GROUND_M` above flat ground.
+    """
+    total_moment = TOTAL_MASS_KG * COM_HEIGHT_ABOVE_GROUND_M
+    wheels_moment = 4 * WHEEL_MASS_KG * WHEEL_RADIUS_M
+    z_ground = (total_moment - wheels_moment) / CHASSIS_MASS_KG
+    return np.array([0.0, 0.0, z_ground - WHEEL_RADIUS_M])
+
+
+def wheel_positions_in_body_frame() -> dict[str, np.ndarray]:
+    """Returns p_BW for each wheel joint (m), keyed by `WHEEL_NAMES`."""
+    x, y = WHEELBASE_M / 2, TRACK_M / 2
+    return {
+        "front_left": np.array([x, y, 0.0]),
+        "rear_left": np.array([-x, y, 0.0]),
+        "front_right": np.array([x, -y, 0.0]),
+        "rear_right": np.array([-x, -y, 0.0]),
+    }

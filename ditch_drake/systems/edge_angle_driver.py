@@ -1,0 +1,124 @@
+"""A scripted driver that crosses a ditch holding an angle to the local edge."""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.common.value import Value
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import LeafSystem
+
+from ditch_drake import robot
+from ditch_drake.terrain import DitchTerrain
+
+
+@dataclass
+class EdgeAngleDriverConfig:
+    """How the scripted driver crosses (angles in degrees, lengths in m).
+
+    Attributes:
+        wall_angle_deg: heading angle to the local edge going down a wall and in
+            the approach zone; 90 drives head-on, perpendicular to the edge.
+        climb_angle_deg: heading angle to the local edge going up a wall; on a
+            steep wall the wheels slip sideways, so climbing needs a steeper
+            heading than descending to gain height (docs/physics.md). None: the
+            same as `wall_angle_deg`.
+        bottom_angle_deg: angle to the edge while crossing the interior of a wide bottom.
+        approach_margin_m: how far before the hinge line the driver is already
+            holding `wall_angle_deg`, so that it turns on flat ground.
+        bottom_margin_m: distance from the toe within which the bottom counts as wall.
+        heading_gain: yaw-rate command per radian of heading error (1/s).
+        speed_mps: forward speed.
+    """
+
+    wall_angle_deg: float = 20.0
+    climb_angle_deg: float | None = 35.0
+    bottom_angle_deg: float = 60.0
+    approach_margin_m: float = 2.5
+    bottom_margin_m: float = 1.0
+    heading_gain: float = 1.5
+    speed_mps: float = robot.MAX_SPEED_MPS
+
+
+def wrap_angle(angle: float) -> float:
+    """Wraps an angle (rad) to (-pi, pi]."""
+    wrapped = math.remainder(angle, 2 * math.pi)
+    return math.pi if wrapped == -math.pi else wrapped
+
+
+class EdgeAngleDriver(LeafSystem):
+    """Drives to a goal across a ditch, holding an angle to the local edge.
+
+    Knows the terrain analytically. On flat ground it heads for the goal; within
+    `approach_margin_m` of the hinge, on the walls and near the toe it heads at
+    `wall_angle_deg` to the local edge (the edge direction changes along curved
+    ditches, so the angle is held relative to the edge nearby), downhill while the
+    goal lies beyond the ditch's course and uphill after; across a wide bottom it
+    uses the steeper `bottom_angle_deg`. The direction along the edge is chosen
+    toward the goal on flat ground and held while on a wall.
+
+    .. pydrake_system::
+
+        name: EdgeAngleDriver
+        input_ports:
+        - body_poses
+        output_ports:
+        - command
+
+    Ports:
+        body_poses: the plant's body poses X_WB (vector of RigidTransform).
+        command: [v (m/s), w (rad/s)], updated at the control rate.
+    """
+
+    def __init__(self, terrain: DitchTerrain, goal_xy, chassis_body_index,
+                 config: EdgeAngleDriverConfig = EdgeAngleDriverConfig(),
+                 period_s: float = robot.CONTROL_PERIOD_S):
+        super().__init__()
+        self._terrain = terrain
+        self._goal_xy = np.asarray(goal_xy, dtype=float)
+        self._chassis_index = int(chassis_body_index)
+        self._config = config
+        self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
+        self._command_index = self.DeclareDiscreteState(2)
+        # The along-edge direction sign; 0 until chosen.
+        self._along_sign_index = self.DeclareDiscreteState(1)
+        self.DeclareStateOutputPort("command", self._command_index)
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+
+    def desired_heading(self, xy: np.ndarray, along_sign: float) -> tuple[float, float]:
+        """Desired heading (rad) at xy and the along-edge sign to keep."""
+        config, terrain = self._config, self._terrain
+        to_goal = self._goal_xy - xy
+        distance, _ = terrain.nearest_on_course(xy)
+        distance = float(distance)
+        if distance > terrain.hinge_distance_m + config.approach_margin_m:
+            return math.atan2(to_goal[1], to_goal[0]), 0.0
+        away = terrain.away_from_course(xy)
+        toward = -away
+        tangent = np.array([-away[1], away[0]])
+        on_flat_bottom = distance < terrain.toe_distance_m - config.bottom_margin_m
+        if along_sign == 0.0 or on_flat_bottom:
+            along_sign = 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
+        # Downhill while the goal lies beyond the course, uphill once past it.
+        cross_sign = 1.0 if float(to_goal @ toward) > 0.0 else -1.0
+        if on_flat_bottom:
+            angle = config.bottom_angle_deg
+        elif config.climb_angle_deg is not None and (cross_sign < 0 or distance < terrain.toe_distance_m):
+            # From the bottom on, the heading already aims up the far wall.
+            angle = config.climb_angle_deg
+        else:
+            angle = config.wall_angle_deg
+        angle = math.radians(angle)
+        direction = math.cos(angle) * along_sign * tangent + math.sin(angle) * cross_sign * toward
+        return math.atan2(direction[1], direction[0]), along_sign
+
+    def _update(self, context, discrete_state) -> None:
+        X_WB = self._poses_port.Eval(context)[self._chassis_index]
+        forward = X_WB.rotation().matrix()[:, 0]
+        heading = math.atan2(forward[1], forward[0])
+        along_sign = float(context.get_discrete_state(self._along_sign_index).get_value()[0])
+        desired, along_sign = self.desired_heading(X_WB.translation()[:2], along_sign)
+        w = np.clip(self._config.heading_gain * wrap_angle(desired - heading),
+                    -robot.MAX_ANGULAR_RATE_RADPS, robot.MAX_ANGULAR_RATE_RADPS)
+        discrete_state.set_value(self._command_index, [self._config.speed_mps, w])
+        discrete_state.set_value(self._along_sign_index, [along_sign])

@@ -1,0 +1,69 @@
+"""Skid-steer drive: a (v, w) body command to wheel speed targets."""
+
+import numpy as np
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ditch_drake import robot
+
+
+def effective_track_m(w_radps: float) -> float:
+    """The track (m) that the kinematic map uses for a commanded yaw rate.
+
+    Skid-steering loses yaw rate to lateral wheel scrub, more at low rates, so the
+    map widens the track by a factor interpolated in `robot.SKID_STEER_TRACK_FACTORS`
+    (measured on flat ground by `ditch-drake calibrate`, docs/physics.md).
+    """
+    rates, factors = robot.SKID_STEER_TRACK_FACTORS
+    return robot.TRACK_M * float(np.interp(abs(w_radps), rates, factors))
+
+
+def wheel_speeds_radps(command: np.ndarray, wheel_is_left: np.ndarray) -> np.ndarray:
+    """Wheel speeds (rad/s) for command [v m/s, w rad/s]; a left turn slows the left side."""
+    v, w = float(command[0]), float(command[1])
+    half_track = effective_track_m(w) / 2
+    sides = np.where(wheel_is_left, -1.0, 1.0)
+    return (v + sides * w * half_track) / robot.WHEEL_RADIUS_M
+
+
+class SkidSteerDrive(LeafSystem):
+    """Turns a body command into desired wheel states for the plant's wheel PD.
+
+    The wheels are velocity-controlled by the plant's own PD actuators (p = 0,
+    d = `robot.WHEEL_SPEED_GAIN_NMS`, torque limited to `robot.WHEEL_TORQUE_LIMIT_NM`),
+    so this block only maps kinematics. Its output depends on the command alone,
+    so Drake's cache recomputes it only when the command changes (at the control
+    rate), not at every physics step that pulls it.
+
+    .. pydrake_system::
+
+        name: SkidSteerDrive
+        input_ports:
+        - command
+        output_ports:
+        - wheel_desired_state
+
+    Ports:
+        command: [v (m/s, forward), w (rad/s, counter-clockwise seen from above)].
+        wheel_desired_state: [q_d (rad) x n, v_d (rad/s) x n] for the n wheel
+            actuators, in the plant's actuator order; q_d is zero (unused at p = 0).
+    """
+
+    def __init__(self, wheel_is_left: list[bool]):
+        """Args:
+            wheel_is_left: for each wheel actuator, in the plant's actuator order,
+                whether it is on the left side.
+        """
+        super().__init__()
+        self._wheel_is_left = np.asarray(wheel_is_left, dtype=bool)
+        count = len(self._wheel_is_left)
+        self._command_port = self.DeclareVectorInputPort("command", 2)
+        self.DeclareVectorOutputPort(
+            "wheel_desired_state", 2 * count, self._calc_desired_state,
+            prerequisites_of_calc={self._command_port.ticket()})
+
+    def _calc_desired_state(self, context, output: BasicVector) -> None:
+        command = self._command_port.Eval(context)
+        if not np.all(np.isfinite(command)):
+            raise ValueError(f"command {command} must be finite [v m/s, w rad/s]")
+        speeds = wheel_speeds_radps(command, self._wheel_is_left)
+        output.SetFromVector(np.concatenate([np.zeros_like(speeds), speeds]))

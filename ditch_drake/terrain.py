@@ -1,0 +1,425 @@
+"""One parametric family of negative-obstacle terrain (SPEC "Terrain").
+
+A ditch is everything within some distance of a *course*: a polyline in the ground
+plane (a straight line, a sine, or a single point for a round crater). The terrain
+height depends only on the planar distance d to the course, through a
+cross-section profile: a flat bottom for d <= bottom half-width, a rounded toe, a
+straight wall at the slope angle, a rounded hinge, and flat ground beyond.
+
+The same description gives
+- analytic queries (height, surface normal, distance and direction to the course,
+  edge lines) for drivers, tests and analysis, and
+- collision and visual geometry: rotated `Box` pieces swept along the course
+  segments and revolved around its bends and ends, a floor box, and flat-ground
+  boxes. Boxes under point contact are exact and fast; a terrain `Mesh` would
+  collide as its convex hull (docs/physics.md).
+
+A new shape is a new `TerrainParams`, not new code.
+"""
+
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+COURSE_KINDS = ("line", "sine", "point")
+
+
+class TerrainError(ValueError):
+    """A terrain parameter is out of its allowed range."""
+
+
+@dataclass
+class TerrainParams:
+    """Parameters of one ditch (lengths in m, angles in degrees).
+
+    Attributes:
+        course: "line" (straight ditch along x), "sine" (course y = A sin(2 pi x / L_w))
+            or "point" (a round crater centred on the origin).
+        length_m: length of the course along x ("line" and "sine").
+        sine_amplitude_m: A, for "sine".
+        sine_wavelength_m: L_w, for "sine".
+        bottom_width_m: width of the flat bottom (the crater's bottom diameter).
+        depth_m: depth below the surrounding ground.
+        slope_deg: wall angle from horizontal.
+        hinge_radius_m: rounding radius of the top edge (the hinge line).
+        toe_radius_m: rounding radius of the bottom edge.
+        arc_facets: flat facets per rounded edge in the collision geometry.
+        max_turn_deg: largest heading change between course segments, and the
+            angular width of the pieces revolved around bends and ends.
+        field_margin_m: flat ground kept around the ditch's outer edge.
+    """
+
+    course: str = "line"
+    length_m: float = 30.0
+    sine_amplitude_m: float = 0.0
+    sine_wavelength_m: float = 30.0
+    bottom_width_m: float = 4.0
+    depth_m: float = 4.0
+    slope_deg: float = 55.0
+    hinge_radius_m: float = 0.5
+    toe_radius_m: float = 0.5
+    arc_facets: int = 4
+    max_turn_deg: float = 6.0
+    field_margin_m: float = 20.0
+
+    def validate(self) -> None:
+        """Raises TerrainError naming the first parameter out of range."""
+
+        def fail(name, value, allowed):
+            raise TerrainError(f"terrain parameter {name}={value!r} is out of range: expected {allowed}")
+
+        if self.course not in COURSE_KINDS:
+            fail("course", self.course, f"one of {COURSE_KINDS}")
+        for name in ("length_m", "sine_amplitude_m", "sine_wavelength_m", "bottom_width_m", "depth_m",
+                     "slope_deg", "hinge_radius_m", "toe_radius_m", "max_turn_deg", "field_margin_m"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, float)) or not math.isfinite(value):
+                fail(name, value, "a finite number")
+        if not 0.0 < self.slope_deg < 90.0:
+            fail("slope_deg", self.slope_deg, "0 < slope_deg < 90")
+        if self.depth_m <= 0.0:
+            fail("depth_m", self.depth_m, "depth_m > 0")
+        if self.bottom_width_m < 0.0:
+            fail("bottom_width_m", self.bottom_width_m, "bottom_width_m >= 0")
+        if self.course == "point" and self.bottom_width_m <= 0.0:
+            fail("bottom_width_m", self.bottom_width_m, "bottom_width_m > 0 for a crater")
+        if self.hinge_radius_m < 0.0:
+            fail("hinge_radius_m", self.hinge_radius_m, "hinge_radius_m >= 0")
+        if self.toe_radius_m < 0.0:
+            fail("toe_radius_m", self.toe_radius_m, "toe_radius_m >= 0")
+        if self.course != "point" and self.length_m <= 0.0:
+            fail("length_m", self.length_m, "length_m > 0")
+        if not isinstance(self.arc_facets, int) or not 1 <= self.arc_facets <= 16:
+            fail("arc_facets", self.arc_facets, "an integer in [1, 16]")
+        if not 0.5 <= self.max_turn_deg <= 15.0:
+            fail("max_turn_deg", self.max_turn_deg, "0.5 <= max_turn_deg <= 15")
+        if self.field_margin_m < 1.0:
+            fail("field_margin_m", self.field_margin_m, "field_margin_m >= 1")
+        rounding_drop = (self.hinge_radius_m + self.toe_radius_m) * (1 - math.cos(math.radians(self.slope_deg)))
+        if rounding_drop >= self.depth_m:
+            fail("hinge_radius_m + toe_radius_m", self.hinge_radius_m + self.toe_radius_m,
+                 f"small enough that the rounded edges drop less than depth_m={self.depth_m} "
+                 f"(they drop {rounding_drop:.3f} m)")
+        if self.course == "sine":
+            if self.sine_amplitude_m < 0.0:
+                fail("sine_amplitude_m", self.sine_amplitude_m, "sine_amplitude_m >= 0")
+            if self.sine_wavelength_m <= 0.0:
+                fail("sine_wavelength_m", self.sine_wavelength_m, "sine_wavelength_m > 0")
+            curvature = self.sine_amplitude_m * (2 * math.pi / self.sine_wavelength_m) ** 2
+            reach = self.bottom_width_m / 2 + _profile_width(self)
+            if curvature > 0 and 1.0 / curvature <= reach:
+                fail("sine_amplitude_m", self.sine_amplitude_m,
+                     f"a bend radius ({1 / curvature:.2f} m) larger than the ditch's half-width "
+                     f"({reach:.2f} m); lower the amplitude or lengthen the wavelength")
+
+
+def _profile_width(params: TerrainParams) -> float:
+    """Horizontal distance from the bottom's edge to the end of the hinge (m)."""
+    alpha = math.radians(params.slope_deg)
+    rounding = (params.hinge_radius_m + params.toe_radius_m)
+    wall_drop = params.depth_m - rounding * (1 - math.cos(alpha))
+    return rounding * math.sin(alpha) + wall_drop / math.tan(alpha)
+
+
+@dataclass(frozen=True)
+class BoxPiece:
+    """One collision/visual box: size (m), pose (rotation matrix R_WP, centre p_WP)."""
+
+    size: np.ndarray
+    R_WP: np.ndarray
+    p_WP: np.ndarray
+    kind: str  # "floor", "wall" or "ground", for colouring
+
+
+class DitchTerrain:
+    """Analytic terrain and its box-piece geometry for one `TerrainParams`."""
+
+    def __init__(self, params: TerrainParams):
+        params.validate()
+        self.params = params
+        self._alpha = math.radians(params.slope_deg)
+        self._half_bottom = params.bottom_width_m / 2
+        self._profile_s, self._profile_h = self._make_profile()
+        self.course_xy = self._make_course()
+        starts, ends = self.course_xy[:-1], self.course_xy[1:]
+        self._seg_start = starts
+        self._seg_vec = ends - starts
+        self._seg_len2 = np.maximum(np.sum(self._seg_vec**2, axis=1), 1e-300)
+
+    # ----- cross-section profile -------------------------------------------------
+    def _make_profile(self) -> tuple[np.ndarray, np.ndarray]:
+        """Breakpoints (s, h): s is distance outward from the bottom's edge."""
+        p, alpha = self.params, self._alpha
+        width = _profile_width(p)
+        thetas = np.linspace(0.0, alpha, p.arc_facets + 1)
+        toe = np.stack([p.toe_radius_m * np.sin(thetas), -p.depth_m + p.toe_radius_m * (1 - np.cos(thetas))], axis=1)
+        phis = thetas[::-1]
+        hinge = np.stack([width - p.hinge_radius_m * np.sin(phis), -p.hinge_radius_m * (1 - np.cos(phis))], axis=1)
+        points = np.concatenate([toe, hinge])
+        # Zero-radius edges repeat a breakpoint; drop the repeats.
+        keep = np.concatenate([[True], np.linalg.norm(np.diff(points, axis=0), axis=1) > 1e-9])
+        points = points[keep]
+        return points[:, 0], points[:, 1]
+
+    @property
+    def half_width_m(self) -> float:
+        """Distance from the course to the outer end of the hinge (m)."""
+        return self._half_bottom + float(self._profile_s[-1])
+
+    @property
+    def hinge_distance_m(self) -> float:
+        """Distance from the course where the ground starts to drop: the hinge line (m)."""
+        return self.half_width_m
+
+    @property
+    def toe_distance_m(self) -> float:
+        """Distance from the course where the bottom ends: the toe line (m)."""
+        return self._half_bottom
+
+    def profile_height(self, d: np.ndarray) -> np.ndarray:
+        """Height (m) at planar distance d (m) from the course."""
+        s = np.asarray(d, dtype=float) - self._half_bottom
+        return np.interp(s, self._profile_s, self._profile_h, left=-self.params.depth_m, right=0.0)
+
+    def profile_slope(self, d: np.ndarray) -> np.ndarray:
+        """dh/dd of the faceted profile (rises away from the course)."""
+        s = np.asarray(d, dtype=float) - self._half_bottom
+        slopes = np.diff(self._profile_h) / np.diff(self._profile_s)
+        index = np.searchsorted(self._profile_s, s, side="right") - 1
+        inside = (index >= 0) & (index < len(slopes))
+        return np.where(inside, slopes[np.clip(index, 0, len(slopes) - 1)], 0.0)
+
+    # ----- course ----------------------------------------------------------------
+    def _make_course(self) -> np.ndarray:
+        p = self.params
+        if p.course == "point":
+            return np.zeros((2, 2))  # a zero-length segment: distance to the origin
+        if p.course == "line" or p.sine_amplitude_m == 0.0:
+            return np.array([[-p.length_m / 2, 0.0], [p.length_m / 2, 0.0]])
+        k = 2 * math.pi / p.sine_wavelength_m
+        max_curvature = p.sine_amplitude_m * k**2
+        arc_length = p.length_m * math.sqrt(1 + (p.sine_amplitude_m * k) ** 2)
+        count = max(2, math.ceil(arc_length * max_curvature / math.radians(p.max_turn_deg)))
+        x = np.linspace(-p.length_m / 2, p.length_m / 2, count + 1)
+        return np.stack([x, p.sine_amplitude_m * np.sin(k * x)], axis=1)
+
+    def nearest_on_course(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Returns (d, c): distance (m) and nearest course point for points (..., 2)."""
+        xy = np.asarray(xy, dtype=float)
+        flat = xy.reshape(-1, 2)
+        rel = flat[:, None, :] - self._seg_start[None, :, :]
+        t = np.clip(np.einsum("nmk,mk->nm", rel, self._seg_vec) / self._seg_len2, 0.0, 1.0)
+        closest = self._seg_start[None] + t[..., None] * self._seg_vec[None]
+        dist2 = np.sum((flat[:, None, :] - closest) ** 2, axis=2)
+        best = np.argmin(dist2, axis=1)
+        rows = np.arange(len(flat))
+        d = np.sqrt(dist2[rows, best])
+        c = closest[rows, best]
+        return d.reshape(xy.shape[:-1]), c.reshape(xy.shape)
+
+    def away_from_course(self, xy: np.ndarray) -> np.ndarray:
+        """Unit horizontal direction from the nearest course point to xy (..., 2).
+
+        This is the direction in which the terrain rises on the walls; the edge
+        runs perpendicular to it. On the course itself it is undefined and +y is
+        returned.
+        """
+        xy = np.asarray(xy, dtype=float)
+        d, c = self.nearest_on_course(xy)
+        delta = xy - c
+        safe = d[..., None] > 1e-9
+        return np.where(safe, delta / np.maximum(d[..., None], 1e-9), np.array([0.0, 1.0]))
+
+    # ----- analytic queries ------------------------------------------------------
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        """Terrain height z (m) at points xy (..., 2)."""
+        d, _ = self.nearest_on_course(xy)
+        return self.profile_height(d)
+
+    def normal(self, xy: np.ndarray) -> np.ndarray:
+        """Unit upward surface normal (..., 3) at points xy (..., 2)."""
+        xy = np.asarray(xy, dtype=float)
+        d, _ = self.nearest_on_course(xy)
+        n = self.away_from_course(xy)
+        slope = self.profile_slope(d)[..., None]
+        normal = np.concatenate([-slope * n, np.ones(slope.shape)], axis=-1)
+        return normal / np.linalg.norm(normal, axis=-1, keepdims=True)
+
+    def edge_tangent(self, xy: np.ndarray) -> np.ndarray:
+        """Unit horizontal direction along the local edge (..., 2): `away` turned +90 deg."""
+        n = self.away_from_course(xy)
+        return np.stack([-n[..., 1], n[..., 0]], axis=-1)
+
+    def edge_lines(self, which: str = "hinge", spacing_m: float = 0.25) -> list[np.ndarray]:
+        """Polylines (K, 2) at the hinge (top edge) or toe (bottom edge) distance."""
+        if which not in ("hinge", "toe"):
+            raise TerrainError(f"edge line {which!r} is unknown: expected 'hinge' or 'toe'")
+        radius = self.hinge_distance_m if which == "hinge" else self.toe_distance_m
+        samples = self._sample_level_set(radius, spacing_m)
+        return [samples]
+
+    def _sample_level_set(self, radius: float, spacing_m: float) -> np.ndarray:
+        """Points at distance `radius` from the course, in order around it."""
+        points = []
+        course = self.course_xy
+        if self.params.course == "point":
+            count = max(8, math.ceil(2 * math.pi * radius / spacing_m))
+            phi = np.linspace(0, 2 * math.pi, count, endpoint=False)
+            return radius * np.stack([np.cos(phi), np.sin(phi)], axis=1)
+        dense = []
+        for a, b in zip(course[:-1], course[1:]):
+            count = max(1, math.ceil(np.linalg.norm(b - a) / spacing_m))
+            dense.append(a + np.linspace(0, 1, count, endpoint=False)[:, None] * (b - a))
+        dense.append(course[-1:])
+        dense = np.concatenate(dense)
+        tangents = np.gradient(dense, axis=0)
+        tangents /= np.linalg.norm(tangents, axis=1, keepdims=True)
+        left = np.stack([-tangents[:, 1], tangents[:, 0]], axis=1)
+        cap_count = max(4, math.ceil(math.pi * radius / spacing_m))
+        end_heading = math.atan2(tangents[-1, 1], tangents[-1, 0])
+        start_heading = math.atan2(tangents[0, 1], tangents[0, 0])
+        end_cap = dense[-1] + radius * np.stack(
+            [np.cos(end_heading - np.pi / 2 + np.linspace(0, np.pi, cap_count)),
+             np.sin(end_heading - np.pi / 2 + np.linspace(0, np.pi, cap_count))], axis=1)
+        start_cap = dense[0] + radius * np.stack(
+            [np.cos(start_heading + np.pi / 2 + np.linspace(0, np.pi, cap_count)),
+             np.sin(start_heading + np.pi / 2 + np.linspace(0, np.pi, cap_count))], axis=1)
+        points = np.concatenate([dense - radius * left, end_cap, (dense + radius * left)[::-1], start_cap])
+        return points
+
+    # ----- geometry --------------------------------------------------------------
+    def bounds_xy(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper corners of the flat field around the ditch (m)."""
+        reach = self.half_width_m + self.params.field_margin_m
+        return self.course_xy.min(axis=0) - reach, self.course_xy.max(axis=0) + reach
+
+    def box_pieces(self, ground_cell_m: float = 1.0, thickness_m: float = 0.5) -> list[BoxPiece]:
+        """The collision/visual geometry: boxes whose upper faces form the terrain."""
+        pieces = self._floor_piece()
+        # The profile pieces reach past the hinge far enough to close the staircase
+        # gap left by the flat-ground cells.
+        flat_reach = ground_cell_m * math.sqrt(2.0) + 0.05
+        d_breaks = np.concatenate([self._half_bottom + self._profile_s, [self.half_width_m + flat_reach]])
+        h_breaks = np.concatenate([self._profile_h, [0.0]])
+        facets = [(d_breaks[i], d_breaks[i + 1], h_breaks[i], h_breaks[i + 1]) for i in range(len(d_breaks) - 1)]
+        course = self.course_xy
+        segments = [(a, b) for a, b in zip(course[:-1], course[1:]) if np.linalg.norm(b - a) > 1e-9]
+        headings = [math.atan2(*(b - a)[::-1]) for a, b in segments]
+        for (a, b), heading in zip(segments, headings):
+            for side in (+1.0, -1.0):
+                normal_angle = heading + side * math.pi / 2
+                for facet in facets:
+                    pieces.append(_swept_piece(a, b, normal_angle, facet, thickness_m))
+        step = math.radians(self.params.max_turn_deg)
+        if not segments:  # a crater: revolve the profile all the way round
+            pieces += _revolved_pieces(course[0], 0.0, 2 * math.pi, step, facets, thickness_m)
+        else:
+            # Ends: half turns; bends: the wedge on the outer side.
+            pieces += _revolved_pieces(segments[0][0], headings[0] + math.pi / 2, math.pi, step, facets, thickness_m)
+            pieces += _revolved_pieces(segments[-1][1], headings[-1] - math.pi / 2, math.pi, step, facets, thickness_m)
+            for i in range(1, len(segments)):
+                turn = _wrap(headings[i] - headings[i - 1])
+                if abs(turn) < 1e-9:
+                    continue
+                # A left turn opens a wedge on the right side, a right turn on the left.
+                if turn > 0:
+                    start = headings[i - 1] - math.pi / 2
+                else:
+                    start = headings[i - 1] + math.pi / 2 + turn
+                pieces += _revolved_pieces(segments[i][0], start, abs(turn), step, facets, thickness_m)
+        pieces += self._ground_pieces(ground_cell_m)
+        return pieces
+
+    def _floor_piece(self) -> list[BoxPiece]:
+        low, high = self.course_xy.min(axis=0) - self.half_width_m, self.course_xy.max(axis=0) + self.half_width_m
+        size = np.array([*(high - low), 1.0])
+        center = np.array([*(low + high) / 2, -self.params.depth_m - 0.5])
+        return [BoxPiece(size, np.eye(3), center, "floor")]
+
+    def _ground_pieces(self, cell: float) -> list[BoxPiece]:
+        """Flat ground everywhere the ditch does not reach, merged into few boxes."""
+        low, high = self.bounds_xy()
+        nx, ny = (np.ceil((high - low) / cell)).astype(int)
+        xs = low[0] + (np.arange(nx) + 0.5) * cell
+        ys = low[1] + (np.arange(ny) + 0.5) * cell
+        grid = np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1)
+        d, _ = self.nearest_on_course(grid)
+        flat = d >= self.half_width_m + cell / math.sqrt(2.0)
+        # Runs of flat cells along each row, then identical runs stacked over rows.
+        runs: dict[tuple[int, int], list[int]] = {}
+        for row in range(ny):
+            padded = np.concatenate([[False], flat[row], [False]])
+            changes = np.flatnonzero(np.diff(padded.astype(int)))
+            for begin, end in zip(changes[::2], changes[1::2]):
+                runs.setdefault((begin, end), []).append(row)
+        pieces = []
+        for (begin, end), rows in runs.items():
+            rows = np.array(rows)
+            breaks = np.flatnonzero(np.diff(rows) > 1)
+            for block in np.split(rows, breaks + 1):
+                x0, x1 = low[0] + begin * cell, low[0] + end * cell
+                y0, y1 = low[1] + block[0] * cell, low[1] + (block[-1] + 1) * cell
+                pieces.append(BoxPiece(np.array([x1 - x0, y1 - y0, 1.0]), np.eye(3),
+                                       np.array([(x0 + x1) / 2, (y0 + y1) / 2, -0.5]), "ground"))
+        return pieces
+
+    def pieces_height(self, xy: np.ndarray, pieces: list[BoxPiece] | None = None) -> np.ndarray:
+        """Height of the union of box pieces' upper faces at points xy (N, 2).
+
+        Used by tests to check the collision geometry against `height`.
+        """
+        pieces = self.box_pieces() if pieces is None else pieces
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        top = np.full(len(xy), -np.inf)
+        for piece in pieces:
+            normal = piece.R_WP[:, 2]
+            if normal[2] < 1e-6:
+                continue
+            top_center = piece.p_WP + normal * piece.size[2] / 2
+            # Height of the top face's plane at xy, then keep points inside its footprint.
+            z = top_center[2] - (normal[0] * (xy[:, 0] - top_center[0]) + normal[1] * (xy[:, 1] - top_center[1])) / normal[2]
+            p = np.column_stack([xy, z]) - top_center
+            local = p @ piece.R_WP
+            inside = (np.abs(local[:, 0]) <= piece.size[0] / 2 + 1e-9) & (np.abs(local[:, 1]) <= piece.size[1] / 2 + 1e-9)
+            top = np.where(inside, np.maximum(top, z), top)
+        return top
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2 * math.pi) - math.pi
+
+
+def _facet_piece(origin: np.ndarray, normal_angle: float, facet, along_m: float, thickness_m: float) -> BoxPiece:
+    """A box whose top face spans distances [d0, d1] from `origin` along a
+    horizontal direction at `normal_angle`, rising from h0 to h1, `along_m` long."""
+    d0, d1, h0, h1 = facet
+    n = np.array([math.cos(normal_angle), math.sin(normal_angle)])
+    uphill = np.array([n[0] * (d1 - d0), n[1] * (d1 - d0), h1 - h0])
+    width = float(np.linalg.norm(uphill))
+    uphill /= width
+    up = np.array([-n[0] * (h1 - h0), -n[1] * (h1 - h0), d1 - d0])
+    up /= np.linalg.norm(up)
+    R = np.column_stack([np.cross(uphill, up), uphill, up])
+    top_center = np.array([*(origin + n * (d0 + d1) / 2), (h0 + h1) / 2])
+    return BoxPiece(np.array([along_m, width, thickness_m]), R, top_center - up * thickness_m / 2, "wall")
+
+
+def _swept_piece(a, b, normal_angle, facet, thickness_m) -> BoxPiece:
+    length = float(np.linalg.norm(b - a))
+    return _facet_piece((a + b) / 2, normal_angle, facet, length + 0.01, thickness_m)
+
+
+def _revolved_pieces(center, start_angle, sweep, step, facets, thickness_m) -> list[BoxPiece]:
+    count = max(1, math.ceil(sweep / step - 1e-9))
+    width = sweep / count
+    pieces = []
+    for k in range(count):
+        angle = start_angle + (k + 0.5) * width
+        for facet in facets:
+            # The chord at the outer radius, so that neighbours leave no gap.
+            along = 2 * facet[1] * math.tan(width / 2) + 0.01
+            pieces.append(_facet_piece(np.asarray(center), angle, facet, along, thickness_m))
+    return pieces

@@ -1,0 +1,1 @@
+"""Robot models, installed as the package `ditch_drake.models_sdf` (see package.xml)."""
