@@ -37,8 +37,8 @@ TERRAIN_COLORS = {
 
 
 def DefaultPlantConfig() -> MultibodyPlantConfig:
-    """Point contact on box pieces with a 10 ms discrete step (docs/physics.md)."""
-    return MultibodyPlantConfig(time_step=0.01, contact_model="point", discrete_contact_approximation="lagged")
+    """Point contact on box pieces with a 20 ms discrete step (docs/physics.md)."""
+    return MultibodyPlantConfig(time_step=0.02, contact_model="point", discrete_contact_approximation="lagged")
 
 
 @dataclass
@@ -82,6 +82,7 @@ class DitchScene:
     terrain: DitchTerrain
     environment: Environment
     task: Task
+    episode: EpisodeConfig
 
 
 def models_package_xml() -> Path:
@@ -181,7 +182,7 @@ def AddDitchScene(builder: DiagramBuilder, config: SceneConfig, meshcat: Meshcat
 
     if meshcat is not None:
         ApplyVisualizationConfig(VisualizationConfig(publish_contacts=False), builder, meshcat=meshcat)
-    return DitchScene(plant, scene_graph, husky, drive, monitor, terrain, environment, task)
+    return DitchScene(plant, scene_graph, husky, drive, monitor, terrain, environment, task, config.episode)
 
 
 def MakeDitchDiagram(config: SceneConfig, meshcat: Meshcat | None = None) -> tuple[Diagram, DitchScene]:

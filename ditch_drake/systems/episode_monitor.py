@@ -64,22 +64,23 @@ class EpisodeOutcome:
 # Layout of the monitor's discrete state.
 _STATUS, _END_TIME, _PATH, _ROLL, _PITCH, _TILT, _MARGIN, _LAST_X, _LAST_Y, _ANCHOR_X, _ANCHOR_Y, _ANCHOR_T, _STARTED = range(13)
 _STATE_SIZE = 13
+# Static tip-over angles about the side and the front/rear wheel lines.
+_LATERAL_TIP_RAD = math.atan2(robot.TRACK_M / 2, robot.COM_HEIGHT_ABOVE_GROUND_M)
+_LONGITUDINAL_TIP_RAD = math.atan2(robot.WHEELBASE_M / 2, robot.COM_HEIGHT_ABOVE_GROUND_M)
 
 
-def stability_margins_rad(R_WB: np.ndarray) -> np.ndarray:
+def stability_margins_rad(R_WB: np.ndarray) -> list[float]:
     """Static tip-over margins (rad) about the left, right, front and rear wheel lines.
 
     A margin is how much further the chassis could lean toward that edge of the
     wheel support rectangle before the centre of mass passes over it; negative
     means it has passed.
     """
-    up_B = R_WB[2, :]  # The world's +z expressed in B.
-    lean_y = math.atan2(up_B[1], up_B[2])
-    lean_x = math.atan2(up_B[0], up_B[2])
-    height = robot.COM_HEIGHT_ABOVE_GROUND_M
-    lateral = math.atan2(robot.TRACK_M / 2, height)
-    longitudinal = math.atan2(robot.WHEELBASE_M / 2, height)
-    return np.array([lateral + lean_y, lateral - lean_y, longitudinal + lean_x, longitudinal - lean_x])
+    up_x, up_y, up_z = (float(value) for value in R_WB[2, :])  # The world's +z expressed in B.
+    lean_y = math.atan2(up_y, up_z)
+    lean_x = math.atan2(up_x, up_z)
+    return [_LATERAL_TIP_RAD + lean_y, _LATERAL_TIP_RAD - lean_y,
+            _LONGITUDINAL_TIP_RAD + lean_x, _LONGITUDINAL_TIP_RAD - lean_x]
 
 
 class EpisodeMonitor(LeafSystem):
@@ -107,7 +108,7 @@ class EpisodeMonitor(LeafSystem):
                  period_s: float = robot.CONTROL_PERIOD_S):
         super().__init__()
         self._chassis_index = int(chassis_body_index)
-        self._goal_xy = np.asarray(goal_xy, dtype=float)
+        self._goal_xy = (float(goal_xy[0]), float(goal_xy[1]))
         self._config = config
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         initial = np.zeros(_STATE_SIZE)
@@ -117,40 +118,40 @@ class EpisodeMonitor(LeafSystem):
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
 
     def _update(self, context, discrete_state):
-        old = context.get_discrete_state(self._state_index).get_value()
-        state = old.copy()
+        # Plain floats: this runs every control step of every rollout, and small
+        # numpy calls cost more than the arithmetic.
+        state = context.get_discrete_state(self._state_index).get_value().tolist()
         if state[_STATUS] != EpisodeStatus.RUNNING:
             return EventStatus.DidNothing()
         time = context.get_time()
         X_WB = self._poses_port.Eval(context)[self._chassis_index]
         R_WB = X_WB.rotation().matrix()
-        xy = X_WB.translation()[:2]
+        x, y = float(X_WB.translation()[0]), float(X_WB.translation()[1])
         rpy = RollPitchYaw(X_WB.rotation())
-        tilt = math.acos(float(np.clip(R_WB[2, 2], -1.0, 1.0)))
+        tilt = math.acos(min(1.0, max(-1.0, float(R_WB[2, 2]))))
         if not state[_STARTED]:
-            state[[_LAST_X, _LAST_Y, _ANCHOR_X, _ANCHOR_Y]] = [*xy, *xy]
+            state[_LAST_X], state[_LAST_Y], state[_ANCHOR_X], state[_ANCHOR_Y] = x, y, x, y
             state[_ANCHOR_T] = time
             state[_STARTED] = 1.0
-        state[_PATH] += np.linalg.norm(xy - state[[_LAST_X, _LAST_Y]])
-        state[[_LAST_X, _LAST_Y]] = xy
+        state[_PATH] += math.hypot(x - state[_LAST_X], y - state[_LAST_Y])
+        state[_LAST_X], state[_LAST_Y] = x, y
         state[_ROLL] = max(state[_ROLL], abs(rpy.roll_angle()))
         state[_PITCH] = max(state[_PITCH], abs(rpy.pitch_angle()))
         state[_TILT] = max(state[_TILT], tilt)
-        state[_MARGIN] = min(state[_MARGIN], float(np.min(stability_margins_rad(R_WB))))
-        if np.linalg.norm(xy - state[[_ANCHOR_X, _ANCHOR_Y]]) > self._config.stuck_distance_m:
-            state[[_ANCHOR_X, _ANCHOR_Y]] = xy
-            state[_ANCHOR_T] = time
+        state[_MARGIN] = min(state[_MARGIN], min(stability_margins_rad(R_WB)))
+        if math.hypot(x - state[_ANCHOR_X], y - state[_ANCHOR_Y]) > self._config.stuck_distance_m:
+            state[_ANCHOR_X], state[_ANCHOR_Y], state[_ANCHOR_T] = x, y, time
         config = self._config
         status = EpisodeStatus.RUNNING
         if tilt > math.radians(config.rollover_tilt_deg):
             status = EpisodeStatus.ROLLED_OVER
-        elif np.linalg.norm(xy - self._goal_xy) <= config.goal_radius_m:
+        elif math.hypot(x - self._goal_xy[0], y - self._goal_xy[1]) <= config.goal_radius_m:
             status = EpisodeStatus.REACHED_GOAL
         elif time >= config.time_limit_s:
             status = EpisodeStatus.TIMEOUT
         elif time - state[_ANCHOR_T] >= config.stuck_window_s:
             status = EpisodeStatus.STUCK
-        state[_STATUS] = status
+        state[_STATUS] = float(status)
         state[_END_TIME] = time
         discrete_state.set_value(self._state_index, state)
         if status != EpisodeStatus.RUNNING:

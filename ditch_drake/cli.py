@@ -1,0 +1,145 @@
+"""The `ditch-drake` command line."""
+
+import argparse
+import json
+import sys
+import time
+
+from ditch_drake.environments import ConfigError, environment_names
+from ditch_drake.terrain import TerrainError
+
+
+def _print_table(rows: list[dict], columns: list[str]) -> None:
+    widths = [max(len(column), *(len(str(row[column])) for row in rows)) for column in columns]
+    print("  ".join(column.ljust(width) for column, width in zip(columns, widths)))
+    for row in rows:
+        print("  ".join(str(row[column]).ljust(width) for column, width in zip(columns, widths)))
+
+
+def cmd_demo(args) -> int:
+    """The main job: the scripted drivers through one ditch, an outcome table."""
+    from pydrake.systems.analysis import Simulator
+
+    from ditch_drake.diagrams.ditch_scene import SceneConfig
+    from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+    from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
+
+    drivers = {
+        "shallow angle (20 deg down, 35 deg up)": EdgeAngleDriverConfig(),
+        "head-on (perpendicular to the edge)": EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None),
+    }
+    rows = []
+    for name, driver in drivers.items():
+        diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=args.env, task=args.task),
+                                                          controller=driver))
+        start = time.perf_counter()
+        outcome = RunEpisode(Simulator(diagram), diagram, scene, args.seed)
+        rows.append({"driver": name, "outcome": outcome.status, "sim_time_s": f"{outcome.time_s:.1f}",
+                     "path_m": f"{outcome.path_length_m:.1f}", "peak_tilt_deg": f"{outcome.peak_tilt_deg:.0f}",
+                     "wall_s": f"{time.perf_counter() - start:.1f}"})
+    print(f"environment {args.env}, task {scene.task.name}, seed {args.seed}")
+    _print_table(rows, ["driver", "outcome", "sim_time_s", "path_m", "peak_tilt_deg", "wall_s"])
+    return 0
+
+
+def cmd_view(args) -> int:
+    """Opens the scene in meshcat and drives it with the scripted driver in real time."""
+    from pydrake.geometry import StartMeshcat
+    from pydrake.systems.analysis import Simulator
+
+    from ditch_drake.diagrams.ditch_scene import SceneConfig
+    from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+
+    meshcat = StartMeshcat()
+    diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=args.env, task=args.task)),
+                                        meshcat=meshcat)
+    simulator = Simulator(diagram)
+    simulator.set_target_realtime_rate(args.realtime_rate)
+    print(f"meshcat: {meshcat.web_url()}  (Ctrl-C to stop)", flush=True)
+    try:
+        outcome = RunEpisode(simulator, diagram, scene, args.seed)
+        print(f"outcome: {outcome.status} after {outcome.time_s:.1f} s")
+        if args.wait:
+            input("press Enter to close")
+    except KeyboardInterrupt:
+        print("stopped")
+    return 0
+
+
+def cmd_calibrate(args) -> int:
+    from ditch_drake.calibration import CalibrationConfig, run_calibration
+
+    config = CalibrationConfig(trials=args.trials, seed=args.seed, workers=args.workers)
+    if args.time_step is not None:
+        config.time_step_s = args.time_step
+    start = time.perf_counter()
+    report = run_calibration(config, args.env or None, progress=not args.json or sys.stderr.isatty())
+    report["wall_s"] = time.perf_counter() - start
+    text = json.dumps(report, indent=None if args.json else 2)
+    print(text)
+    return 0 if report["all_ok"] else 1
+
+
+def cmd_bench(args) -> int:
+    from ditch_drake.bench import run_bench
+
+    figures = run_bench(args.env or None)
+    if args.json:
+        print(json.dumps(figures))
+    else:
+        _print_table([{"figure": key, "value": f"{value:.3f}"} for key, value in figures.items()], ["figure", "value"])
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="ditch-drake", description=__doc__)
+    commands = parser.add_subparsers(dest="command", required=True)
+
+    def add_env(sub, many=False):
+        if many:
+            sub.add_argument("--env", action="append", metavar="NAME",
+                             help=f"environment (repeatable; default: all of {environment_names()})")
+        else:
+            sub.add_argument("--env", default="wide", metavar="NAME", help=f"one of {environment_names()}")
+
+    demo = commands.add_parser("demo", help="the main job: scripted drivers through a ditch, outcome table")
+    add_env(demo)
+    demo.add_argument("--task", type=int, default=1)
+    demo.add_argument("--seed", type=int, default=0)
+    demo.set_defaults(run=cmd_demo)
+
+    view = commands.add_parser("view", help="open the scene in meshcat and drive through it")
+    add_env(view)
+    view.add_argument("--task", type=int, default=0)
+    view.add_argument("--seed", type=int, default=0)
+    view.add_argument("--realtime-rate", type=float, default=1.0)
+    view.add_argument("--wait", action="store_true", help="keep meshcat open until Enter")
+    view.set_defaults(run=cmd_view)
+
+    calibrate = commands.add_parser("calibrate", help="the physics calibration benchmark (exit 1 if it falls short)")
+    add_env(calibrate, many=True)
+    calibrate.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    calibrate.add_argument("--trials", type=int, default=10)
+    calibrate.add_argument("--seed", type=int, default=0)
+    calibrate.add_argument("--workers", type=int, default=0, help="processes (0: one per core)")
+    calibrate.add_argument("--time-step", type=float, default=None, help="plant step in s (default: the scene's)")
+    calibrate.set_defaults(run=cmd_calibrate)
+
+    bench = commands.add_parser("bench", help="speed and memory figures")
+    add_env(bench, many=True)
+    bench.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    bench.set_defaults(run=cmd_bench)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.run(args)
+    except (ConfigError, TerrainError) as error:
+        print(f"ditch-drake: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Perception: turning the lidar's point cloud into the network's surface-normal image."""

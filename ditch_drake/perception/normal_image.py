@@ -1,0 +1,347 @@
+"""The surface-normal image (paper section 3.1; SPEC "State"), in plain numpy/scipy.
+
+The lidar's cloud becomes a 128 x 128 image whose pixels are the z component of the
+terrain's surface normals: 1 on level ground, cos(t) on a slope of t, 0 on a vertical
+wall and where no point is in reach. The steps follow the paper: normalize the cloud
+into the unit ball; estimate a normal for every point, oriented up (+z); project the
+points to the x-y plane; lay a regular grid over it; each pixel is the inverse-distance
+weighted mean of the normals' z components of the points within a radius of its grid
+point.
+
+Normalizing scales x, y and z alike, so it does not turn normals: they are estimated on
+the metric cloud and reused on the normalized one, and a plane tilted by t reads cos(t).
+
+Image layout (for an input cloud in a frame with +x forward, +y left, +z up, e.g. the
+robot's body frame B): pixel (row r, column c) sits at the grid point
+
+    x = x_max - r * (x_max - x_min) / (rows - 1)
+    y = y_max - c * (y_max - y_min) / (cols - 1)
+
+of the normalized x-y plane: row 0 is farthest ahead (+x), column 0 leftmost (+y). Shown
+with row 0 at the top, the image is the terrain ahead seen from above, forward up and
+left on the left. Flattened, it is row-major (index r * cols + c).
+
+Two normal estimators:
+- `estimate_normals_organized`: the fast path for an organized cloud (the pixels of a
+  depth image), from the cross product of differences to pixel neighbours.
+- `estimate_normals_pca`: the reference, principal component analysis of the k nearest
+  neighbours (any cloud).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+# SPEC: the image is N x M = 128 x 128.
+IMAGE_SHAPE = (128, 128)
+NORMAL_METHODS = ("organized", "pca")
+DEFAULT_PCA_K = 12
+# The inverse-distance weight is 1 / (d^2 + (s * spacing)^2)^(p/2), with s this fraction
+# of the grid spacing, so that a point lying on a grid point does not take it over alone.
+_IDW_SOFTENING = 0.25
+
+
+@dataclass
+class NormalImageConfig:
+    """How the surface-normal image is made (lengths in the unit ball's normalized units).
+
+    Attributes:
+        rows: image height N (grid points along x).
+        cols: image width M (grid points along y).
+        radius: neighbourhood radius around each grid point; points farther away do not
+            contribute. The default is about 2.5 grid spacings of the default grid.
+        x_min: grid extent along the normalized x axis (row rows - 1 sits at x_min).
+        x_max: row 0 sits at x_max.
+        y_min: column cols - 1 sits at y_min.
+        y_max: column 0 sits at y_max.
+        normal_method: "organized" (the cloud is the pixels of a depth image; fast) or
+            "pca" (k-nearest-neighbour PCA; any cloud; the reference).
+        pca_k: neighbours per point for "pca" (at least 3).
+        idw_power: exponent p of the inverse-distance weights 1 / d^p.
+        discontinuity_ratio: for "organized", a central difference is used only when the
+            two one-sided differences' lengths differ by at most this factor; otherwise
+            the shorter one is (it does not straddle a depth jump).
+    """
+
+    rows: int = IMAGE_SHAPE[0]
+    cols: int = IMAGE_SHAPE[1]
+    radius: float = 0.04
+    x_min: float = -1.0
+    x_max: float = 1.0
+    y_min: float = -1.0
+    y_max: float = 1.0
+    normal_method: str = "organized"
+    pca_k: int = DEFAULT_PCA_K
+    idw_power: float = 2.0
+    discontinuity_ratio: float = 3.0
+
+    def __post_init__(self):
+        if self.rows < 2 or self.cols < 2:
+            raise ValueError(f"image shape ({self.rows}, {self.cols}) must be at least (2, 2)")
+        if not self.radius > 0.0:
+            raise ValueError(f"radius {self.radius} must be > 0")
+        if not (self.x_max > self.x_min and self.y_max > self.y_min):
+            raise ValueError(f"empty grid extent x [{self.x_min}, {self.x_max}], y [{self.y_min}, {self.y_max}]")
+        if self.normal_method not in NORMAL_METHODS:
+            raise ValueError(f"normal_method {self.normal_method!r} is not one of {NORMAL_METHODS}")
+        if self.pca_k < 3:
+            raise ValueError(f"pca_k {self.pca_k} must be >= 3")
+        if not self.idw_power >= 0.0:
+            raise ValueError(f"idw_power {self.idw_power} must be >= 0")
+        if not self.discontinuity_ratio >= 1.0:
+            raise ValueError(f"discontinuity_ratio {self.discontinuity_ratio} must be >= 1")
+
+    @property
+    def spacing(self) -> tuple[float, float]:
+        """The grid spacing (dx between rows, dy between columns), normalized units."""
+        return ((self.x_max - self.x_min) / (self.rows - 1), (self.y_max - self.y_min) / (self.cols - 1))
+
+
+def _as_points(points, name: str = "points") -> np.ndarray:
+    """Returns `points` as a float64 (N, 3) array; raises ValueError on another shape."""
+    array = np.asarray(points, dtype=np.float64)
+    if array.ndim == 1 and array.size == 0:
+        return array.reshape(0, 3)
+    if array.ndim != 2 or array.shape[1] != 3:
+        raise ValueError(f"{name} has shape {array.shape}; expected (N, 3)")
+    return array
+
+
+def normalize_to_unit_ball(points: np.ndarray) -> np.ndarray:
+    """Moves a cloud's centroid to the origin and scales it to fit the unit ball.
+
+    Args:
+        points: (N, 3) points. Rows with a NaN or inf are left out of the centroid and
+            the scale and come back as NaN.
+
+    Returns:
+        (N, 3) points, centroid at 0, largest norm 1 (the same scale on x, y and z).
+        A single point or a cloud with no extent comes back as zeros.
+
+    Raises:
+        ValueError: `points` is not (N, 3).
+    """
+    points = _as_points(points)
+    out = np.full_like(points, np.nan)
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.any():
+        return out
+    good = points[finite]
+    centered = good - good.mean(axis=0)
+    scale = np.sqrt((centered * centered).sum(axis=1).max())
+    out[finite] = centered / scale if scale > 0.0 else 0.0
+    return out
+
+
+def _orient_up(normals: np.ndarray) -> np.ndarray:
+    """Flips the (..., 3) unit normals with n_z < 0, in place; returns them."""
+    normals *= np.where(normals[..., 2:3] < 0.0, -1.0, 1.0)
+    return normals
+
+
+def estimate_normals_pca(points: np.ndarray, k: int = DEFAULT_PCA_K) -> np.ndarray:
+    """Estimates unit normals by PCA of each point's k nearest neighbours (the reference).
+
+    The normal is the eigenvector of the neighbourhood covariance with the smallest
+    eigenvalue, oriented so that n_z >= 0.
+
+    Args:
+        points: (N, 3) points; rows with a NaN or inf are ignored.
+        k: neighbours per point, itself included (at least 3; fewer when the cloud is smaller).
+
+    Returns:
+        (N, 3) unit normals; NaN for non-finite points, for clouds of fewer than 3 finite
+        points and where the neighbourhood is degenerate (collinear or coincident points).
+
+    Raises:
+        ValueError: `points` is not (N, 3) or k < 3.
+    """
+    points = _as_points(points)
+    if k < 3:
+        raise ValueError(f"k {k} must be >= 3")
+    normals = np.full_like(points, np.nan)
+    finite = np.isfinite(points).all(axis=1)
+    good = points[finite]
+    if len(good) < 3:
+        return normals
+    _, index = cKDTree(good).query(good, k=min(k, len(good)))
+    neighbours = good[index]
+    centered = neighbours - neighbours.mean(axis=1, keepdims=True)
+    covariance = np.einsum("nki,nkj->nij", centered, centered)
+    eigenvalues, eigenvectors = np.linalg.eigh(covariance)
+    estimate = _orient_up(eigenvectors[:, :, 0].copy())
+    degenerate = eigenvalues[:, 1] <= 1e-12 * np.maximum(eigenvalues[:, 2], np.finfo(float).tiny)
+    estimate[degenerate] = np.nan
+    normals[finite] = estimate
+    return normals
+
+
+def _tangent(grid: np.ndarray, axis: int, ratio: float) -> np.ndarray:
+    """Differences to the pixel neighbours along `axis` (0: rows, 1: columns).
+
+    Central where both neighbours are valid and about equally far; otherwise the shorter
+    valid one-sided difference; NaN where neither neighbour is valid.
+    """
+    pad = [(0, 0)] * 3
+    pad[axis] = (1, 1)
+    padded = np.pad(grid, pad, constant_values=np.nan)
+    forward = padded[2:] - grid if axis == 0 else padded[:, 2:] - grid
+    backward = grid - padded[:-2] if axis == 0 else grid - padded[:, :-2]
+    forward_sq = np.einsum("...i,...i->...", forward, forward)
+    backward_sq = np.einsum("...i,...i->...", backward, backward)
+    with np.errstate(invalid="ignore"):
+        forward_ok = forward_sq > 0.0
+        backward_ok = backward_sq > 0.0
+        use_forward = forward_ok & ~(backward_ok & (backward_sq < forward_sq))
+        central = forward_ok & backward_ok & (
+            np.maximum(forward_sq, backward_sq) <= ratio * ratio * np.minimum(forward_sq, backward_sq))
+    tangent = np.where(use_forward[..., None], forward, backward)
+    np.add(forward, backward, out=tangent, where=central[..., None])
+    return tangent
+
+
+def estimate_normals_organized(points_grid: np.ndarray, discontinuity_ratio: float = 3.0) -> np.ndarray:
+    """Estimates unit normals of an organized cloud from its pixel neighbours (the fast path).
+
+    The normal at a pixel is the cross product of its tangents along the rows and the
+    columns: central differences of the neighbouring pixels, one-sided at the image
+    border, next to pixels without a return, and across depth jumps (where the two
+    one-sided differences' lengths differ by more than `discontinuity_ratio`).
+
+    Args:
+        points_grid: (H, W, 3) points, one per depth-image pixel; NaN (or inf) where the
+            pixel has no return.
+        discontinuity_ratio: see `NormalImageConfig.discontinuity_ratio`.
+
+    Returns:
+        (H, W, 3) unit normals oriented so that n_z >= 0; NaN where a pixel has no return,
+        no valid neighbour along the rows or the columns, or parallel tangents.
+
+    Raises:
+        ValueError: `points_grid` is not (H, W, 3).
+    """
+    grid = np.asarray(points_grid, dtype=np.float64)
+    if grid.ndim != 3 or grid.shape[2] != 3:
+        raise ValueError(f"points_grid has shape {grid.shape}; expected (H, W, 3)")
+    grid = np.where(np.isfinite(grid).all(axis=2, keepdims=True), grid, np.nan)
+    down = _tangent(grid, 0, discontinuity_ratio)
+    right = _tangent(grid, 1, discontinuity_ratio)
+    normals = np.empty_like(grid)
+    normals[..., 0] = down[..., 1] * right[..., 2] - down[..., 2] * right[..., 1]
+    normals[..., 1] = down[..., 2] * right[..., 0] - down[..., 0] * right[..., 2]
+    normals[..., 2] = down[..., 0] * right[..., 1] - down[..., 1] * right[..., 0]
+    norm = np.sqrt(np.einsum("...i,...i->...", normals, normals))
+    scale = np.sqrt(np.einsum("...i,...i->...", down, down) * np.einsum("...i,...i->...", right, right))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        good = norm > 1e-9 * scale
+        normals /= np.where(good, norm, np.nan)[..., None]
+    return _orient_up(normals)
+
+
+def _stencil(config: NormalImageConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column offsets from a point's nearest grid point that can be in reach."""
+    dx, dy = config.spacing
+    row_reach = int(np.floor(config.radius / dx + 0.5))
+    col_reach = int(np.floor(config.radius / dy + 0.5))
+    return np.arange(-row_reach, row_reach + 1), np.arange(-col_reach, col_reach + 1)
+
+
+def _splat(xy: np.ndarray, values: np.ndarray, config: NormalImageConfig) -> np.ndarray:
+    """Inverse-distance weighted image of `values` at normalized `xy` (see module doc)."""
+    rows, cols = config.rows, config.cols
+    dx, dy = config.spacing
+    row_offsets, col_offsets = _stencil(config)
+    row_f = (config.x_max - xy[:, 0]) / dx
+    col_f = (config.y_max - xy[:, 1]) / dy
+    row0 = np.rint(row_f)
+    col0 = np.rint(col_f)
+    # Each point's offsets to the grid points around its nearest one, squared (N, R), (N, C).
+    row_sq = ((row0 - row_f)[:, None] + row_offsets) ** 2 * (dx * dx)
+    col_sq = ((col0 - col_f)[:, None] + col_offsets) ** 2 * (dy * dy)
+    row_index = row0.astype(np.intp)[:, None] + row_offsets
+    col_index = col0.astype(np.intp)[:, None] + col_offsets
+    row_sq[(row_index < 0) | (row_index >= rows)] = np.inf
+    col_sq[(col_index < 0) | (col_index >= cols)] = np.inf
+    distance_sq = row_sq[:, :, None] + col_sq[:, None, :]
+    reach = distance_sq <= config.radius * config.radius
+    flat = (row_index[:, :, None] * cols + col_index[:, None, :])[reach]
+    softening_sq = (_IDW_SOFTENING * min(dx, dy)) ** 2
+    weights = distance_sq[reach] + softening_sq
+    if config.idw_power == 2.0:
+        np.reciprocal(weights, out=weights)
+    else:
+        weights **= -0.5 * config.idw_power
+    point_of = np.broadcast_to(np.arange(len(xy))[:, None, None], reach.shape)[reach]
+    numerator = np.bincount(flat, weights * values[point_of], minlength=rows * cols)
+    denominator = np.bincount(flat, weights, minlength=rows * cols)
+    image = np.zeros(rows * cols)
+    np.divide(numerator, denominator, out=image, where=denominator > 0.0)
+    return np.clip(image, 0.0, 1.0).astype(np.float32).reshape(rows, cols)
+
+
+def normal_image(points: np.ndarray, normals_z: np.ndarray, config: NormalImageConfig | None = None) -> np.ndarray:
+    """Makes the surface-normal image from points and their normals' z components.
+
+    Args:
+        points: (N, 3) metric points, +z up (see the module doc for the frame and layout).
+            Rows with a NaN or inf are dropped.
+        normals_z: (N,) z components of the points' unit normals; its absolute value is
+            used (normals oriented up). Points whose value is NaN or inf are dropped after
+            the normalization (they still count for the centroid and the scale).
+        config: the grid; None: `NormalImageConfig()`.
+
+    Returns:
+        float32 (rows, cols) image in [0, 1]; 0 where no point is within the radius.
+        Never NaN; all zeros for an empty cloud or one without usable points.
+
+    Raises:
+        ValueError: `points` is not (N, 3) or `normals_z` is not (N,).
+    """
+    config = config or NormalImageConfig()
+    points = _as_points(points)
+    normals_z = np.asarray(normals_z, dtype=np.float64)
+    if normals_z.shape != (len(points),):
+        raise ValueError(f"normals_z has shape {normals_z.shape}; expected ({len(points)},) for {len(points)} points")
+    finite = np.isfinite(points).all(axis=1)
+    normalized = normalize_to_unit_ball(points[finite])
+    values = np.abs(normals_z[finite])
+    use = np.isfinite(values)
+    return _splat(normalized[use, :2], np.minimum(values[use], 1.0), config)
+
+
+def cloud_to_normal_image(points: np.ndarray, config: NormalImageConfig | None = None,
+                          organized_shape: tuple[int, int] | None = None,
+                          normals: np.ndarray | None = None) -> np.ndarray:
+    """Estimates the normals of a cloud (unless given) and makes its surface-normal image.
+
+    Args:
+        points: (N, 3) metric points, +z up; NaN (or inf) rows are points without a return.
+        config: the grid and the normal method; None: `NormalImageConfig()`.
+        organized_shape: (H, W) with H * W = N when the points are the pixels of a depth
+            image in row-major order; required by the "organized" method.
+        normals: optional (N, 3) normals to use instead of estimating them.
+
+    Returns:
+        float32 (rows, cols) image in [0, 1], as `normal_image`.
+
+    Raises:
+        ValueError: a shape is wrong, or the "organized" method lacks `organized_shape`.
+    """
+    config = config or NormalImageConfig()
+    points = _as_points(points)
+    if normals is not None:
+        normals = _as_points(normals, "normals")
+        if len(normals) != len(points):
+            raise ValueError(f"normals has shape {normals.shape}; expected ({len(points)}, 3)")
+    elif config.normal_method == "organized":
+        if organized_shape is None:
+            raise ValueError("normal_method 'organized' needs organized_shape=(H, W)")
+        height, width = organized_shape
+        if height * width != len(points):
+            raise ValueError(f"organized_shape {tuple(organized_shape)} does not match {len(points)} points")
+        grid = points.reshape(height, width, 3)
+        normals = estimate_normals_organized(grid, config.discontinuity_ratio).reshape(-1, 3)
+    else:
+        normals = estimate_normals_pca(points, config.pca_k)
+    return normal_image(points, normals[:, 2], config)
