@@ -40,6 +40,9 @@ class EdgeAngleDriverConfig:
     speed_mps: float = robot.MAX_SPEED_MPS
 
 
+DESCEND, CLIMB, EXITED = 0, 1, 2
+
+
 def wrap_angle(angle: float) -> float:
     """Wraps an angle (rad) to (-pi, pi]."""
     wrapped = math.remainder(angle, 2 * math.pi)
@@ -80,45 +83,66 @@ class EdgeAngleDriver(LeafSystem):
         self._config = config
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         self._command_index = self.DeclareDiscreteState(2)
-        # The along-edge direction sign; 0 until chosen.
-        self._along_sign_index = self.DeclareDiscreteState(1)
+        # [along-edge direction sign (0 until chosen), phase (DESCEND, CLIMB, EXITED)].
+        self._plan_index = self.DeclareDiscreteState(2)
         self.DeclareStateOutputPort("command", self._command_index)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
 
-    def desired_heading(self, xy: np.ndarray, along_sign: float) -> tuple[float, float]:
-        """Desired heading (rad) at xy and the along-edge sign to keep."""
+    def _path_is_clear(self, xy: np.ndarray) -> bool:
+        """Whether the straight line to the goal stays on the flat, off the ditch."""
+        samples = np.linspace(xy, self._goal_xy, 50)
+        return bool(np.all(self._terrain.nearest_on_course(samples)[0] > self._terrain.hinge_distance_m + 0.5))
+
+    def desired_heading(self, xy: np.ndarray, along_sign: float, phase: int) -> tuple[float, float, int]:
+        """Desired heading (rad) at xy, and the along-edge sign and phase to keep.
+
+        Phases: DESCEND until the robot reaches the bottom, then CLIMB, then EXITED
+        once it is back on the flat. Holding the phase keeps a curved edge from
+        turning the robot uphill on the near wall, or back into the ditch after it
+        has climbed out somewhere other than across from the goal (it then follows
+        the rim).
+        """
         config, terrain = self._config, self._terrain
         to_goal = self._goal_xy - xy
-        distance, _ = terrain.nearest_on_course(xy)
-        distance = float(distance)
-        if distance > terrain.hinge_distance_m + config.approach_margin_m:
-            return math.atan2(to_goal[1], to_goal[0]), 0.0
+        goal_heading = math.atan2(to_goal[1], to_goal[0])
+        distance = float(terrain.nearest_on_course(xy)[0])
         away = terrain.away_from_course(xy)
         toward = -away
         tangent = np.array([-away[1], away[0]])
+        if phase == CLIMB and distance > terrain.hinge_distance_m:
+            phase = EXITED
+        if phase == EXITED:
+            if self._path_is_clear(xy):
+                return goal_heading, 0.0, phase
+            rim_sign = 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
+            rim = math.cos(math.radians(10)) * rim_sign * tangent + math.sin(math.radians(10)) * away
+            return math.atan2(rim[1], rim[0]), 0.0, phase
+        if distance > terrain.hinge_distance_m + config.approach_margin_m:
+            return goal_heading, 0.0, phase
+        if distance <= terrain.toe_distance_m:
+            phase = CLIMB
         on_flat_bottom = distance < terrain.toe_distance_m - config.bottom_margin_m
         if along_sign == 0.0 or on_flat_bottom:
             along_sign = 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
-        # Downhill while the goal lies beyond the course, uphill once past it.
-        cross_sign = 1.0 if float(to_goal @ toward) > 0.0 else -1.0
+        # Down toward the course; from the bottom on, across toward the goal's side and up.
+        cross_sign = 1.0 if phase == DESCEND or float(to_goal @ toward) > 0.0 else -1.0
         if on_flat_bottom:
             angle = config.bottom_angle_deg
-        elif config.climb_angle_deg is not None and (cross_sign < 0 or distance < terrain.toe_distance_m):
-            # From the bottom on, the heading already aims up the far wall.
+        elif phase == CLIMB and config.climb_angle_deg is not None:
             angle = config.climb_angle_deg
         else:
             angle = config.wall_angle_deg
         angle = math.radians(angle)
         direction = math.cos(angle) * along_sign * tangent + math.sin(angle) * cross_sign * toward
-        return math.atan2(direction[1], direction[0]), along_sign
+        return math.atan2(direction[1], direction[0]), along_sign, phase
 
     def _update(self, context, discrete_state) -> None:
         X_WB = self._poses_port.Eval(context)[self._chassis_index]
         forward = X_WB.rotation().matrix()[:, 0]
         heading = math.atan2(forward[1], forward[0])
-        along_sign = float(context.get_discrete_state(self._along_sign_index).get_value()[0])
-        desired, along_sign = self.desired_heading(X_WB.translation()[:2], along_sign)
+        along_sign, phase = context.get_discrete_state(self._plan_index).get_value()
+        desired, along_sign, phase = self.desired_heading(X_WB.translation()[:2], float(along_sign), int(phase))
         w = np.clip(self._config.heading_gain * wrap_angle(desired - heading),
                     -robot.MAX_ANGULAR_RATE_RADPS, robot.MAX_ANGULAR_RATE_RADPS)
         discrete_state.set_value(self._command_index, [self._config.speed_mps, w])
-        discrete_state.set_value(self._along_sign_index, [along_sign])
+        discrete_state.set_value(self._plan_index, [along_sign, float(phase)])
