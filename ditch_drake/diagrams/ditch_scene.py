@@ -27,7 +27,6 @@ from ditch_drake.systems.episode_monitor import EpisodeConfig, EpisodeMonitor
 from ditch_drake.systems.skid_steer_drive import SkidSteerDrive
 from ditch_drake.terrain import DitchTerrain
 
-HUSKY_URL = "package://ditch_drake/husky.sdf"
 
 TERRAIN_COLORS = {
     "ground": np.array([0.45, 0.62, 0.33, 1.0]),
@@ -116,13 +115,28 @@ def AddDitchTerrain(plant: MultibodyPlant, terrain: DitchTerrain) -> int:
     return len(pieces)
 
 
+def load_model_file(plant: MultibodyPlant, path: str | Path) -> list[ModelInstanceIndex]:
+    """Parses an SDF/URDF file into `plant`; a parse failure names the file (and line).
+
+    Raises:
+        ConfigError: the file is missing or does not parse.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"model file {path} does not exist")
+    try:
+        return MakeParser(plant).AddModels(str(path))
+    except RuntimeError as error:
+        raise ConfigError(f"model file {path} failed to parse: {error}") from error
+
+
 def AddHusky(plant: MultibodyPlant) -> ModelInstanceIndex:
     """Adds the Husky from `models_sdf/husky.sdf` with velocity-controlled wheels.
 
     The chassis gets an explicit quaternion floating joint so that start-pose
     distributions can be attached to it.
     """
-    (husky,) = MakeParser(plant).AddModels(url=HUSKY_URL)
+    (husky,) = load_model_file(plant, MakeParser(plant).package_map().GetPath("ditch_drake") + "/husky.sdf")
     chassis = plant.GetBodyByName("chassis", husky)
     plant.AddJoint(QuaternionFloatingJoint("husky_floating", plant.world_frame(), chassis.body_frame()))
     # GetJointActuatorIndices() is empty before Finalize(), so scan all actuators.

@@ -1,0 +1,38 @@
+"""The command line: subcommands exist, bad input exits 2 with a clear message."""
+
+import json
+
+import pytest
+
+from ditch_drake.cli import build_parser, main
+
+
+def test_subcommands_exist():
+    parser = build_parser()
+    for command in ("demo", "view", "calibrate", "bench"):
+        assert parser.parse_args([command]).command == command
+
+
+def test_unknown_environment_is_a_clear_error(capsys):
+    assert main(["demo", "--env", "moat"]) == 2
+    assert "unknown environment 'moat'" in capsys.readouterr().err
+
+
+def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
+    import ditch_drake.bench as bench
+
+    monkeypatch.setattr(bench, "TRAVERSAL_S", 0.5)
+    monkeypatch.setattr(bench.measure_plant_rtf, "__defaults__", (0, 0.5))
+    assert main(["bench", "--json", "--env", "narrow"]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert set(figures) >= {"plant_rtf_narrow", "scene_build_s_narrow", "plant_rtf_min", "peak_rss_mib"}
+    assert all(key.rsplit("_", 1)[-1] in {"rtf", "s", "mib", "ms", "min"} for key in figures)
+
+
+@pytest.mark.slow
+def test_calibration_passes_in_every_environment():
+    """The full calibration benchmark (10 seeded trials each): the physics shows the paper's phenomenon."""
+    from ditch_drake.calibration import CalibrationConfig, run_calibration
+
+    report = run_calibration(CalibrationConfig(), progress=False)
+    assert report["all_ok"], json.dumps(report, indent=1)
