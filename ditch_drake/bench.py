@@ -1,6 +1,6 @@
 """`ditch-drake bench`: every speed and memory figure the project tracks, as one JSON object.
 
-Keys carry their units (`_ms`, `_s`, `_rtf`, `_mib`). Later work adds its figures
+Keys end with their unit (`_ms`, `_s`, `_rtf`, `_mib`). Later work adds its figures
 here, keeping the existing keys stable.
 """
 
@@ -34,8 +34,8 @@ def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVE
     simulator.AdvanceTo(duration_s)
     wall_s = time.perf_counter() - start
     return {
-        f"plant_rtf_{environment}": context.get_time() / wall_s,
-        f"scene_build_s_{environment}": build_s,
+        f"plant_{environment}_rtf": context.get_time() / wall_s,
+        f"scene_build_{environment}_s": build_s,
     }
 
 
@@ -44,6 +44,6 @@ def run_bench(environments: list[str] | None = None) -> dict:
     figures: dict[str, float] = {}
     for name in environments or environment_names():
         figures.update(measure_plant_rtf(name))
-    figures["plant_rtf_min"] = min(value for key, value in figures.items() if key.startswith("plant_rtf_"))
+    figures["plant_min_rtf"] = min(value for key, value in figures.items() if key.startswith("plant_"))
     figures["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return figures
