@@ -28,6 +28,9 @@ Two normal estimators:
   neighbours (any cloud).
 """
 
+import functools
+import math
+import threading
 from dataclasses import dataclass
 
 import numpy as np
@@ -37,9 +40,16 @@ from scipy.spatial import cKDTree
 IMAGE_SHAPE = (128, 128)
 NORMAL_METHODS = ("organized", "pca")
 DEFAULT_PCA_K = 12
-# The inverse-distance weight is 1 / (d^2 + (s * spacing)^2)^(p/2), with s this fraction
-# of the grid spacing, so that a point lying on a grid point does not take it over alone.
+# The inverse distances are softened to 1 / (d^2 + (s * spacing)^2)^(p/2), with s this
+# fraction of the grid spacing, so that a point on a grid point does not take it over alone.
 _IDW_SOFTENING = 0.25
+
+# Per-thread scratch memory for the image's large temporaries, reused from call to call:
+# fresh memory costs page faults, which on a virtual machine cost more than the arithmetic
+# (about 2 ms an image, measured). It holds no results, only room; buffers over
+# _SCRATCH_MAX_ELEMENTS (huge clouds) are not kept.
+_SCRATCH = threading.local()
+_SCRATCH_MAX_ELEMENTS = 1 << 22
 
 
 @dataclass
@@ -58,7 +68,8 @@ class NormalImageConfig:
         normal_method: "organized" (the cloud is the pixels of a depth image; fast) or
             "pca" (k-nearest-neighbour PCA; any cloud; the reference).
         pca_k: neighbours per point for "pca" (at least 3).
-        idw_power: exponent p of the inverse-distance weights 1 / d^p.
+        idw_power: exponent p of the inverse-distance weights, about 1 / d^p (Shepard's
+            modified weights, falling to 0 at the radius; see `_splat`).
         discontinuity_ratio: for "organized", a central difference is used only when the
             two one-sided differences' lengths differ by at most this factor; otherwise
             the shorter one is (it does not straddle a depth jump).
@@ -87,8 +98,8 @@ class NormalImageConfig:
             raise ValueError(f"normal_method {self.normal_method!r} is not one of {NORMAL_METHODS}")
         if self.pca_k < 3:
             raise ValueError(f"pca_k {self.pca_k} must be >= 3")
-        if not self.idw_power >= 0.0:
-            raise ValueError(f"idw_power {self.idw_power} must be >= 0")
+        if not self.idw_power > 0.0:
+            raise ValueError(f"idw_power {self.idw_power} must be > 0")
         if not self.discontinuity_ratio >= 1.0:
             raise ValueError(f"discontinuity_ratio {self.discontinuity_ratio} must be >= 1")
 
@@ -108,6 +119,13 @@ def _as_points(points, name: str = "points") -> np.ndarray:
     return array
 
 
+def _finite_rows(points: np.ndarray) -> np.ndarray:
+    """(N,) mask of the rows of an (N, 3) array with no NaN or inf (fast: a row sum is
+    finite exactly when its entries are, short of overflow near 1e308)."""
+    with np.errstate(invalid="ignore", over="ignore"):
+        return np.isfinite(points @ np.ones(3))
+
+
 def normalize_to_unit_ball(points: np.ndarray) -> np.ndarray:
     """Moves a cloud's centroid to the origin and scales it to fit the unit ball.
 
@@ -124,7 +142,7 @@ def normalize_to_unit_ball(points: np.ndarray) -> np.ndarray:
     """
     points = _as_points(points)
     out = np.full_like(points, np.nan)
-    finite = np.isfinite(points).all(axis=1)
+    finite = _finite_rows(points)
     if not finite.any():
         return out
     good = points[finite]
@@ -161,7 +179,7 @@ def estimate_normals_pca(points: np.ndarray, k: int = DEFAULT_PCA_K) -> np.ndarr
     if k < 3:
         raise ValueError(f"k {k} must be >= 3")
     normals = np.full_like(points, np.nan)
-    finite = np.isfinite(points).all(axis=1)
+    finite = _finite_rows(points)
     good = points[finite]
     if len(good) < 3:
         return normals
@@ -178,27 +196,36 @@ def estimate_normals_pca(points: np.ndarray, k: int = DEFAULT_PCA_K) -> np.ndarr
 
 
 def _tangent(grid: np.ndarray, axis: int, ratio: float) -> np.ndarray:
-    """Differences to the pixel neighbours along `axis` (0: rows, 1: columns).
+    """Differences to the pixel neighbours along `axis` of a (3, H, W) grid (1: rows, 2: columns).
 
     Central where both neighbours are valid and about equally far; otherwise the shorter
     valid one-sided difference; NaN where neither neighbour is valid.
     """
-    pad = [(0, 0)] * 3
-    pad[axis] = (1, 1)
-    padded = np.pad(grid, pad, constant_values=np.nan)
-    forward = padded[2:] - grid if axis == 0 else padded[:, 2:] - grid
-    backward = grid - padded[:-2] if axis == 0 else grid - padded[:, :-2]
-    forward_sq = np.einsum("...i,...i->...", forward, forward)
-    backward_sq = np.einsum("...i,...i->...", backward, backward)
+    steps = np.diff(grid, axis=axis)
+    steps_sq = steps[0] * steps[0] + steps[1] * steps[1] + steps[2] * steps[2]
+    head = (slice(None),) * (axis - 1) + (slice(1, None),)
+    tail = (slice(None),) * (axis - 1) + (slice(None, -1),)
+    forward = np.full_like(grid, np.nan)
+    backward = np.full_like(grid, np.nan)
+    forward[(slice(None), *tail)] = steps
+    backward[(slice(None), *head)] = steps
+    forward_sq = np.full(grid.shape[1:], np.nan)
+    backward_sq = np.full(grid.shape[1:], np.nan)
+    forward_sq[tail] = steps_sq
+    backward_sq[head] = steps_sq
     with np.errstate(invalid="ignore"):
         forward_ok = forward_sq > 0.0
         backward_ok = backward_sq > 0.0
-        use_forward = forward_ok & ~(backward_ok & (backward_sq < forward_sq))
-        central = forward_ok & backward_ok & (
-            np.maximum(forward_sq, backward_sq) <= ratio * ratio * np.minimum(forward_sq, backward_sq))
-    tangent = np.where(use_forward[..., None], forward, backward)
-    np.add(forward, backward, out=tangent, where=central[..., None])
-    return tangent
+        # Forward unless only backward is valid or backward is shorter.
+        use_backward = backward_ok & ~(forward_ok & (forward_sq <= backward_sq))
+        central = (
+            forward_ok
+            & backward_ok
+            & (np.maximum(forward_sq, backward_sq) <= ratio * ratio * np.minimum(forward_sq, backward_sq))
+        )
+    np.copyto(forward, backward, where=use_backward)
+    np.add(forward, backward, out=forward, where=central)
+    return forward
 
 
 def estimate_normals_organized(points_grid: np.ndarray, discontinuity_ratio: float = 3.0) -> np.ndarray:
@@ -221,63 +248,131 @@ def estimate_normals_organized(points_grid: np.ndarray, discontinuity_ratio: flo
     Raises:
         ValueError: `points_grid` is not (H, W, 3).
     """
-    grid = np.asarray(points_grid, dtype=np.float64)
-    if grid.ndim != 3 or grid.shape[2] != 3:
-        raise ValueError(f"points_grid has shape {grid.shape}; expected (H, W, 3)")
-    grid = np.where(np.isfinite(grid).all(axis=2, keepdims=True), grid, np.nan)
-    down = _tangent(grid, 0, discontinuity_ratio)
-    right = _tangent(grid, 1, discontinuity_ratio)
+    points_grid = np.asarray(points_grid, dtype=np.float64)
+    if points_grid.ndim != 3 or points_grid.shape[2] != 3:
+        raise ValueError(f"points_grid has shape {points_grid.shape}; expected (H, W, 3)")
+    grid = np.array(np.moveaxis(points_grid, 2, 0), order="C")  # (3, H, W), a copy: planar is faster.
+    np.copyto(grid, np.nan, where=~np.isfinite(grid[0] + grid[1] + grid[2]))
+    down = _tangent(grid, 1, discontinuity_ratio)
+    right = _tangent(grid, 2, discontinuity_ratio)
     normals = np.empty_like(grid)
-    normals[..., 0] = down[..., 1] * right[..., 2] - down[..., 2] * right[..., 1]
-    normals[..., 1] = down[..., 2] * right[..., 0] - down[..., 0] * right[..., 2]
-    normals[..., 2] = down[..., 0] * right[..., 1] - down[..., 1] * right[..., 0]
-    norm = np.sqrt(np.einsum("...i,...i->...", normals, normals))
-    scale = np.sqrt(np.einsum("...i,...i->...", down, down) * np.einsum("...i,...i->...", right, right))
+    normals[0] = down[1] * right[2] - down[2] * right[1]
+    normals[1] = down[2] * right[0] - down[0] * right[2]
+    normals[2] = down[0] * right[1] - down[1] * right[0]
+    norm_sq = normals[0] * normals[0] + normals[1] * normals[1] + normals[2] * normals[2]
+    scale_sq = (down * down).sum(axis=0) * (right * right).sum(axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
-        good = norm > 1e-9 * scale
-        normals /= np.where(good, norm, np.nan)[..., None]
-    return _orient_up(normals)
+        # Tangents at least 1e-6 rad from parallel; negative n_z flips the normal up.
+        good = norm_sq > 1e-12 * scale_sq
+        inverse_norm = np.where(good, np.copysign(1.0, normals[2]) / np.sqrt(norm_sq), np.nan)
+    normals *= inverse_norm
+    return np.moveaxis(normals, 0, 2)
 
 
-def _stencil(config: NormalImageConfig) -> tuple[np.ndarray, np.ndarray]:
-    """Row and column offsets from a point's nearest grid point that can be in reach."""
-    dx, dy = config.spacing
-    row_reach = int(np.floor(config.radius / dx + 0.5))
-    col_reach = int(np.floor(config.radius / dy + 0.5))
-    return np.arange(-row_reach, row_reach + 1), np.arange(-col_reach, col_reach + 1)
+@functools.lru_cache(maxsize=32)
+def _stencil(dx: float, dy: float, radius: float) -> tuple[np.ndarray, np.ndarray, tuple[tuple[int, int], ...]]:
+    """The grid points that can be within `radius` of a point, relative to its nearest one.
+
+    Returns:
+        The row and column offsets (-K..K, -L..L), and for each row offset k the first and
+        last index into the column offsets that can be in reach: a point is at most half
+        a spacing from its nearest grid point, so offset (k, l) is in reach only if
+        ((|k| - 1/2)+ dx)^2 + ((|l| - 1/2)+ dy)^2 <= radius^2.
+    """
+    row_offsets = np.arange(-int(np.floor(radius / dx + 0.5)), int(np.floor(radius / dx + 0.5)) + 1)
+    col_offsets = np.arange(-int(np.floor(radius / dy + 0.5)), int(np.floor(radius / dy + 0.5)) + 1)
+    col_gap_sq = (np.maximum(np.abs(col_offsets) - 0.5, 0.0) * dy) ** 2
+    spans = []
+    for k in row_offsets:
+        row_gap_sq = (max(abs(k) - 0.5, 0.0) * dx) ** 2
+        within = np.nonzero(row_gap_sq + col_gap_sq <= radius**2)[0]
+        spans.append((int(within[0]), int(within[-1])))
+    row_offsets.flags.writeable = False
+    col_offsets.flags.writeable = False
+    return row_offsets, col_offsets, tuple(spans)
 
 
-def _splat(xy: np.ndarray, values: np.ndarray, config: NormalImageConfig) -> np.ndarray:
-    """Inverse-distance weighted image of `values` at normalized `xy` (see module doc)."""
+def _scratch(name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
+    """An uninitialized array of `shape` in this thread's reusable scratch memory."""
+    size = math.prod(shape)
+    if size > _SCRATCH_MAX_ELEMENTS:
+        return np.empty(shape, dtype=dtype)
+    buffer = getattr(_SCRATCH, name, None)
+    if buffer is None or buffer.size < size or buffer.dtype != dtype:
+        buffer = np.empty(max(size, 1), dtype=dtype)
+        setattr(_SCRATCH, name, buffer)
+    return buffer[:size].reshape(shape)
+
+
+def _splat(x: np.ndarray, y: np.ndarray, values: np.ndarray, config: NormalImageConfig) -> np.ndarray:
+    """Inverse-distance weighted image of `values` at normalized (x, y) (see the module doc).
+
+    Each point visits the grid points around its nearest one that can be within the
+    radius (`_stencil`) and adds its weight and its weighted value to two per-pixel sums;
+    the image is their ratio. The same as querying a k-d tree for the points in each
+    pixel's ball, without per-pixel lists. The weights are Shepard's modified inverse
+    distances w = (d^2 + e^2)^(-p/2) - (r^2 + e^2)^(-p/2) for d < r, else 0 (d the
+    distance, r the radius, e a softening of a quarter grid spacing), which fall to 0
+    continuously at the radius, so that a point entering or leaving it does not make a
+    pixel jump.
+    """
     rows, cols = config.rows, config.cols
     dx, dy = config.spacing
-    row_offsets, col_offsets = _stencil(config)
-    row_f = (config.x_max - xy[:, 0]) / dx
-    col_f = (config.y_max - xy[:, 1]) / dy
-    row0 = np.rint(row_f)
-    col0 = np.rint(col_f)
-    # Each point's offsets to the grid points around its nearest one, squared (N, R), (N, C).
-    row_sq = ((row0 - row_f)[:, None] + row_offsets) ** 2 * (dx * dx)
-    col_sq = ((col0 - col_f)[:, None] + col_offsets) ** 2 * (dy * dy)
-    row_index = row0.astype(np.intp)[:, None] + row_offsets
-    col_index = col0.astype(np.intp)[:, None] + col_offsets
+    row_offsets, col_offsets, spans = _stencil(dx, dy, config.radius)
+    count = len(x)
+    # Arrays are (offset, point): numpy is fast along a long last axis. The large ones are
+    # float32 in scratch memory and updated in place.
+    row_f = (config.x_max - x) * (1.0 / dx)
+    col_f = (config.y_max - y) * (1.0 / dy)
+    row0 = np.clip(np.rint(row_f), -rows, 2 * rows)
+    col0 = np.clip(np.rint(col_f), -cols, 2 * cols)
+    # Squared distances to the grid rows and columns around each point, and their indices.
+    row_sq = np.add(
+        (row_offsets * dx).astype(np.float32)[:, None],
+        ((row0 - row_f) * dx).astype(np.float32),
+        out=_scratch("row_sq", (len(row_offsets), count), np.float32),
+    )
+    col_sq = np.add(
+        (col_offsets * dy).astype(np.float32)[:, None],
+        ((col0 - col_f) * dy).astype(np.float32),
+        out=_scratch("col_sq", (len(col_offsets), count), np.float32),
+    )
+    np.square(row_sq, out=row_sq)
+    np.square(col_sq, out=col_sq)
+    row_index = np.add(row_offsets[:, None], row0.astype(np.intp), out=_scratch("row_index", row_sq.shape, np.intp))
+    col_index = np.add(col_offsets[:, None], col0.astype(np.intp), out=_scratch("col_index", col_sq.shape, np.intp))
     row_sq[(row_index < 0) | (row_index >= rows)] = np.inf
     col_sq[(col_index < 0) | (col_index >= cols)] = np.inf
-    distance_sq = row_sq[:, :, None] + col_sq[:, None, :]
-    reach = distance_sq <= config.radius * config.radius
-    flat = (row_index[:, :, None] * cols + col_index[:, None, :])[reach]
+    np.clip(row_index, 0, rows - 1, out=row_index)
+    np.clip(col_index, 0, cols - 1, out=col_index)
+    row_index *= cols
+    # Squared distances and flat pixel indices of the (point, grid point) pairs: (S, N).
+    pairs = sum(last - first + 1 for first, last in spans)
+    weights = _scratch("weights", (pairs, count), np.float32)
+    flat = _scratch("flat", (pairs, count), np.intp)
+    start = 0
+    for one_row_sq, one_row_index, (first, last) in zip(row_sq, row_index, spans):
+        stop = start + last - first + 1
+        np.add(col_sq[first : last + 1], one_row_sq, out=weights[start:stop])
+        np.add(col_index[first : last + 1], one_row_index, out=flat[start:stop])
+        start = stop
     softening_sq = (_IDW_SOFTENING * min(dx, dy)) ** 2
-    weights = distance_sq[reach] + softening_sq
+    weights += np.float32(softening_sq)
     if config.idw_power == 2.0:
         np.reciprocal(weights, out=weights)
     else:
-        weights **= -0.5 * config.idw_power
-    point_of = np.broadcast_to(np.arange(len(xy))[:, None, None], reach.shape)[reach]
-    numerator = np.bincount(flat, weights * values[point_of], minlength=rows * cols)
-    denominator = np.bincount(flat, weights, minlength=rows * cols)
-    image = np.zeros(rows * cols)
+        np.power(weights, np.float32(-0.5 * config.idw_power), out=weights)
+    weights -= np.float32((config.radius**2 + softening_sq) ** (-0.5 * config.idw_power))
+    np.maximum(weights, np.float32(0.0), out=weights)
+    flat = flat.ravel()
+    denominator = np.zeros(rows * cols, dtype=np.float32)
+    np.add.at(denominator, flat, weights.ravel())
+    weights *= values.astype(np.float32)
+    numerator = np.zeros(rows * cols, dtype=np.float32)
+    np.add.at(numerator, flat, weights.ravel())
+    image = np.zeros(rows * cols, dtype=np.float32)
     np.divide(numerator, denominator, out=image, where=denominator > 0.0)
-    return np.clip(image, 0.0, 1.0).astype(np.float32).reshape(rows, cols)
+    return np.clip(image, 0.0, 1.0, out=image).reshape(rows, cols)
 
 
 def normal_image(points: np.ndarray, normals_z: np.ndarray, config: NormalImageConfig | None = None) -> np.ndarray:
@@ -303,16 +398,33 @@ def normal_image(points: np.ndarray, normals_z: np.ndarray, config: NormalImageC
     normals_z = np.asarray(normals_z, dtype=np.float64)
     if normals_z.shape != (len(points),):
         raise ValueError(f"normals_z has shape {normals_z.shape}; expected ({len(points)},) for {len(points)} points")
-    finite = np.isfinite(points).all(axis=1)
-    normalized = normalize_to_unit_ball(points[finite])
-    values = np.abs(normals_z[finite])
+    finite = _finite_rows(points)
+    if not finite.all():
+        points, normals_z = points[finite], normals_z[finite]
+    if len(points) == 0:
+        return np.zeros((config.rows, config.cols), dtype=np.float32)
+    # normalize_to_unit_ball, on columns (faster than on rows).
+    centroid = np.ones(len(points)) @ points / len(points)
+    x = points[:, 0] - centroid[0]
+    y = points[:, 1] - centroid[1]
+    z = points[:, 2] - centroid[2]
+    scale = math.sqrt(float((x * x + y * y + z * z).max()))
+    scale = 1.0 / scale if scale > 0.0 else 0.0
+    values = np.abs(normals_z)
     use = np.isfinite(values)
-    return _splat(normalized[use, :2], np.minimum(values[use], 1.0), config)
+    if not use.all():
+        x, y, values = x[use], y[use], values[use]
+    x *= scale
+    y *= scale
+    return _splat(x, y, np.minimum(values, 1.0), config)
 
 
-def cloud_to_normal_image(points: np.ndarray, config: NormalImageConfig | None = None,
-                          organized_shape: tuple[int, int] | None = None,
-                          normals: np.ndarray | None = None) -> np.ndarray:
+def cloud_to_normal_image(
+    points: np.ndarray,
+    config: NormalImageConfig | None = None,
+    organized_shape: tuple[int, int] | None = None,
+    normals: np.ndarray | None = None,
+) -> np.ndarray:
     """Estimates the normals of a cloud (unless given) and makes its surface-normal image.
 
     Args:
@@ -341,7 +453,9 @@ def cloud_to_normal_image(points: np.ndarray, config: NormalImageConfig | None =
         if height * width != len(points):
             raise ValueError(f"organized_shape {tuple(organized_shape)} does not match {len(points)} points")
         grid = points.reshape(height, width, 3)
-        normals = estimate_normals_organized(grid, config.discontinuity_ratio).reshape(-1, 3)
+        return normal_image(
+            points, estimate_normals_organized(grid, config.discontinuity_ratio)[..., 2].ravel(), config
+        )
     else:
         normals = estimate_normals_pca(points, config.pca_k)
     return normal_image(points, normals[:, 2], config)
