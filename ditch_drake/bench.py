@@ -10,8 +10,8 @@ import time
 from pydrake.common import RandomGenerator
 from pydrake.systems.analysis import Simulator
 
-from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig
 from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig
 from ditch_drake.environments import environment_names
 
 TRAVERSAL_S = 30.0
@@ -24,7 +24,7 @@ def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVE
     seeded start, simulated seconds over wall seconds. Also times the diagram build.
     """
     start = time.perf_counter()
-    diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment)))
+    diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment)))
     build_s = time.perf_counter() - start
     simulator = Simulator(diagram)
     context = simulator.get_mutable_context()

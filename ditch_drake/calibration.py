@@ -171,9 +171,10 @@ def _rate(records: list[dict], status: EpisodeStatus) -> float:
     return sum(record["status"] == status.name.lower() for record in records) / max(1, len(records))
 
 
-def run_calibration(config: CalibrationConfig = CalibrationConfig(), environments: list[str] | None = None,
+def run_calibration(config: CalibrationConfig | None = None, environments: list[str] | None = None,
                     progress: bool = True) -> dict:
     """Runs every environment's trials in parallel processes; returns one JSON-able dict."""
+    config = config or CalibrationConfig()
     environments = environments or environment_names()
     for name in environments:
         get_environment(name)  # Fails early, naming an unknown environment.

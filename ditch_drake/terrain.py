@@ -18,7 +18,7 @@ A new shape is a new `TerrainParams`, not new code.
 """
 
 
-import dataclasses
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -270,7 +270,7 @@ class DitchTerrain:
             phi = np.linspace(0, 2 * math.pi, count, endpoint=False)
             return radius * np.stack([np.cos(phi), np.sin(phi)], axis=1)
         dense = []
-        for a, b in zip(course[:-1], course[1:]):
+        for a, b in itertools.pairwise(course):
             count = max(1, math.ceil(np.linalg.norm(b - a) / spacing_m))
             dense.append(a + np.linspace(0, 1, count, endpoint=False)[:, None] * (b - a))
         dense.append(course[-1:])
@@ -306,7 +306,7 @@ class DitchTerrain:
         h_breaks = np.concatenate([self._profile_h, [0.0]])
         facets = [(d_breaks[i], d_breaks[i + 1], h_breaks[i], h_breaks[i + 1]) for i in range(len(d_breaks) - 1)]
         course = self.course_xy
-        segments = [(a, b) for a, b in zip(course[:-1], course[1:]) if np.linalg.norm(b - a) > 1e-9]
+        segments = [(a, b) for a, b in itertools.pairwise(course) if np.linalg.norm(b - a) > 1e-9]
         headings = [math.atan2(*(b - a)[::-1]) for a, b in segments]
         for (a, b), heading in zip(segments, headings):
             for side in (+1.0, -1.0):

@@ -19,7 +19,7 @@ def test_unknown_environment_is_a_clear_error(capsys):
 
 
 def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
-    import ditch_drake.bench as bench
+    from ditch_drake import bench
 
     monkeypatch.setattr(bench, "TRAVERSAL_S", 0.5)
     monkeypatch.setattr(bench.measure_plant_rtf, "__defaults__", (0, 0.5))

@@ -6,7 +6,7 @@ The 10-trial calibration is `ditch-drake calibrate` / `pytest -m slow`.
 import pytest
 
 from ditch_drake.calibration import driven_trials
-from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig, wrap_angle
+from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
 
 HEAD_ON = EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None)
 
@@ -23,8 +23,3 @@ def test_shallow_angle_gets_through(environment):
     (record,) = driven_trials(environment, 0, EdgeAngleDriverConfig(), seeds=[5], time_step_s=0.02)
     assert record["status"] == "reached_goal"
     assert 45 < record["peak_tilt_deg"] < 75  # It did go down a steep wall, and did not tip.
-
-
-def test_wrap_angle():
-    assert wrap_angle(3.5) == pytest.approx(3.5 - 2 * 3.141592653589793)
-    assert wrap_angle(-3.141592653589793) == pytest.approx(3.141592653589793)

@@ -18,7 +18,7 @@ def husky_plant():
 
 
 def test_mass_and_centre_of_mass_height(husky_plant):
-    plant, husky = husky_plant
+    plant, _ = husky_plant
     context = plant.CreateDefaultContext()
     assert plant.CalcTotalMass(context) == pytest.approx(robot.TOTAL_MASS_KG)
     # B sits one wheel radius above flat ground.
@@ -44,7 +44,8 @@ def test_wheels_and_actuators(husky_plant):
 def test_chassis_box_friction_and_lidar_mount(husky_plant):
     plant, husky = husky_plant
     sdf_path = MakeParser(MultibodyPlant(0.0)).package_map().GetPath("ditch_drake") + "/husky.sdf"
-    text = open(sdf_path).read()
+    with open(sdf_path) as sdf:
+        text = sdf.read()
     size = " ".join(f"{value:.6g}" for value in robot.CHASSIS_SIZE_M)
     assert f"<size>{size}</size>" in text
     for effective in (robot.CHASSIS_FRICTION, robot.WHEEL_FRICTION):

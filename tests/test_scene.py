@@ -19,7 +19,7 @@ ENVIRONMENTS = ["crater", "wide", "narrow", "sine"]
 
 @pytest.mark.parametrize("name", ENVIRONMENTS)
 def test_diagram_builds_with_named_ports(name):
-    diagram, scene = MakeDitchDiagram(SceneConfig(environment=name))
+    diagram, _ = MakeDitchDiagram(SceneConfig(environment=name))
     assert diagram.HasInputPort("command")
     for port in ("husky_state", "body_poses", "episode_state", "query_object"):
         assert diagram.HasOutputPort(port)

@@ -27,7 +27,6 @@ from ditch_drake.systems.episode_monitor import EpisodeConfig, EpisodeMonitor
 from ditch_drake.systems.skid_steer_drive import SkidSteerDrive
 from ditch_drake.terrain import DitchTerrain
 
-
 TERRAIN_COLORS = {
     "ground": np.array([0.45, 0.62, 0.33, 1.0]),
     "wall": np.array([0.55, 0.42, 0.28, 1.0]),
@@ -221,11 +220,3 @@ def chassis_pose(diagram: Diagram, scene: DitchScene, context) -> RigidTransform
     """X_WB of the chassis in a root `context` of `diagram`."""
     plant_context = scene.plant.GetMyContextFromRoot(context)
     return scene.plant.EvalBodyPoseInWorld(plant_context, scene.plant.GetBodyByName("chassis", scene.husky))
-
-
-def planar_heading(X_WB: RigidTransform) -> float:
-    """Yaw of the chassis's forward axis projected on the ground plane (rad)."""
-    forward = X_WB.rotation().matrix()[:, 0]
-    return math.atan2(forward[1], forward[0])
-
-

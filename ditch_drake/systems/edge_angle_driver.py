@@ -9,6 +9,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import LeafSystem
 
 from ditch_drake import robot
+from ditch_drake.planar import planar_yaw, wrap_to_pi
 from ditch_drake.terrain import DitchTerrain
 
 
@@ -43,12 +44,6 @@ class EdgeAngleDriverConfig:
 DESCEND, CLIMB, EXITED = 0, 1, 2
 
 
-def wrap_angle(angle: float) -> float:
-    """Wraps an angle (rad) to (-pi, pi]."""
-    wrapped = math.remainder(angle, 2 * math.pi)
-    return math.pi if wrapped == -math.pi else wrapped
-
-
 class EdgeAngleDriver(LeafSystem):
     """Drives to a goal across a ditch, holding an angle to the local edge.
 
@@ -74,13 +69,13 @@ class EdgeAngleDriver(LeafSystem):
     """
 
     def __init__(self, terrain: DitchTerrain, goal_xy, chassis_body_index,
-                 config: EdgeAngleDriverConfig = EdgeAngleDriverConfig(),
+                 config: EdgeAngleDriverConfig | None = None,
                  period_s: float = robot.CONTROL_PERIOD_S):
         super().__init__()
         self._terrain = terrain
         self._goal_xy = np.asarray(goal_xy, dtype=float)
         self._chassis_index = int(chassis_body_index)
-        self._config = config
+        self._config = config or EdgeAngleDriverConfig()
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         self._command_index = self.DeclareDiscreteState(2)
         # [along-edge direction sign (0 until chosen), phase (DESCEND, CLIMB, EXITED)].
@@ -138,11 +133,10 @@ class EdgeAngleDriver(LeafSystem):
 
     def _update(self, context, discrete_state) -> None:
         X_WB = self._poses_port.Eval(context)[self._chassis_index]
-        forward = X_WB.rotation().matrix()[:, 0]
-        heading = math.atan2(forward[1], forward[0])
+        heading = planar_yaw(X_WB)
         along_sign, phase = context.get_discrete_state(self._plan_index).get_value()
         desired, along_sign, phase = self.desired_heading(X_WB.translation()[:2], float(along_sign), int(phase))
-        w = np.clip(self._config.heading_gain * wrap_angle(desired - heading),
+        w = np.clip(self._config.heading_gain * wrap_to_pi(desired - heading),
                     -robot.MAX_ANGULAR_RATE_RADPS, robot.MAX_ANGULAR_RATE_RADPS)
         discrete_state.set_value(self._command_index, [self._config.speed_mps, w])
         discrete_state.set_value(self._plan_index, [along_sign, float(phase)])

@@ -104,12 +104,12 @@ class EpisodeMonitor(LeafSystem):
             peak |pitch| rad, peak tilt rad, min stability margin rad, x, y, ...].
     """
 
-    def __init__(self, chassis_body_index, goal_xy, config: EpisodeConfig = EpisodeConfig(),
+    def __init__(self, chassis_body_index, goal_xy, config: EpisodeConfig | None = None,
                  period_s: float = robot.CONTROL_PERIOD_S):
         super().__init__()
         self._chassis_index = int(chassis_body_index)
         self._goal_xy = (float(goal_xy[0]), float(goal_xy[1]))
-        self._config = config
+        self._config = config or EpisodeConfig()
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         initial = np.zeros(_STATE_SIZE)
         initial[_MARGIN] = np.inf
