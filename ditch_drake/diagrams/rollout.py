@@ -14,6 +14,8 @@ from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneCon
 from ditch_drake.environments import ConfigError
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
+from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
+from ditch_drake.systems.teleop import ActionQuantizer
 
 
 @dataclass
@@ -23,7 +25,15 @@ class ConstantCommandConfig:
     command: list[float] = field(default_factory=lambda: [1.0, 0.0])
 
 
-ControllerConfig = EdgeAngleDriverConfig | ConstantCommandConfig
+@dataclass
+class ExpertConfig:
+    """The scripted expert with the variation drawn from `style_seed`, through the action quantizer."""
+
+    style_seed: int = 0
+    variation: ExpertVariation = field(default_factory=ExpertVariation)
+
+
+ControllerConfig = EdgeAngleDriverConfig | ConstantCommandConfig | ExpertConfig
 
 
 @dataclass
@@ -51,6 +61,15 @@ def AddController(builder: DiagramBuilder, scene: DitchScene, config: Controller
             raise ConfigError(f"constant command {config.command} must be finite [v m/s, w rad/s]")
         controller = builder.AddNamedSystem("constant_command", ConstantVectorSource(config.command))
         command = controller.get_output_port()
+    elif isinstance(config, ExpertConfig):
+        chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+        style = draw_expert_style(config.style_seed, config.variation)
+        controller = builder.AddNamedSystem(
+            "expert", ExpertDriver(scene.terrain, scene.task.goal, chassis.index(), style))
+        builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
+        quantizer = builder.AddNamedSystem("action_quantizer", ActionQuantizer())
+        builder.Connect(controller.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
+        command = quantizer.GetOutputPort("command")
     else:
         raise ConfigError(f"unknown controller config {type(config).__name__}: expected one of "
                           f"{[kind.__name__ for kind in typing.get_args(ControllerConfig)]}")

@@ -70,7 +70,7 @@ class EdgeAngleDriver(LeafSystem):
 
     def __init__(self, terrain: DitchTerrain, goal_xy, chassis_body_index,
                  config: EdgeAngleDriverConfig | None = None,
-                 period_s: float = robot.CONTROL_PERIOD_S):
+                 period_s: float = robot.CONTROL_PERIOD_S, offset_s: float = 0.0):
         super().__init__()
         self._terrain = terrain
         self._goal_xy = np.asarray(goal_xy, dtype=float)
@@ -81,7 +81,7 @@ class EdgeAngleDriver(LeafSystem):
         # [along-edge direction sign (0 until chosen), phase (DESCEND, CLIMB, EXITED)].
         self._plan_index = self.DeclareDiscreteState(2)
         self.DeclareStateOutputPort("command", self._command_index)
-        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._update)
 
     def _path_is_clear(self, xy: np.ndarray) -> bool:
         """Whether the straight line to the goal stays on the flat, off the ditch."""

@@ -64,9 +64,10 @@ class FrameStacker(LeafSystem):
         bearing_stack: depth (rad), newest first.
     """
 
-    def __init__(self, period_s: float = robot.CONTROL_PERIOD_S, depth: int = STACK_DEPTH):
+    def __init__(self, period_s: float = robot.CONTROL_PERIOD_S, depth: int = STACK_DEPTH, offset_s: float = 0.0):
         """Args:
             period_s: the control period (s) at which a step is pushed.
+            offset_s: time of the first push (s); see `ditch_drake.schedule`.
             depth: how many steps each stack holds.
         """
         super().__init__()
@@ -85,7 +86,7 @@ class FrameStacker(LeafSystem):
             index = self.DeclareDiscreteState(self._depth * size)
             self.DeclareStateOutputPort(output_name, index)
             self._channels.append((port, index, size))
-        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._push)
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._push)
         self.DeclareForcedDiscreteUpdateEvent(self._push)
 
     @property

@@ -46,6 +46,7 @@ class NormalImageConverter(LeafSystem):
         R_BS: RotationMatrix | None = None,
         use_cloud_normals: bool = True,
         period_s: float = robot.CONTROL_PERIOD_S,
+        offset_s: float = 0.0,
     ):
         """Declares the ports, the image state and the periodic update.
 
@@ -59,6 +60,7 @@ class NormalImageConverter(LeafSystem):
             use_cloud_normals: use the cloud's own normals when it has them
                 (`has_normals()`) instead of estimating them.
             period_s: update period (s).
+            offset_s: time of the first update (s); see `ditch_drake.schedule`.
 
         Raises:
             ValueError: the "organized" method without `organized_shape`, or a shape
@@ -81,7 +83,7 @@ class NormalImageConverter(LeafSystem):
         self._cloud_port = self.DeclareAbstractInputPort("point_cloud", Value(PointCloud()))
         self._image_index = self.DeclareDiscreteState(self._config.rows * self._config.cols)
         self._image_port = self.DeclareStateOutputPort("normal_image", self._image_index)
-        self.DeclarePeriodicDiscreteUpdateEvent(period_s, 0.0, self._update)
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._update)
 
     @property
     def image_shape(self) -> tuple[int, int]:

@@ -1,0 +1,1 @@
+"""Demonstrations: the on-disk format and collection."""

@@ -1,0 +1,193 @@
+"""The demonstration file format: one compressed `.npz` per demonstration.
+
+Arrays, T control steps each (`SCHEMA_VERSION` 1):
+
+| key | shape, dtype | meaning |
+| --- | --- | --- |
+| `image` | (T, 128, 128) uint8 | newest surface-normal image, round(255 v) for v in [0, 1] |
+| `imu_stack` | (T, 8) float32 | [roll, pitch] newest first (rad) |
+| `distance_stack` | (T, 4) float32 | distance to goal, newest first (m) |
+| `bearing_stack` | (T, 4) float32 | bearing to goal, newest first (rad) |
+| `label` | (T,) int16 | executed action label, 0..16 |
+| `time_s` | (T,) float64 | simulated time of the step |
+| `pose` | (T, 6) float32 | chassis [x, y, z, roll, pitch, yaw] |
+| `raw_command` | (T, 2) float32 | command before quantization [v, w] |
+| `metadata` | 0-d str | JSON: schema version, environment, task, seed, outcome, control period, action table, expert style |
+
+The image stack a policy sees at step t is `image[t], image[t-1], image[t-2],
+image[t-3]` (zeros before the first step); `restack_images` rebuilds it. Files are
+written atomically (temporary file, then rename).
+"""
+
+import json
+import os
+import tempfile
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ditch_drake import __version__, actions
+from ditch_drake.observation_spec import IMAGE_SHAPE, STACK_DEPTH
+from ditch_drake.systems.demo_recorder import DemoLog
+
+SCHEMA_VERSION = 1
+FILE_PATTERN = "demo_*.npz"
+_ARRAYS = {
+    "image": ((*IMAGE_SHAPE,), np.uint8),
+    "imu_stack": ((2 * STACK_DEPTH,), np.float32),
+    "distance_stack": ((STACK_DEPTH,), np.float32),
+    "bearing_stack": ((STACK_DEPTH,), np.float32),
+    "label": ((), np.int16),
+    "time_s": ((), np.float64),
+    "pose": ((6,), np.float32),
+    "raw_command": ((2,), np.float32),
+}
+
+
+class DatasetError(ValueError):
+    """A demonstration file is missing, corrupt, or not what the schema says."""
+
+
+@dataclass
+class Demonstration:
+    """One demonstration's arrays (see the module docstring) and metadata."""
+
+    arrays: dict[str, np.ndarray]
+    metadata: dict
+    path: Path | None = None
+
+    def __len__(self) -> int:
+        return len(self.arrays["label"])
+
+
+def log_to_arrays(log: DemoLog) -> dict[str, np.ndarray]:
+    """A recorder's log as the file's arrays."""
+    steps = log.steps
+    if not steps:
+        raise DatasetError("the demonstration log is empty")
+    return {
+        "image": np.stack([step.image for step in steps]).astype(np.uint8),
+        "imu_stack": np.stack([step.imu_stack for step in steps]).astype(np.float32),
+        "distance_stack": np.stack([step.distance_stack for step in steps]).astype(np.float32),
+        "bearing_stack": np.stack([step.bearing_stack for step in steps]).astype(np.float32),
+        "label": np.array([step.label for step in steps], dtype=np.int16),
+        "time_s": np.array([step.time_s for step in steps], dtype=np.float64),
+        "pose": np.stack([step.pose for step in steps]).astype(np.float32),
+        "raw_command": np.stack([step.raw_command for step in steps]).astype(np.float32),
+    }
+
+
+def standard_metadata(**fields) -> dict:
+    """Metadata every file carries, plus the caller's fields."""
+    return {
+        "schema_version": SCHEMA_VERSION,
+        "ditch_drake_version": __version__,
+        "action_table": actions.COMMANDS.tolist(),
+        "image_encoding": "uint8 = round(255 * normal_z), normal_z in [0, 1]",
+        **fields,
+    }
+
+
+def save_demonstration(path: str | Path, demonstration: Demonstration) -> Path:
+    """Validates and writes one demonstration atomically; returns the path."""
+    path = Path(path)
+    _validate(demonstration.arrays, demonstration.metadata, path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=path.parent)
+    try:
+        with os.fdopen(handle, "wb") as file:
+            np.savez_compressed(file, metadata=np.array(json.dumps(demonstration.metadata)), **demonstration.arrays)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_demonstration(path: str | Path) -> Demonstration:
+    """Reads and validates one file.
+
+    Raises:
+        DatasetError: naming the file and what is wrong with it.
+    """
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {key: data[key] for key in data.files if key != "metadata"}
+            metadata = json.loads(str(data["metadata"])) if "metadata" in data.files else None
+    except FileNotFoundError as error:
+        raise DatasetError(f"demonstration file {path} does not exist") from error
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, json.JSONDecodeError) as error:
+        raise DatasetError(f"demonstration file {path} is corrupt or not a .npz demonstration: {error}") from error
+    if metadata is None:
+        raise DatasetError(f"demonstration file {path} has no metadata")
+    _validate(arrays, metadata, path)
+    return Demonstration(arrays, metadata, path)
+
+
+def _validate(arrays: dict, metadata: dict, path: Path) -> None:
+    version = metadata.get("schema_version")
+    if version != SCHEMA_VERSION:
+        raise DatasetError(f"{path}: schema_version {version!r}, expected {SCHEMA_VERSION}")
+    missing = sorted(set(_ARRAYS) - set(arrays))
+    if missing:
+        raise DatasetError(f"{path}: missing arrays {missing}")
+    steps = len(arrays["label"])
+    if steps == 0:
+        raise DatasetError(f"{path}: the demonstration has no steps")
+    for key, (shape, dtype) in _ARRAYS.items():
+        array = arrays[key]
+        if array.shape != (steps, *shape) or array.dtype != dtype:
+            raise DatasetError(f"{path}: array {key!r} has shape {array.shape} and dtype {array.dtype}; "
+                               f"expected {(steps, *shape)} and {np.dtype(dtype)}")
+        if array.dtype.kind == "f" and not np.all(np.isfinite(array)):
+            raise DatasetError(f"{path}: array {key!r} holds NaN or inf")
+    labels = arrays["label"]
+    if labels.min() < 0 or labels.max() >= actions.NUM_LABELS:
+        raise DatasetError(f"{path}: labels span {labels.min()}..{labels.max()}; expected 0..{actions.NUM_LABELS - 1}")
+
+
+def restack_images(image: np.ndarray, depth: int = STACK_DEPTH) -> np.ndarray:
+    """(T, H, W) newest frames -> (T, depth, H, W) stacks, newest first, zeros before the start."""
+    steps = len(image)
+    stacks = np.zeros((steps, depth, *image.shape[1:]), dtype=image.dtype)
+    for age in range(depth):
+        stacks[age:, age] = image[: steps - age]
+    return stacks
+
+
+def demonstration_paths(directory: str | Path) -> list[Path]:
+    """The demonstration files in a directory, in name order."""
+    directory = Path(directory)
+    if not directory.is_dir():
+        raise DatasetError(f"dataset directory {directory} does not exist")
+    return sorted(directory.glob(FILE_PATTERN))
+
+
+def load_dataset(directory: str | Path, max_demos: int | None = None) -> list[Demonstration]:
+    """All (or the first `max_demos`) demonstrations of a directory, validated."""
+    paths = demonstration_paths(directory)
+    if not paths:
+        raise DatasetError(f"dataset directory {directory} holds no {FILE_PATTERN} files")
+    return [load_demonstration(path) for path in paths[:max_demos]]
+
+
+def dataset_summary(demonstrations: list[Demonstration]) -> dict:
+    """Counts per label and per task, and the class imbalance."""
+    labels = np.concatenate([demo.arrays["label"] for demo in demonstrations])
+    per_label = np.bincount(labels, minlength=actions.NUM_LABELS)
+    per_task: dict[str, int] = {}
+    for demo in demonstrations:
+        name = demo.metadata.get("task", {}).get("name", "?")
+        per_task[name] = per_task.get(name, 0) + 1
+    nonzero = per_label[per_label > 0]
+    return {
+        "demonstrations": len(demonstrations),
+        "steps": int(len(labels)),
+        "per_label": per_label.tolist(),
+        "per_task": per_task,
+        "straight_fraction": float(per_label[actions.STRAIGHT_LABEL] / max(1, len(labels))),
+        "majority_to_minority_ratio": float(nonzero.max() / nonzero.min()) if len(nonzero) else 0.0,
+    }

@@ -1,0 +1,101 @@
+"""The scripted expert: a careful driver with seeded, human-like variation."""
+
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.common import RandomDistribution
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.primitives import Adder, DiscreteTimeDelay, MatrixGain, RandomSource
+
+from ditch_drake import robot, schedule
+from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
+from ditch_drake.terrain import DitchTerrain
+
+
+@dataclass
+class ExpertVariation:
+    """Ranges of the expert's per-demonstration variation (degrees, s, rad/s).
+
+    Attributes:
+        wall_angle_deg: uniform range of the angle to the edge going down.
+        climb_angle_deg: uniform range of the angle to the edge going up.
+        approach_margin_m: uniform range of how early it lines up before the hinge.
+        reaction_delay_steps: the delay is drawn uniformly from 0..this many control steps.
+        steering_noise_radps: standard deviation of the Gaussian noise added to the
+            steering command every control step.
+    """
+
+    wall_angle_deg: tuple[float, float] = (17.0, 23.0)
+    climb_angle_deg: tuple[float, float] = (32.0, 38.0)
+    approach_margin_m: tuple[float, float] = (2.0, 3.0)
+    reaction_delay_steps: int = 1
+    steering_noise_radps: float = 0.05
+
+
+@dataclass
+class ExpertStyle:
+    """One demonstration's draw from `ExpertVariation`."""
+
+    driver: EdgeAngleDriverConfig
+    reaction_delay_steps: int
+    steering_noise_radps: float
+
+
+def draw_expert_style(seed: int, variation: ExpertVariation | None = None) -> ExpertStyle:
+    """The expert's style for the demonstration with this seed (deterministic)."""
+    variation = variation or ExpertVariation()
+    rng = np.random.default_rng([seed, 0x5EED])
+    driver = EdgeAngleDriverConfig(
+        wall_angle_deg=float(rng.uniform(*variation.wall_angle_deg)),
+        climb_angle_deg=float(rng.uniform(*variation.climb_angle_deg)),
+        approach_margin_m=float(rng.uniform(*variation.approach_margin_m)),
+    )
+    delay = int(rng.integers(0, variation.reaction_delay_steps + 1))
+    return ExpertStyle(driver, delay, variation.steering_noise_radps)
+
+
+class ExpertDriver(Diagram):
+    """Drives like a careful person who knows the terrain: `EdgeAngleDriver` plus variation.
+
+    Inside: the edge-angle driver with this demonstration's angles and margin,
+    Gaussian steering noise from a Drake `RandomSource` (seeded by
+    `diagram.SetRandomContext`, so the same seed gives the same run), and a
+    reaction delay of whole control steps. Its output is a *raw* command: wire it
+    to an `ActionQuantizer`, which snaps it to an action label as the paper's
+    teleop did.
+
+    .. pydrake_system::
+
+        name: ExpertDriver
+        input_ports:
+        - body_poses
+        output_ports:
+        - raw_command
+
+    Ports:
+        body_poses: the plant's body poses X_WB (vector of RigidTransform).
+        raw_command: [v (m/s), w (rad/s)], updated at the control rate.
+    """
+
+    def __init__(self, terrain: DitchTerrain, goal_xy, chassis_body_index, style: ExpertStyle):
+        super().__init__()
+        builder = DiagramBuilder()
+        period = robot.CONTROL_PERIOD_S
+        driver = builder.AddNamedSystem("edge_angle_driver", EdgeAngleDriver(
+            terrain, goal_xy, chassis_body_index, style.driver, offset_s=schedule.CONTROLLER_OFFSET_S))
+        builder.ExportInput(driver.GetInputPort("body_poses"), "body_poses")
+        noise = builder.AddNamedSystem("steering_noise", RandomSource(RandomDistribution.kGaussian, 1, period))
+        to_command = builder.AddNamedSystem(
+            "noise_to_command", MatrixGain(np.array([[0.0], [style.steering_noise_radps]])))
+        adder = builder.AddNamedSystem("add_noise", Adder(2, 2))
+        builder.Connect(noise.get_output_port(), to_command.get_input_port())
+        builder.Connect(driver.GetOutputPort("command"), adder.get_input_port(0))
+        builder.Connect(to_command.get_output_port(), adder.get_input_port(1))
+        output = adder.get_output_port()
+        if style.reaction_delay_steps > 0:
+            delay = builder.AddNamedSystem(
+                "reaction_delay", DiscreteTimeDelay(period, style.reaction_delay_steps, 2))
+            builder.Connect(output, delay.get_input_port())
+            output = delay.get_output_port()
+        builder.ExportOutput(output, "raw_command")
+        builder.BuildInto(self)
