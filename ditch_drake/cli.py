@@ -5,6 +5,8 @@ import json
 import sys
 import time
 
+from ditch_drake.actions import ANGULAR_RATES_RADPS
+from ditch_drake.demos.dataset import DatasetError
 from ditch_drake.environments import ConfigError, environment_names
 from ditch_drake.terrain import TerrainError
 
@@ -91,6 +93,33 @@ def cmd_bench(args) -> int:
     return 0
 
 
+def cmd_collect(args) -> int:
+    from ditch_drake.demos.collect import CollectConfig, collect
+
+    report = collect(CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out,
+                                   workers=args.workers))
+    print(json.dumps(report, indent=2))
+    return 0 if not report["unfilled_slots"] else 1
+
+
+def cmd_dataset_info(args) -> int:
+    from ditch_drake.demos.dataset import dataset_summary, load_dataset
+
+    summary = dataset_summary(load_dataset(args.path))
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    print(f"{args.path}: {summary['demonstrations']} demonstrations, {summary['steps']} steps")
+    print("per task: " + ", ".join(f"{name} {count}" for name, count in summary["per_task"].items()))
+    rows = [{"label": label, "w_radps": f"{rate:+.2f}", "steps": count,
+             "share": f"{count / max(1, summary['steps']):.1%}"}
+            for label, (rate, count) in enumerate(zip(ANGULAR_RATES_RADPS, summary["per_label"]))]
+    _print_table(rows, ["label", "w_radps", "steps", "share"])
+    print(f"straight (label 8) share {summary['straight_fraction']:.1%}; "
+          f"majority/minority ratio {summary['majority_to_minority_ratio']:.1f}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ditch-drake", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -125,6 +154,19 @@ def build_parser() -> argparse.ArgumentParser:
     calibrate.add_argument("--time-step", type=float, default=None, help="plant step in s (default: the scene's)")
     calibrate.set_defaults(run=cmd_calibrate)
 
+    collect = commands.add_parser("collect", help="record expert demonstrations (resumable)")
+    add_env(collect)
+    collect.add_argument("--demos", type=int, default=40)
+    collect.add_argument("--seed", type=int, default=0)
+    collect.add_argument("--out", required=True, help="directory of demo_NNN.npz files")
+    collect.add_argument("--workers", type=int, default=0, help="processes (0: one per core)")
+    collect.set_defaults(run=cmd_collect)
+
+    info = commands.add_parser("dataset-info", help="counts per label and task, class imbalance")
+    info.add_argument("path", help="a directory of demonstrations")
+    info.add_argument("--json", action="store_true")
+    info.set_defaults(run=cmd_dataset_info)
+
     bench = commands.add_parser("bench", help="speed and memory figures")
     add_env(bench, many=True)
     bench.add_argument("--json", action="store_true", help="one JSON object on stdout")
@@ -136,7 +178,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (ConfigError, TerrainError) as error:
+    except (ConfigError, TerrainError, DatasetError) as error:
         print(f"ditch-drake: error: {error}", file=sys.stderr)
         return 2
 

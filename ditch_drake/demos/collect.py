@@ -1,0 +1,172 @@
+"""Collecting demonstrations with the scripted expert, resumably and in parallel."""
+
+import os
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+from pydrake.common import RandomGenerator
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from tqdm import tqdm
+
+from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
+from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
+from ditch_drake.demos.dataset import (
+    DatasetError,
+    Demonstration,
+    load_demonstration,
+    log_to_arrays,
+    save_demonstration,
+    standard_metadata,
+)
+from ditch_drake.environments import get_environment
+from ditch_drake.systems.demo_recorder import DemoRecorder
+from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
+from ditch_drake.systems.teleop import ActionQuantizer
+
+ATTEMPTS_PER_DEMO = 5
+
+
+@dataclass
+class CollectConfig:
+    """What `collect` gathers.
+
+    Attributes:
+        environment: environment name.
+        demos: how many successful demonstrations, spread over the tasks (demo i
+            drives task i mod the number of tasks).
+        seed: demo i's first attempt uses seed + i; a failed attempt k uses
+            seed + i + 1000 k (failed demonstrations are not kept).
+        out: directory of `demo_NNN.npz` files.
+        workers: processes (0: one per core).
+        observation: perception settings.
+        variation: the expert's per-demonstration variation.
+    """
+
+    environment: str = "wide"
+    demos: int = 40
+    seed: int = 0
+    out: str = "data/demos/wide"
+    workers: int = 0
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+    variation: ExpertVariation = field(default_factory=ExpertVariation)
+
+
+@dataclass
+class DemonstrationRig:
+    """A scene with perception, the expert through the action quantizer, and the recorder."""
+
+    diagram: Diagram
+    scene: DitchScene
+    observation: Observation
+    recorder: DemoRecorder
+
+
+def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
+                             observation_config: ObservationConfig | None = None,
+                             variation: ExpertVariation | None = None, meshcat=None) -> DemonstrationRig:
+    """The expert drives through `ActionQuantizer`, whose label the recorder stores."""
+    builder = DiagramBuilder()
+    scene = AddDitchScene(builder, scene_config, meshcat)
+    observation = AddObservation(builder, scene, observation_config)
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    expert = builder.AddNamedSystem("expert", ExpertDriver(
+        scene.terrain, scene.task.goal, chassis.index(), draw_expert_style(style_seed, variation)))
+    builder.Connect(scene.plant.get_body_poses_output_port(), expert.GetInputPort("body_poses"))
+    quantizer = builder.AddNamedSystem("action_quantizer", ActionQuantizer())
+    builder.Connect(expert.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
+    builder.Connect(quantizer.GetOutputPort("command"), scene.drive.GetInputPort("command"))
+    recorder = builder.AddNamedSystem("demo_recorder", DemoRecorder(chassis.index()))
+    ConnectObservation(builder, observation, recorder)
+    builder.Connect(quantizer.GetOutputPort("label"), recorder.GetInputPort("label"))
+    builder.Connect(expert.GetOutputPort("raw_command"), recorder.GetInputPort("raw_command"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), recorder.GetInputPort("body_poses"))
+    diagram = builder.Build()
+    diagram.set_name(f"demonstration_{scene_config.environment}")
+    return DemonstrationRig(diagram, scene, observation, recorder)
+
+
+def record_demonstration(environment: str, task: int, seed: int,
+                         observation_config: ObservationConfig | None = None,
+                         variation: ExpertVariation | None = None) -> Demonstration:
+    """Runs one expert episode; returns the demonstration, successful or not (see metadata)."""
+    rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task), seed,
+                                   observation_config, variation)
+    simulator = Simulator(rig.diagram)
+    context = simulator.get_mutable_context()
+    rig.diagram.SetRandomContext(context, RandomGenerator(seed))
+    simulator.Initialize()
+    simulator.AdvanceTo(rig.scene.episode.time_limit_s + 1.0)
+    outcome = rig.scene.monitor.outcome(rig.scene.monitor.GetMyContextFromRoot(context))
+    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(context))
+    metadata = standard_metadata(
+        environment=environment,
+        task={"index": task, "name": rig.scene.task.name, "start": rig.scene.task.start, "goal": rig.scene.task.goal},
+        seed=seed,
+        outcome=asdict(outcome),
+        control_period_s=float(log.steps[1].time_s - log.steps[0].time_s) if len(log) > 1 else None,
+        expert_style=asdict(draw_expert_style(seed, variation)),
+    )
+    return Demonstration(log_to_arrays(log), metadata)
+
+
+def demo_path(out: str | Path, index: int) -> Path:
+    return Path(out) / f"demo_{index:03d}.npz"
+
+
+def _collect_slot(config: CollectConfig, index: int) -> dict:
+    tasks = len(get_environment(config.environment).tasks)
+    failures = []
+    for attempt in range(ATTEMPTS_PER_DEMO):
+        seed = config.seed + index + 1000 * attempt
+        demonstration = record_demonstration(config.environment, index % tasks, seed,
+                                             config.observation, config.variation)
+        status = demonstration.metadata["outcome"]["status"]
+        if status == "reached_goal":
+            save_demonstration(demo_path(config.out, index), demonstration)
+            return {"index": index, "seed": seed, "steps": len(demonstration), "failures": failures}
+        failures.append({"seed": seed, "status": status})
+    return {"index": index, "seed": None, "steps": 0, "failures": failures}
+
+
+def _existing_demo(path: Path) -> bool:
+    if not path.exists():
+        return False
+    try:
+        load_demonstration(path)
+        return True
+    except DatasetError:
+        return False  # A damaged file is recorded again (and replaced atomically).
+
+
+def collect(config: CollectConfig, progress: bool = True) -> dict:
+    """Collects the missing demonstrations of `config.out`; returns a report.
+
+    Interrupted and rerun, it keeps the valid files already written and records
+    only the missing ones.
+    """
+    Path(config.out).mkdir(parents=True, exist_ok=True)
+    get_environment(config.environment)
+    missing = [index for index in range(config.demos) if not _existing_demo(demo_path(config.out, index))]
+    workers = config.workers or os.cpu_count() or 1
+    results = []
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        futures = [pool.submit(_collect_slot, config, index) for index in missing]
+        bar = tqdm(as_completed(futures), total=len(futures), desc=f"collect {config.environment}",
+                   disable=not progress)
+        for future in bar:
+            results.append(future.result())
+            bar.set_postfix(failed=sum(len(r["failures"]) for r in results))
+    failures = [failure for result in results for failure in result["failures"]]
+    return {
+        "environment": config.environment,
+        "out": str(config.out),
+        "kept_before": config.demos - len(missing),
+        "recorded": sum(result["seed"] is not None for result in results),
+        "unfilled_slots": [result["index"] for result in results if result["seed"] is None],
+        "discarded": len(failures),
+        "discarded_by_status": {status: sum(f["status"] == status for f in failures)
+                                for status in sorted({f["status"] for f in failures})},
+        "steps_recorded": sum(result["steps"] for result in results),
+    }

@@ -1,0 +1,41 @@
+"""The action table and the teleop quantizer block."""
+
+import numpy as np
+import pytest
+
+from ditch_drake import actions
+from ditch_drake.systems.teleop import ActionQuantizer
+
+
+def test_table_matches_the_paper_examples():
+    assert actions.NUM_LABELS == 17
+    assert np.allclose(actions.COMMANDS[:, 0], 1.0)
+    for label, rate in {8: 0.0, 10: 0.25, 11: 0.35, 12: 0.45, 16: 0.85, 0: -0.85, 7: -0.15}.items():
+        assert actions.label_to_command(label)[1] == pytest.approx(rate)
+
+
+@pytest.mark.parametrize("w, label", [(0.0, 8), (0.07, 8), (0.08, 9), (0.3, 10), (-0.3, 6), (5.0, 16), (-5.0, 0)])
+def test_quantize_to_nearest_rate(w, label):
+    assert actions.quantize([0.4, w]) == label
+
+
+def test_quantize_inverts_the_table():
+    for label in range(actions.NUM_LABELS):
+        assert actions.quantize(actions.label_to_command(label)) == label
+
+
+def test_bad_commands_and_labels():
+    with pytest.raises(ValueError, match="must be a finite"):
+        actions.quantize([1.0, float("nan")])
+    with pytest.raises(ValueError, match="must be a finite"):
+        actions.quantize([1.0, 0.0, 2.0])
+    with pytest.raises(ValueError, match="out of range"):
+        actions.label_to_command(17)
+
+
+def test_quantizer_block_outputs_the_snapped_command_and_label():
+    quantizer = ActionQuantizer()
+    context = quantizer.CreateDefaultContext()
+    quantizer.GetInputPort("raw_command").FixValue(context, [0.7, -0.62])
+    assert np.allclose(quantizer.GetOutputPort("command").Eval(context), [1.0, -0.65])
+    assert quantizer.GetOutputPort("label").Eval(context)[0] == 2

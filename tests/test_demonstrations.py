@@ -1,0 +1,138 @@
+"""Expert, recorder and the dataset format."""
+
+import json
+import os
+
+import numpy as np
+import pytest
+from pydrake.common import RandomGenerator
+from pydrake.systems.analysis import Simulator
+
+from ditch_drake import actions
+from ditch_drake.demos.collect import CollectConfig, MakeDemonstrationDiagram, collect, demo_path
+from ditch_drake.demos.dataset import (
+    DatasetError,
+    Demonstration,
+    dataset_summary,
+    load_dataset,
+    load_demonstration,
+    log_to_arrays,
+    restack_images,
+    save_demonstration,
+    standard_metadata,
+)
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.systems.expert import draw_expert_style
+
+
+def test_expert_style_is_seeded():
+    assert draw_expert_style(3) == draw_expert_style(3)
+    assert draw_expert_style(3) != draw_expert_style(4)
+    style = draw_expert_style(3)
+    assert 17 <= style.driver.wall_angle_deg <= 23 and 32 <= style.driver.climb_angle_deg <= 38
+
+
+@pytest.fixture(scope="module")
+def short_recording():
+    """Two simulated seconds of the expert with perception and the recorder."""
+    rig = MakeDemonstrationDiagram(SceneConfig(environment="wide", task=1), style_seed=0)
+    simulator = Simulator(rig.diagram)
+    context = simulator.get_mutable_context()
+    rig.diagram.SetRandomContext(context, RandomGenerator(0))
+    simulator.AdvanceTo(2.05)
+    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(context))
+    stacker_context = rig.observation.stacker.GetMyContextFromRoot(context)
+    image_stack = rig.observation.stacker.GetOutputPort("image_stack").Eval(stacker_context)
+    return log, image_stack
+
+
+def test_recorder_records_every_control_step(short_recording):
+    log, _ = short_recording
+    times = np.array([step.time_s for step in log.steps])
+    assert len(log) == 21
+    assert np.allclose(np.diff(times), 0.1)
+    assert all(0 <= step.label < actions.NUM_LABELS for step in log.steps)
+    # The executed label is the quantized raw command.
+    assert all(step.label == actions.quantize(step.raw_command) for step in log.steps)
+
+
+def test_restacked_images_equal_what_the_stacker_holds(short_recording):
+    log, image_stack = short_recording
+    arrays = log_to_arrays(log)
+    restacked = restack_images(arrays["image"])[-1].astype(np.float32) / 255.0
+    assert restacked.shape == (4, 128, 128)
+    assert np.allclose(restacked.ravel(), image_stack, atol=0.5 / 255 + 1e-6)
+
+
+def _demonstration(steps=5, label=8):
+    arrays = {
+        "image": np.zeros((steps, 128, 128), np.uint8),
+        "imu_stack": np.zeros((steps, 8), np.float32),
+        "distance_stack": np.ones((steps, 4), np.float32),
+        "bearing_stack": np.zeros((steps, 4), np.float32),
+        "label": np.full(steps, label, np.int16),
+        "time_s": np.arange(steps) * 0.1,
+        "pose": np.zeros((steps, 6), np.float32),
+        "raw_command": np.zeros((steps, 2), np.float32),
+    }
+    return Demonstration(arrays, standard_metadata(environment="wide", task={"index": 0, "name": "a"}, seed=1))
+
+
+def test_round_trip_and_atomic_write(tmp_path):
+    path = save_demonstration(tmp_path / "demo_000.npz", _demonstration())
+    assert [p.name for p in tmp_path.iterdir()] == ["demo_000.npz"]  # No temporary file left.
+    loaded = load_demonstration(path)
+    assert len(loaded) == 5 and loaded.metadata["environment"] == "wide"
+    assert loaded.metadata["action_table"] == actions.COMMANDS.tolist()
+
+
+def test_corrupt_and_wrong_files_are_named(tmp_path):
+    truncated = tmp_path / "demo_000.npz"
+    save_demonstration(truncated, _demonstration())
+    truncated.write_bytes(truncated.read_bytes()[:100])
+    with pytest.raises(DatasetError, match="demo_000.npz is corrupt"):
+        load_demonstration(truncated)
+    bad_label = _demonstration(label=17)
+    with pytest.raises(DatasetError, match=r"labels span 17..17; expected 0..16"):
+        save_demonstration(tmp_path / "demo_001.npz", bad_label)
+    wrong = _demonstration()
+    wrong.arrays["imu_stack"] = np.zeros((5, 3), np.float32)
+    with pytest.raises(DatasetError, match=r"'imu_stack' has shape \(5, 3\)"):
+        save_demonstration(tmp_path / "demo_002.npz", wrong)
+    old = _demonstration()
+    old.metadata["schema_version"] = 0
+    np.savez(tmp_path / "demo_003.npz", metadata=np.array(json.dumps(old.metadata)), **old.arrays)
+    with pytest.raises(DatasetError, match="schema_version 0, expected 1"):
+        load_demonstration(tmp_path / "demo_003.npz")
+
+
+def test_summary_counts_labels_and_tasks(tmp_path):
+    save_demonstration(tmp_path / "demo_000.npz", _demonstration(4, 8))
+    save_demonstration(tmp_path / "demo_001.npz", _demonstration(2, 10))
+    summary = dataset_summary(load_dataset(tmp_path))
+    assert summary["per_label"][8] == 4 and summary["per_label"][10] == 2
+    assert summary["straight_fraction"] == pytest.approx(4 / 6)
+    assert summary["majority_to_minority_ratio"] == pytest.approx(2.0)
+
+
+def test_restack_puts_newest_first_with_zeros_before_the_start():
+    frames = np.arange(1, 4, dtype=np.uint8)[:, None, None] * np.ones((3, 2, 2), np.uint8)
+    stacks = restack_images(frames)
+    assert stacks[0, :, 0, 0].tolist() == [1, 0, 0, 0]
+    assert stacks[2, :, 0, 0].tolist() == [3, 2, 1, 0]
+
+
+def test_collect_resumes_keeping_what_is_written(tmp_path):
+    config = CollectConfig(environment="narrow", demos=1, seed=0, out=str(tmp_path), workers=1)
+    first = collect(config, progress=False)
+    assert first["recorded"] == 1 and demo_path(tmp_path, 0).exists()
+    written = os.path.getmtime(demo_path(tmp_path, 0))
+    # A damaged second file is recorded again; the good first one is kept.
+    demo_path(tmp_path, 1).write_bytes(b"not a demonstration")
+    config.demos = 2
+    second = collect(config, progress=False)
+    assert second["kept_before"] == 1 and second["recorded"] == 1
+    assert os.path.getmtime(demo_path(tmp_path, 0)) == written
+    demonstrations = load_dataset(tmp_path)
+    assert [demo.metadata["task"]["index"] for demo in demonstrations] == [0, 1]
+    assert all(demo.metadata["outcome"]["status"] == "reached_goal" for demo in demonstrations)
