@@ -1,0 +1,275 @@
+"""Policy checkpoints: the trained weights and everything inference needs, in one file.
+
+A checkpoint is a `torch.save` of a dict of tensors and plain Python values (no pickled
+classes or code), read back with `torch.load(weights_only=True)`:
+
+| key | value |
+| --- | --- |
+| schema | "ditch_drake.policy_checkpoint" |
+| schema_version | 1 (`SCHEMA_VERSION`) |
+| code_version | `ditch_drake.__version__` of the writer |
+| model_config | `ModelConfig.to_dict()` |
+| state_dict | the network's weights and BatchNorm statistics (tensors) |
+| action_commands | 17 x [v m/s, w rad/s]: `actions.COMMANDS` when trained, label = row |
+| input_stats | `InputStats.to_dict()`: mean and std of the scalar inputs (training split) |
+| training | summary of the data: per-label counts, demonstrations used, the `TrainConfig` |
+| metrics | validation metrics of the kept weights, the per-epoch history, ... |
+
+Files are written atomically (a temporary file in the same folder, then `os.replace`), so
+a reader never sees half a file; a corrupt, truncated or foreign file raises
+`CheckpointError` naming the file and what was expected.
+"""
+
+import os
+import tempfile
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+import ditch_drake
+from ditch_drake import actions
+from ditch_drake.learning.data import InputStats
+from ditch_drake.learning.model import FourInputClassifier, ModelConfig
+
+SCHEMA = "ditch_drake.policy_checkpoint"
+SCHEMA_VERSION = 1
+
+
+class CheckpointError(ValueError):
+    """A file that is not a readable checkpoint of the expected schema and version."""
+
+
+@dataclass
+class PolicyCheckpoint:
+    """A trained policy as stored (see the module docstring for the file layout).
+
+    Attributes:
+        model_config: the network's shape.
+        state_dict: weights and BatchNorm statistics.
+        action_commands: (num_labels, 2) [v m/s, w rad/s] of each label.
+        input_stats: standardization of the scalar inputs.
+        training: data summary (plain values).
+        metrics: validation metrics and history (plain values).
+        code_version: `ditch_drake.__version__` of the writer.
+        path: the file it was loaded from or last saved to, if any.
+    """
+
+    model_config: ModelConfig
+    state_dict: dict[str, torch.Tensor]
+    action_commands: np.ndarray = field(default_factory=lambda: actions.COMMANDS.copy())
+    input_stats: InputStats = field(default_factory=InputStats.identity)
+    training: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+    code_version: str = ditch_drake.__version__
+    path: Path | None = None
+
+    def build_model(self) -> FourInputClassifier:
+        """A fresh network with these weights and input stats, in eval mode, on the CPU."""
+        model = FourInputClassifier(self.model_config)
+        model.load_state_dict(self.state_dict)
+        model.set_input_stats(self.input_stats.to_dict())
+        return model.eval()
+
+    def to_payload(self) -> dict:
+        """The dict that `torch.save` writes (tensors and plain values only).
+
+        Raises:
+            TypeError: `training` or `metrics` holds something other than plain values.
+        """
+        return {
+            "schema": SCHEMA,
+            "schema_version": SCHEMA_VERSION,
+            "code_version": str(self.code_version),
+            "model_config": self.model_config.to_dict(),
+            "state_dict": {name: value.detach().cpu().clone() for name, value in self.state_dict.items()},
+            "action_commands": np.asarray(self.action_commands, dtype=float).tolist(),
+            "input_stats": self.input_stats.to_dict(),
+            "training": to_plain(self.training, "training"),
+            "metrics": to_plain(self.metrics, "metrics"),
+        }
+
+
+def make_checkpoint(
+    model: FourInputClassifier,
+    input_stats: InputStats | None = None,
+    training: dict | None = None,
+    metrics: dict | None = None,
+) -> PolicyCheckpoint:
+    """A checkpoint of `model`'s current weights (copied) with the current action table.
+
+    `training` and `metrics` are stored as plain values (numpy arrays become lists), as
+    they will read back from the file.
+
+    Raises:
+        TypeError: `training` or `metrics` holds something a checkpoint cannot.
+    """
+    return PolicyCheckpoint(
+        model_config=ModelConfig.from_dict(model.config.to_dict()),
+        state_dict={name: value.detach().cpu().clone() for name, value in model.state_dict().items()},
+        input_stats=input_stats or InputStats.identity(),
+        training=to_plain(dict(training or {}), "training"),
+        metrics=to_plain(dict(metrics or {}), "metrics"),
+    )
+
+
+def to_plain(value, where: str = "value"):
+    """`value` with numpy scalars and arrays turned into Python numbers and lists.
+
+    Raises:
+        TypeError: a type that `torch.load(weights_only=True)` would refuse, naming where.
+    """
+    if isinstance(value, (bool, int, float, str)) or value is None:
+        return value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, torch.Tensor):
+        return value.detach().cpu()
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, (list, tuple)):
+        return [to_plain(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if isinstance(value, dict):
+        out = {}
+        for key, v in value.items():
+            if not isinstance(key, (str, int)):
+                raise TypeError(f"{where} has a key {key!r} of type {type(key).__name__}; expected str or int")
+            out[key] = to_plain(v, f"{where}[{key!r}]")
+        return out
+    raise TypeError(f"{where} is a {type(value).__name__}; a checkpoint holds only tensors and plain values")
+
+
+def save_payload(payload: dict, path: str | os.PathLike) -> Path:
+    """`torch.save(payload)` to `path` atomically: a temporary file in the same folder, then `os.replace`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(handle, "wb") as file:
+            torch.save(payload, file)
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_payload(path: str | os.PathLike, schema: str, version: int) -> dict:
+    """The dict saved at `path`, checked to be of `schema` at a version <= `version`.
+
+    Raises:
+        FileNotFoundError: no file at `path`.
+        CheckpointError: not a torch file of plain values (corrupt, truncated, pickled
+            code), not a dict, another schema, or a newer schema version.
+    """
+    path = Path(path)
+    expected = f"a torch.save file of {schema} (schema_version <= {version}, tensors and plain values)"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such checkpoint file (expected {expected})")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises RuntimeError, UnpicklingError, EOFError, ... for bad files.
+        message = str(error)
+        if "Unsupported global" in message:
+            reason = "it holds pickled Python objects, which a checkpoint must not"
+        elif "zip archive" in message or "PytorchStreamReader" in message or isinstance(error, EOFError):
+            reason = "it is truncated or corrupt"
+        else:
+            reason = "it is corrupt or not a torch.save file"
+        raise CheckpointError(
+            f"{path} is not a readable checkpoint: {reason} ({type(error).__name__}); expected {expected}"
+        ) from error
+    if not isinstance(payload, dict) or "schema" not in payload:
+        raise CheckpointError(f"{path} holds a {type(payload).__name__} without a 'schema' key; expected {expected}")
+    if payload["schema"] != schema:
+        raise CheckpointError(f"{path} has schema {payload['schema']!r}; expected {expected}")
+    found = payload.get("schema_version")
+    if not isinstance(found, int) or isinstance(found, bool) or found < 1:
+        raise CheckpointError(f"{path} has schema_version {found!r}; expected an integer in 1..{version}")
+    if found > version:
+        raise CheckpointError(
+            f"{path} has schema_version {found}, written by a newer ditch_drake "
+            f"({payload.get('code_version')!r}); this code ({ditch_drake.__version__}) reads up to {version}"
+        )
+    return payload
+
+
+def save_checkpoint(checkpoint: PolicyCheckpoint, path: str | os.PathLike) -> Path:
+    """Writes `checkpoint` to `path` atomically and records the path on it."""
+    checkpoint.path = save_payload(checkpoint.to_payload(), path)
+    return checkpoint.path
+
+
+def _require(payload: dict, key: str, kind: type | tuple[type, ...], path: Path):
+    if key not in payload:
+        raise CheckpointError(f"{path} lacks {key!r}; expected a {SCHEMA} v{SCHEMA_VERSION} checkpoint")
+    if not isinstance(payload[key], kind):
+        raise CheckpointError(f"{path}: {key!r} is a {type(payload[key]).__name__}; expected {kind}")
+    return payload[key]
+
+
+def load_checkpoint(path: str | os.PathLike) -> PolicyCheckpoint:
+    """Reads and checks a checkpoint written by `save_checkpoint`.
+
+    The weights are checked against the stored model config (by building the network),
+    so a file that loads here also runs. An action table that differs from the current
+    `actions.COMMANDS` gives a warning; the checkpoint's own table is what it returns.
+
+    Raises:
+        FileNotFoundError: no file at `path`.
+        CheckpointError: naming the file and what was expected, for a corrupt, truncated
+            or foreign file, a newer schema, or contents that do not fit together.
+    """
+    path = Path(path)
+    payload = load_payload(path, SCHEMA, SCHEMA_VERSION)
+    try:
+        model_config = ModelConfig.from_dict(_require(payload, "model_config", dict, path))
+        model_config.image_feature_size()
+    except (TypeError, ValueError) as error:
+        raise CheckpointError(f"{path}: bad model_config ({error})") from error
+    state_dict = _require(payload, "state_dict", dict, path)
+    if not all(isinstance(v, torch.Tensor) for v in state_dict.values()):
+        raise CheckpointError(f"{path}: 'state_dict' must map names to tensors")
+    try:
+        commands = np.asarray(_require(payload, "action_commands", list, path), dtype=float)
+    except ValueError as error:
+        raise CheckpointError(f"{path}: 'action_commands' is not a numeric table ({error})") from error
+    if commands.shape != (model_config.num_labels, 2) or not np.all(np.isfinite(commands)):
+        raise CheckpointError(
+            f"{path}: 'action_commands' has shape {commands.shape}; expected ({model_config.num_labels}, 2) finite "
+            "[v m/s, w rad/s] rows"
+        )
+    if commands.shape != actions.COMMANDS.shape or not np.allclose(commands, actions.COMMANDS):
+        warnings.warn(f"{path} was trained with an action table other than ditch_drake.actions.COMMANDS", stacklevel=2)
+    try:
+        input_stats = InputStats.from_dict(_require(payload, "input_stats", dict, path))
+    except ValueError as error:
+        raise CheckpointError(f"{path}: bad input_stats ({error})") from error
+    if not all(np.all(np.isfinite(v)) for v in vars(input_stats).values()) or not all(
+        np.all(getattr(input_stats, f"{name}_std") > 0) for name in ("imu", "distance", "bearing")
+    ):
+        raise CheckpointError(f"{path}: input_stats must be finite with positive stds")
+    checkpoint = PolicyCheckpoint(
+        model_config=model_config,
+        state_dict=state_dict,
+        action_commands=commands,
+        input_stats=input_stats,
+        training=_require(payload, "training", dict, path),
+        metrics=_require(payload, "metrics", dict, path),
+        code_version=str(_require(payload, "code_version", str, path)),
+        path=path,
+    )
+    try:
+        model = checkpoint.build_model()
+    except (RuntimeError, ValueError) as error:
+        reason = " ".join(str(error).split())
+        raise CheckpointError(f"{path}: the weights do not fit the stored model_config ({reason})") from error
+    if not all(bool(torch.isfinite(v).all()) for v in model.state_dict().values() if v.is_floating_point()):
+        raise CheckpointError(f"{path}: the weights hold non-finite values")
+    return checkpoint

@@ -1,0 +1,506 @@
+"""Training the behavioural clone (paper 3.5, 3.6): split, SMOTE, layer-specific rates, early stopping.
+
+`train(arrays, config)` runs the whole protocol on an in-memory `ArraySet`:
+
+1. keep the first `max_demos` demonstrations (the 10/20/40 study);
+2. hold out whole demonstrations for validation (`split_indices_by_demo`);
+3. fit the scalar inputs' standardization on the training split;
+4. add SMOTE samples to the training split only (`balance.smote_samples`);
+5. train with Adam, the image branch and head at `lr`, the scalar branches at
+   `lr * scalar_lr_factor`, cross-entropy on the logits;
+6. after every epoch evaluate on the validation split and keep the weights with the best
+   ordinal accuracy (ties: lower validation loss); stop after `patience` epochs without
+   improvement.
+
+Determinism: the model's initialization, every epoch's shuffle and its dropout masks are
+drawn from generators seeded by (`seed`, epoch), inside `torch.random.fork_rng` so the
+caller's global generator is left alone, with `torch.use_deterministic_algorithms(True)`
+and a fixed thread count for the run; the same data and config give the same weights.
+Because each epoch is seeded on its own, a run resumed from its `.resume` file after
+epoch k continues exactly as the uninterrupted run would have.
+
+Files, when `output_path` is given: the best checkpoint so far at `output_path` (rewritten
+atomically whenever validation improves, and at the end with the final metrics), and the
+full training state after the last finished epoch at `output_path` + ".resume". Ctrl-C
+(KeyboardInterrupt) during the epochs ends training cleanly: the best weights so far are
+saved and returned with `interrupted=True`.
+
+Cost: a training step takes about 30 ms per sample on 2 shared CPU cores (the first
+convolution, 64 filters at full 128 x 128 resolution, dominates), so an epoch over one
+environment's 40 demonstrations (~13 k real + ~13 k SMOTE samples) takes about 12 min.
+"""
+
+import copy
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+import ditch_drake
+from ditch_drake.actions import NUM_LABELS
+from ditch_drake.learning.balance import SmoteConfig, smote_samples
+from ditch_drake.learning.checkpoint import (
+    CheckpointError,
+    PolicyCheckpoint,
+    load_payload,
+    make_checkpoint,
+    save_checkpoint,
+    save_payload,
+    to_plain,
+)
+from ditch_drake.learning.data import (
+    ArraySet,
+    InputStats,
+    first_demos_indices,
+    images_to_tensor,
+    split_indices_by_demo,
+)
+from ditch_drake.learning.metrics import confusion_matrix, exact_accuracy, ordinal_accuracy
+from ditch_drake.learning.model import FourInputClassifier, ModelConfig, parameter_groups
+
+RESUME_SCHEMA = "ditch_drake.training_state"
+RESUME_SCHEMA_VERSION = 1
+RESUME_SUFFIX = ".resume"
+# Fields that may change between a run and its resumption; all others must match.
+_RESUMABLE_CHANGES = {"epochs", "patience", "num_threads", "device"}
+
+
+@dataclass
+class TrainConfig:
+    """Training settings (paper 3.5, 3.6; values the paper does not give are the project's).
+
+    Attributes:
+        epochs: most epochs to run.
+        batch_size: samples per optimizer step.
+        lr: Adam learning rate of the image branch and the head.
+        scalar_lr_factor: the scalar branches' rate relative to `lr` (paper: 1/10).
+        patience: epochs without a better validation ordinal accuracy before stopping.
+        val_fraction: share of the demonstrations held out for validation (0: none; then
+            the last epoch's weights are kept and there is no early stopping).
+        seed: seeds the split, SMOTE, initialization, shuffling and dropout.
+        smote: class balancing of the training split (`SmoteConfig`).
+        max_demos: train on the demonstrations with the `max_demos` smallest ids (None: all).
+        ordinal_tolerance: labels of slack of the ordinal accuracy (paper: 1).
+        device: torch device ("cpu"; "cuda" works but is not bitwise reproducible).
+        num_threads: torch intra-op threads during training (None: leave torch's setting).
+            Results are reproducible for a given thread count.
+        eval_batch_size: samples per forward pass when evaluating.
+        max_batches_per_epoch: stop each epoch after this many batches (None: all); for
+            smoke tests and benchmarks.
+        model: the network's shape.
+    """
+
+    epochs: int = 50
+    batch_size: int = 64
+    lr: float = 1e-3
+    scalar_lr_factor: float = 0.1
+    patience: int = 10
+    val_fraction: float = 0.2
+    seed: int = 0
+    smote: SmoteConfig = field(default_factory=SmoteConfig)
+    max_demos: int | None = None
+    ordinal_tolerance: int = 1
+    device: str = "cpu"
+    num_threads: int | None = None
+    eval_batch_size: int = 256
+    max_batches_per_epoch: int | None = None
+    model: ModelConfig = field(default_factory=ModelConfig)
+
+    def __post_init__(self):
+        if self.epochs < 1 or self.batch_size < 2 or self.eval_batch_size < 1 or self.patience < 1:
+            raise ValueError(f"{self}: epochs, patience >= 1, batch_size >= 2 and eval_batch_size >= 1 required")
+        if not (self.lr > 0 and self.scalar_lr_factor > 0):
+            raise ValueError(f"TrainConfig lr={self.lr} and scalar_lr_factor={self.scalar_lr_factor} must be positive")
+        if self.seed < 0:
+            raise ValueError(f"TrainConfig.seed={self.seed} must be >= 0")
+        if self.num_threads is not None and self.num_threads < 1:
+            raise ValueError(f"TrainConfig.num_threads={self.num_threads} must be >= 1 or None")
+        if self.max_batches_per_epoch is not None and self.max_batches_per_epoch < 1:
+            raise ValueError(f"TrainConfig.max_batches_per_epoch={self.max_batches_per_epoch} must be >= 1 or None")
+
+
+@dataclass
+class TrainResult:
+    """What `train` returns.
+
+    Attributes:
+        model: the kept (best) weights, in eval mode, on the CPU.
+        checkpoint: the same as a `PolicyCheckpoint` (what was saved to `output_path`).
+        history: one dict per finished epoch: epoch, train_loss, train_exact_accuracy,
+            train_ordinal_accuracy, val_loss, val_exact_accuracy, val_ordinal_accuracy
+            (nan without validation), seconds.
+        best_epoch: the epoch whose weights were kept (-1 if none finished).
+        stopped_early: patience ran out.
+        interrupted: a KeyboardInterrupt ended training.
+        output_path: where the checkpoint was saved, if anywhere.
+    """
+
+    model: FourInputClassifier
+    checkpoint: PolicyCheckpoint
+    history: list[dict]
+    best_epoch: int
+    stopped_early: bool
+    interrupted: bool
+    output_path: Path | None = None
+
+
+class _TrainingSamples:
+    """The training rows of the set followed by the synthetic samples, gathered per batch."""
+
+    def __init__(self, arrays: ArraySet, rows: np.ndarray, synthetic: ArraySet):
+        self._arrays, self._rows, self._synthetic = arrays, rows, synthetic
+
+    def __len__(self) -> int:
+        return len(self._rows) + len(self._synthetic)
+
+    def labels(self) -> np.ndarray:
+        return np.concatenate([self._arrays.label[self._rows], self._synthetic.label])
+
+    def batch(self, positions: np.ndarray, device: str) -> tuple[list[torch.Tensor], torch.Tensor]:
+        real = positions < len(self._rows)
+        out = {}
+        for name in ("image", "imu", "distance", "bearing", "label"):
+            source, synthetic = getattr(self._arrays, name), getattr(self._synthetic, name)
+            values = np.empty((len(positions), *source.shape[1:]), dtype=source.dtype)
+            values[real] = source[self._rows[positions[real]]]
+            values[~real] = synthetic[positions[~real] - len(self._rows)]
+            out[name] = values
+        return _tensors(out, device)
+
+
+def _tensors(values: dict, device: str) -> tuple[list[torch.Tensor], torch.Tensor]:
+    inputs = [images_to_tensor(values["image"])] + [
+        torch.from_numpy(np.ascontiguousarray(values[name])) for name in ("imu", "distance", "bearing")
+    ]
+    return [x.to(device) for x in inputs], torch.from_numpy(values["label"]).to(device)
+
+
+@torch.no_grad()
+def predict(
+    model: FourInputClassifier, arrays: ArraySet, rows: np.ndarray | None = None, batch_size: int = 256
+) -> np.ndarray:
+    """(len(rows), num_labels) float32 logits of the rows of `arrays` (all by default), in eval mode.
+
+    The model's train/eval mode is restored afterwards.
+    """
+    rows = np.arange(len(arrays)) if rows is None else np.asarray(rows, dtype=np.int64)
+    device = next(model.parameters()).device
+    was_training = model.training
+    model.eval()
+    logits = []
+    try:
+        for start in range(0, len(rows), batch_size):
+            chunk = rows[start : start + batch_size]
+            values = {name: getattr(arrays, name)[chunk] for name in ("image", "imu", "distance", "bearing", "label")}
+            inputs, _ = _tensors(values, device)
+            logits.append(model(*inputs).float().cpu().numpy())
+    finally:
+        model.train(was_training)
+    return np.concatenate(logits) if logits else np.zeros((0, model.config.num_labels), np.float32)
+
+
+def evaluate(
+    model: FourInputClassifier,
+    arrays: ArraySet,
+    rows: np.ndarray | None = None,
+    tolerance: int = 1,
+    batch_size: int = 256,
+) -> dict:
+    """Loss, exact and ordinal accuracy and the confusion matrix on the rows of `arrays`.
+
+    Returns:
+        {"loss", "exact_accuracy", "ordinal_accuracy" (nan for no rows), "confusion_matrix"
+        ((17, 17) int64, row = true label), "predicted" (labels)}.
+    """
+    rows = np.arange(len(arrays)) if rows is None else np.asarray(rows, dtype=np.int64)
+    logits = predict(model, arrays, rows, batch_size)
+    true = arrays.label[rows]
+    predicted = logits.argmax(axis=1) if len(rows) else np.zeros(0, np.int64)
+    loss = float("nan")
+    if len(rows):
+        loss = float(nn.functional.cross_entropy(torch.from_numpy(logits), torch.from_numpy(true)))
+    return {
+        "loss": loss,
+        "exact_accuracy": exact_accuracy(predicted, true),
+        "ordinal_accuracy": ordinal_accuracy(predicted, true, tolerance),
+        "confusion_matrix": confusion_matrix(predicted, true, model.config.num_labels),
+        "predicted": predicted,
+    }
+
+
+def resume_path(output_path: str | os.PathLike) -> Path:
+    """Where `train` keeps the full training state for `output_path`."""
+    output_path = Path(output_path)
+    return output_path.with_name(output_path.name + RESUME_SUFFIX)
+
+
+def _torch_seed(seed: int, stream: int, epoch: int = 0) -> int:
+    """A torch seed of its own for (seed, stream, epoch): stream 0 initializes, 1 drops out."""
+    return int(np.random.default_rng([seed, stream, epoch]).integers(2**62))
+
+
+def _is_better(candidate: tuple[float, float], best: tuple[float, float] | None) -> bool:
+    """(ordinal accuracy, loss): higher accuracy wins, then lower loss; nan never wins."""
+    if best is None:
+        return True
+    accuracy, loss = candidate
+    if np.isnan(accuracy):
+        return False
+    if np.isnan(best[0]) or accuracy > best[0]:
+        return True
+    return accuracy == best[0] and loss < best[1]
+
+
+def _config_dict(config: TrainConfig) -> dict:
+    return to_plain(asdict(config), "train_config")
+
+
+def train(
+    arrays: ArraySet,
+    config: TrainConfig | None = None,
+    progress: bool = True,
+    output_path: str | os.PathLike | None = None,
+    resume: bool = False,
+) -> TrainResult:
+    """Trains the paper's classifier on `arrays` (see the module docstring for the protocol).
+
+    Args:
+        arrays: all samples (validated); only the first `config.max_demos`
+            demonstrations are used.
+        config: settings; default `TrainConfig()`.
+        progress: show a tqdm bar per epoch and print one line per epoch (to stderr).
+        output_path: where to save the best checkpoint (and its ".resume" training state);
+            None saves nothing.
+        resume: continue from `resume_path(output_path)` if it exists (the data and every
+            config field but epochs, patience, num_threads and device must be the same).
+
+    Returns:
+        The kept model, its checkpoint and the per-epoch history.
+
+    Raises:
+        ValueError: an unusable data set or config (too few demonstrations to split, no
+            training samples, `resume` without `output_path`).
+        CheckpointError: a resume file of another run or config.
+    """
+    config = config or TrainConfig()
+    if resume and output_path is None:
+        raise ValueError("resume=True needs output_path (the resume file sits beside it)")
+    output_path = None if output_path is None else Path(output_path)
+    rows = first_demos_indices(arrays, config.max_demos)
+    train_rows, val_rows = split_indices_by_demo(arrays.demo_id, config.val_fraction, config.seed, rows)
+    if len(train_rows) < 2:
+        raise ValueError(f"{len(train_rows)} training sample(s) after the split; need at least 2")
+    stats = InputStats.fit(arrays, train_rows)
+    start = time.perf_counter()
+    synthetic = smote_samples(arrays, config.smote, config.seed, train_rows, stats)
+    _log(
+        progress,
+        f"{len(train_rows)} training samples ({len(np.unique(arrays.demo_id[train_rows]))} demonstrations), "
+        f"{len(val_rows)} validation ({len(np.unique(arrays.demo_id[val_rows]))}); SMOTE added {len(synthetic)} "
+        f"in {time.perf_counter() - start:.1f} s",
+    )
+    samples = _TrainingSamples(arrays, train_rows, synthetic)
+    summary = {
+        "label_counts": np.bincount(arrays.label[train_rows], minlength=NUM_LABELS),
+        "synthetic_label_counts": synthetic.label_counts(),
+        "val_label_counts": np.bincount(arrays.label[val_rows], minlength=NUM_LABELS),
+        "train_demo_ids": np.unique(arrays.demo_id[train_rows]),
+        "val_demo_ids": np.unique(arrays.demo_id[val_rows]),
+        "num_train_samples": len(train_rows),
+        "num_synthetic_samples": len(synthetic),
+        "num_val_samples": len(val_rows),
+        "train_config": _config_dict(config),
+    }
+
+    previous_threads = torch.get_num_threads()
+    previous_deterministic = torch.are_deterministic_algorithms_enabled()
+    previous_warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    try:
+        if config.num_threads is not None:
+            torch.set_num_threads(config.num_threads)
+        torch.use_deterministic_algorithms(True, warn_only=True)
+        with torch.random.fork_rng(devices=[]):
+            return _run(arrays, config, progress, output_path, resume, val_rows, stats, samples, summary)
+    finally:
+        torch.set_num_threads(previous_threads)
+        torch.use_deterministic_algorithms(previous_deterministic, warn_only=previous_warn_only)
+
+
+def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples, summary) -> TrainResult:
+    torch.manual_seed(_torch_seed(config.seed, 0))
+    model = FourInputClassifier(config.model)
+    model.set_input_stats(stats.to_dict())
+    model.to(config.device)
+    optimizer = torch.optim.Adam(parameter_groups(model, config.lr, config.scalar_lr_factor))
+    loss_function = nn.CrossEntropyLoss()
+    run = {"history": [], "best_state": None, "best_key": None, "best_epoch": -1, "bad_epochs": 0, "confusion": None}
+    start_epoch = 0
+    state_file = None if output_path is None else resume_path(output_path)
+    if resume and state_file.exists():
+        start_epoch = _restore(state_file, config, summary, model, optimizer, run)
+        _log(progress, f"resuming from {state_file} after epoch {start_epoch - 1}")
+
+    n = len(samples)
+    steps = -(-n // config.batch_size)
+    if config.max_batches_per_epoch is not None:
+        steps = min(steps, config.max_batches_per_epoch)
+    has_val = len(val_rows) > 0
+    stopped_early = interrupted = False
+    try:
+        for epoch in range(start_epoch, config.epochs):
+            if has_val and run["bad_epochs"] >= config.patience:
+                stopped_early = True
+                break
+            start = time.perf_counter()
+            torch.manual_seed(_torch_seed(config.seed, 1, epoch))
+            order = np.random.default_rng([config.seed, 2, epoch]).permutation(n)
+            model.train()
+            loss_sum, predicted, true = 0.0, [], []
+            bar = tqdm(range(steps), desc=f"epoch {epoch}", disable=not progress, leave=False, file=sys.stderr)
+            for step in bar:
+                positions = order[step * config.batch_size : (step + 1) * config.batch_size]
+                if len(positions) < 2:  # BatchNorm needs two samples.
+                    continue
+                inputs, labels = samples.batch(positions, config.device)
+                logits = model(*inputs)
+                loss = loss_function(logits, labels)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+                loss_value = loss.item()
+                loss_sum += loss_value * len(positions)
+                predicted.append(logits.argmax(dim=1).cpu().numpy())
+                true.append(labels.cpu().numpy())
+                bar.set_postfix(loss=f"{loss_value:.3f}")
+            predicted, true = np.concatenate(predicted), np.concatenate(true)
+            val = evaluate(model, arrays, val_rows, config.ordinal_tolerance, config.eval_batch_size)
+            record = {
+                "epoch": epoch,
+                "train_loss": loss_sum / len(true),
+                "train_exact_accuracy": exact_accuracy(predicted, true),
+                "train_ordinal_accuracy": ordinal_accuracy(predicted, true, config.ordinal_tolerance),
+                "val_loss": val["loss"],
+                "val_exact_accuracy": val["exact_accuracy"],
+                "val_ordinal_accuracy": val["ordinal_accuracy"],
+                "seconds": time.perf_counter() - start,
+            }
+            run["history"].append(record)
+            key = (record["val_ordinal_accuracy"], record["val_loss"])
+            improved = not has_val or _is_better(key, run["best_key"])
+            if improved:
+                run.update(best_key=key, best_epoch=epoch, bad_epochs=0, confusion=val["confusion_matrix"])
+                run["best_state"] = copy.deepcopy(model.state_dict())
+            else:
+                run["bad_epochs"] += 1
+            _log(progress, _epoch_line(record, improved))
+            if output_path is not None:
+                if improved:
+                    save_checkpoint(_checkpoint(config, stats, summary, run, False, False), output_path)
+                _save_state(state_file, config, summary, epoch, model, optimizer, run)
+            if has_val and run["bad_epochs"] >= config.patience and epoch + 1 < config.epochs:
+                stopped_early = True
+                break
+    except KeyboardInterrupt:
+        interrupted = True
+        _log(progress, f"interrupted; keeping the weights of epoch {run['best_epoch']}")
+    if run["best_state"] is None:  # Interrupted before the first epoch ended: the initial weights.
+        run["best_state"] = copy.deepcopy(model.state_dict())
+    checkpoint = _checkpoint(config, stats, summary, run, stopped_early, interrupted)
+    if output_path is not None:
+        save_checkpoint(checkpoint, output_path)
+        _log(progress, f"saved {output_path} (weights of epoch {run['best_epoch']})")
+    return TrainResult(
+        model=checkpoint.build_model(),
+        checkpoint=checkpoint,
+        history=run["history"],
+        best_epoch=run["best_epoch"],
+        stopped_early=stopped_early,
+        interrupted=interrupted,
+        output_path=output_path,
+    )
+
+
+def _checkpoint(
+    config: TrainConfig, stats: InputStats, summary: dict, run: dict, stopped_early: bool, interrupted: bool
+) -> PolicyCheckpoint:
+    best = next((r for r in run["history"] if r["epoch"] == run["best_epoch"]), {})
+    metrics = {
+        "best_epoch": run["best_epoch"],
+        "best": dict(best),
+        "ordinal_tolerance": config.ordinal_tolerance,
+        "val_confusion_matrix": run["confusion"],
+        "epochs_run": len(run["history"]),
+        "stopped_early": stopped_early,
+        "interrupted": interrupted,
+        "history": run["history"],
+    }
+    model = FourInputClassifier(config.model)
+    model.load_state_dict(run["best_state"])
+    return make_checkpoint(model, stats, summary, metrics)
+
+
+def _save_state(state_file: Path, config, summary, epoch, model, optimizer, run) -> None:
+    save_payload(
+        {
+            "schema": RESUME_SCHEMA,
+            "schema_version": RESUME_SCHEMA_VERSION,
+            "code_version": ditch_drake.__version__,
+            "train_config": _config_dict(config),
+            "train_demo_ids": to_plain(summary["train_demo_ids"]),
+            "epoch": epoch,
+            "model_state": model.state_dict(),
+            "optimizer_state": optimizer.state_dict(),
+            "best_state": run["best_state"],
+            "best_key": None if run["best_key"] is None else list(run["best_key"]),
+            "best_epoch": run["best_epoch"],
+            "bad_epochs": run["bad_epochs"],
+            "confusion": to_plain(run["confusion"]),
+            "history": to_plain(run["history"], "history"),
+        },
+        state_file,
+    )
+
+
+def _restore(state_file: Path, config, summary, model, optimizer, run) -> int:
+    """Loads a resume file into `model`, `optimizer` and `run`; returns the next epoch."""
+    state = load_payload(state_file, RESUME_SCHEMA, RESUME_SCHEMA_VERSION)
+    mine, theirs = _config_dict(config), state.get("train_config", {})
+    differ = sorted(k for k in set(mine) | set(theirs) if k not in _RESUMABLE_CHANGES and mine.get(k) != theirs.get(k))
+    if differ or state.get("train_demo_ids") != to_plain(summary["train_demo_ids"]):
+        raise CheckpointError(
+            f"{state_file} is from another run: config fields {differ} differ, or the training demonstrations do"
+        )
+    try:
+        model.load_state_dict(state["model_state"])
+        optimizer.load_state_dict(state["optimizer_state"])
+        run.update(
+            history=list(state["history"]),
+            best_state=state["best_state"],
+            best_key=None if state["best_key"] is None else tuple(state["best_key"]),
+            best_epoch=int(state["best_epoch"]),
+            bad_epochs=int(state["bad_epochs"]),
+            confusion=state["confusion"],
+        )
+        return int(state["epoch"]) + 1
+    except (KeyError, RuntimeError, ValueError, TypeError) as error:
+        raise CheckpointError(f"{state_file}: incomplete training state ({type(error).__name__}: {error})") from error
+
+
+def _epoch_line(record: dict, improved: bool) -> str:
+    return (
+        f"epoch {record['epoch']:3d}  train loss {record['train_loss']:.4f} "
+        f"acc {record['train_exact_accuracy']:.3f} ord {record['train_ordinal_accuracy']:.3f}  "
+        f"val loss {record['val_loss']:.4f} acc {record['val_exact_accuracy']:.3f} "
+        f"ord {record['val_ordinal_accuracy']:.3f}  {record['seconds']:.1f} s{'  *' if improved else ''}"
+    )
+
+
+def _log(progress: bool, line: str) -> None:
+    if progress:
+        tqdm.write(line, file=sys.stderr)

@@ -1,0 +1,130 @@
+"""The learned policy (paper 3.4): the trained classifier as a Drake system at the control rate."""
+
+import numpy as np
+import torch
+from pydrake.systems.framework import DiscreteValues, LeafSystem
+
+from ditch_drake import robot
+from ditch_drake.learning.checkpoint import PolicyCheckpoint
+
+
+class LearnedPolicy(LeafSystem):
+    """Runs the behavioural clone on the stacked observations and commands the chosen label.
+
+    A periodic discrete update every `period_s` (at t_k = offset_s + k * period_s) reads
+    the four stacks, runs the network once (eval mode: dropout off, BatchNorm on its
+    running statistics; under `torch.inference_mode`, a stricter `torch.no_grad`), and
+    stores the most probable label, its [v, w] command from the checkpoint's action table
+    and the softmax probabilities in the discrete state, which the outputs read. The same
+    update is declared as a forced discrete update, so `CalcForcedDiscreteVariableUpdate`
+    runs one step too. Until the first update the command is [0, 0] (stand still), the
+    label -1 and the probabilities 0.
+
+    With the FrameStacker updating at the same ticks and `offset_s = 0`, the update at t_k
+    sees the stacks pushed at t_{k-1} (see `FrameStacker`); a small positive `offset_s`
+    makes it see those pushed at t_k, one period fresher.
+
+    The network's weights are fixed configuration, so they live on the system, not in
+    the Context; everything that changes is discrete state.
+
+    .. pydrake_system::
+
+        name: LearnedPolicy
+        input_ports:
+        - image_stack
+        - imu_stack
+        - distance_stack
+        - bearing_stack
+        output_ports:
+        - command
+        - label
+        - probabilities
+
+    Ports:
+        image_stack: 4 * 128 * 128 values in [0, 1], channel-major, channel 0 newest (the
+            FrameStacker's `image_stack`).
+        imu_stack: 8 (rad), [roll_t, pitch_t, roll_t-1, ...].
+        distance_stack: 4 (m), newest first.
+        bearing_stack: 4 (rad), newest first.
+        command: [v m/s, w rad/s] of the chosen label.
+        label: [the chosen label in 0..16] (a float, -1 before the first update).
+        probabilities: 17 softmax probabilities, one per label.
+    """
+
+    def __init__(
+        self,
+        checkpoint: PolicyCheckpoint,
+        offset_s: float = 0.0,
+        period_s: float = robot.CONTROL_PERIOD_S,
+        num_threads: int | None = 1,
+    ):
+        """Declares the ports, the state and the periodic update.
+
+        Args:
+            checkpoint: a trained policy (`ditch_drake.learning.checkpoint.load_checkpoint`);
+                its model config fixes the input sizes, its action table the commands.
+            offset_s: time of the first update (s).
+            period_s: update period (s), the control rate.
+            num_threads: torch intra-op threads, set once here for the whole process
+                (`torch.set_num_threads` is process-wide); None leaves torch's setting.
+                Default 1: one forward pass of one sample gains little from more threads,
+                and rollouts run one process per core.
+
+        Raises:
+            ValueError: a non-positive period, a negative offset or a thread count < 1.
+        """
+        super().__init__()
+        if not (period_s > 0 and offset_s >= 0):
+            raise ValueError(f"period_s={period_s} must be positive and offset_s={offset_s} non-negative")
+        if num_threads is not None:
+            if num_threads < 1:
+                raise ValueError(f"num_threads={num_threads} must be >= 1 or None")
+            torch.set_num_threads(num_threads)
+        config = checkpoint.model_config
+        self._model = checkpoint.build_model()
+        self._image_shape = (1, config.image_channels, config.image_size, config.image_size)
+        self._commands = np.asarray(checkpoint.action_commands, dtype=float)
+        self._image_port = self.DeclareVectorInputPort("image_stack", int(np.prod(self._image_shape)))
+        self._imu_port = self.DeclareVectorInputPort("imu_stack", config.imu_size)
+        self._distance_port = self.DeclareVectorInputPort("distance_stack", config.distance_size)
+        self._bearing_port = self.DeclareVectorInputPort("bearing_stack", config.bearing_size)
+        self._command_index = self.DeclareDiscreteState(2)
+        self._label_index = self.DeclareDiscreteState(np.array([-1.0]))
+        self._probabilities_index = self.DeclareDiscreteState(config.num_labels)
+        self._command_port = self.DeclareStateOutputPort("command", self._command_index)
+        self._label_port = self.DeclareStateOutputPort("label", self._label_index)
+        self._probabilities_port = self.DeclareStateOutputPort("probabilities", self._probabilities_index)
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._update)
+        self.DeclareForcedDiscreteUpdateEvent(self._update)
+
+    @property
+    def action_commands(self) -> np.ndarray:
+        """(num_labels, 2) [v m/s, w rad/s] per label (a copy)."""
+        return self._commands.copy()
+
+    def infer(
+        self, image_stack: np.ndarray, imu_stack: np.ndarray, distance_stack: np.ndarray, bearing_stack: np.ndarray
+    ) -> tuple[int, np.ndarray]:
+        """The chosen label and the (num_labels,) probabilities for one observation (port layouts)."""
+        inputs = [
+            torch.as_tensor(np.asarray(image_stack, dtype=np.float32).reshape(self._image_shape)),
+            *(
+                torch.as_tensor(np.asarray(x, dtype=np.float32).reshape(1, -1))
+                for x in (imu_stack, distance_stack, bearing_stack)
+            ),
+        ]
+        with torch.inference_mode():
+            logits = self._model(*inputs)
+        probabilities = torch.softmax(logits.double(), dim=1)[0].numpy()
+        return int(np.argmax(probabilities)), probabilities
+
+    def _update(self, context, discrete_state: DiscreteValues) -> None:
+        label, probabilities = self.infer(
+            self._image_port.Eval(context),
+            self._imu_port.Eval(context),
+            self._distance_port.Eval(context),
+            self._bearing_port.Eval(context),
+        )
+        discrete_state.set_value(self._command_index, self._commands[label])
+        discrete_state.set_value(self._label_index, [float(label)])
+        discrete_state.set_value(self._probabilities_index, probabilities)
