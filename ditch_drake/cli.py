@@ -8,6 +8,7 @@ import time
 from ditch_drake.actions import ANGULAR_RATES_RADPS
 from ditch_drake.demos.dataset import DatasetError
 from ditch_drake.environments import ConfigError, environment_names
+from ditch_drake.learning.checkpoint import CheckpointError
 from ditch_drake.terrain import TerrainError
 
 
@@ -120,6 +121,22 @@ def cmd_dataset_info(args) -> int:
     return 0
 
 
+def cmd_train(args) -> int:
+    from ditch_drake.demos.dataset import load_dataset, to_array_set
+    from ditch_drake.learning.train import TrainConfig, train
+
+    demonstrations = []
+    for directory in args.data:  # Several directories train the amalgam model.
+        demonstrations += load_dataset(directory, max_demos=args.max_demos)
+    config = TrainConfig(epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size)
+    result = train(to_array_set(demonstrations), config, output_path=args.out, resume=args.resume)
+    best = next((record for record in result.history if record["epoch"] == result.best_epoch), {})
+    print(json.dumps({"out": str(result.output_path), "best_epoch": result.best_epoch,
+                      "stopped_early": result.stopped_early, "interrupted": result.interrupted,
+                      "best": best}, default=float))
+    return 130 if result.interrupted else 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="ditch-drake", description=__doc__)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -167,6 +184,18 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true")
     info.set_defaults(run=cmd_dataset_info)
 
+    training = commands.add_parser("train", help="behavioural cloning from demonstrations")
+    training.add_argument("--data", action="append", required=True, metavar="DIR",
+                          help="demonstration directory (repeat for an amalgam of environments)")
+    training.add_argument("--out", required=True, help="checkpoint path (.pt)")
+    training.add_argument("--seed", type=int, default=0)
+    training.add_argument("--max-demos", type=int, default=None, help="use the first N demonstrations of each directory")
+    training.add_argument("--epochs", type=int, default=50)
+    training.add_argument("--patience", type=int, default=10)
+    training.add_argument("--batch-size", type=int, default=64)
+    training.add_argument("--resume", action="store_true", help="continue an interrupted run")
+    training.set_defaults(run=cmd_train)
+
     bench = commands.add_parser("bench", help="speed and memory figures")
     add_env(bench, many=True)
     bench.add_argument("--json", action="store_true", help="one JSON object on stdout")
@@ -178,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (ConfigError, TerrainError, DatasetError) as error:
+    except (ConfigError, TerrainError, DatasetError, CheckpointError) as error:
         print(f"ditch-drake: error: {error}", file=sys.stderr)
         return 2
 

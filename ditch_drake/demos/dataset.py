@@ -191,3 +191,24 @@ def dataset_summary(demonstrations: list[Demonstration]) -> dict:
         "straight_fraction": float(per_label[actions.STRAIGHT_LABEL] / max(1, len(labels))),
         "majority_to_minority_ratio": float(nonzero.max() / nonzero.min()) if len(nonzero) else 0.0,
     }
+
+
+def to_array_set(demonstrations: list[Demonstration], first_demo_id: int = 0):
+    """The demonstrations as one training `ArraySet`, images restacked as uint8.
+
+    Demonstration i gets demo_id first_demo_id + i, so a validation split can hold out
+    whole demonstrations.
+    """
+    from ditch_drake.learning.data import ArraySet
+
+    if not demonstrations:
+        raise DatasetError("no demonstrations to train on")
+    return ArraySet(
+        image=np.concatenate([restack_images(demo.arrays["image"]) for demo in demonstrations]),
+        imu=np.concatenate([demo.arrays["imu_stack"] for demo in demonstrations]),
+        distance=np.concatenate([demo.arrays["distance_stack"] for demo in demonstrations]),
+        bearing=np.concatenate([demo.arrays["bearing_stack"] for demo in demonstrations]),
+        label=np.concatenate([demo.arrays["label"] for demo in demonstrations]).astype(np.int64),
+        demo_id=np.concatenate([np.full(len(demo), first_demo_id + i, np.int64)
+                                for i, demo in enumerate(demonstrations)]),
+    )
