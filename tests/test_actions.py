@@ -39,3 +39,26 @@ def test_quantizer_block_outputs_the_snapped_command_and_label():
     quantizer.GetInputPort("raw_command").FixValue(context, [0.7, -0.62])
     assert np.allclose(quantizer.GetOutputPort("command").Eval(context), [1.0, -0.65])
     assert quantizer.GetOutputPort("label").Eval(context)[0] == 2
+
+
+def test_keyboard_and_gamepad_steering():
+    from ditch_drake.systems.meshcat_teleop import steer
+
+    assert steer(0.0, 2, 0, 0, None) == pytest.approx(0.2)
+    assert steer(0.3, 0, 1, 0, None) == pytest.approx(0.2)
+    assert steer(0.5, 1, 0, 1, None) == pytest.approx(0.1)  # Up straightens, then one more left.
+    assert steer(0.8, 5, 0, 0, None) == pytest.approx(0.85)
+    assert steer(0.0, 0, 0, 0, 1.0) == pytest.approx(-0.85)  # Stick full right.
+
+
+def test_meshcat_teleop_drives_straight_until_a_key_is_pressed():
+    from pydrake.geometry import Meshcat
+    from pydrake.systems.analysis import Simulator
+
+    from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
+
+    teleop = MeshcatTeleop(Meshcat())
+    simulator = Simulator(teleop)
+    simulator.AdvanceTo(0.25)
+    command = teleop.GetOutputPort("raw_command").Eval(simulator.get_context())
+    assert np.allclose(command, [1.0, 0.0])

@@ -136,3 +136,17 @@ def test_collect_resumes_keeping_what_is_written(tmp_path):
     demonstrations = load_dataset(tmp_path)
     assert [demo.metadata["task"]["index"] for demo in demonstrations] == [0, 1]
     assert all(demo.metadata["outcome"]["status"] == "reached_goal" for demo in demonstrations)
+
+
+def test_collect_refuses_bad_arguments(tmp_path):
+    from ditch_drake.environments import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown environment 'moat'"):
+        collect(CollectConfig(environment="moat", out=str(tmp_path)))
+    with pytest.raises(ConfigError, match="demos=0 must be a positive integer"):
+        collect(CollectConfig(demos=0, out=str(tmp_path)))
+    a_file = tmp_path / "file.npz"
+    a_file.write_bytes(b"keep me")
+    with pytest.raises(ConfigError, match="is a file"):
+        collect(CollectConfig(out=str(a_file)))
+    assert a_file.read_bytes() == b"keep me"

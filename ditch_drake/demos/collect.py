@@ -20,7 +20,7 @@ from ditch_drake.demos.dataset import (
     save_demonstration,
     standard_metadata,
 )
-from ditch_drake.environments import get_environment
+from ditch_drake.environments import ConfigError, get_environment
 from ditch_drake.systems.demo_recorder import DemoRecorder
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
 from ditch_drake.systems.teleop import ActionQuantizer
@@ -146,8 +146,13 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     Interrupted and rerun, it keeps the valid files already written and records
     only the missing ones.
     """
-    Path(config.out).mkdir(parents=True, exist_ok=True)
     get_environment(config.environment)
+    if not isinstance(config.demos, int) or config.demos <= 0:
+        raise ConfigError(f"demos={config.demos!r} must be a positive integer")
+    out = Path(config.out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"output path {out} is a file; expected a directory of demonstrations")
+    out.mkdir(parents=True, exist_ok=True)
     missing = [index for index in range(config.demos) if not _existing_demo(demo_path(config.out, index))]
     workers = config.workers or os.cpu_count() or 1
     results = []
