@@ -9,9 +9,12 @@ import time
 
 from pydrake.common import RandomGenerator
 from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
 
-from ditch_drake.diagrams.ditch_scene import SceneConfig
-from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig
+from ditch_drake import robot
+from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig
+from ditch_drake.diagrams.observation import AddObservation
+from ditch_drake.diagrams.rollout import AddController, ConstantCommandConfig, MakeRolloutDiagram, RolloutConfig
 from ditch_drake.environments import environment_names
 
 TRAVERSAL_S = 30.0
@@ -39,11 +42,47 @@ def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVE
     }
 
 
+def measure_closed_loop(environment: str, seed: int = 0, duration_s: float = TRAVERSAL_S) -> dict:
+    """Real-time factor with every perception block running at 10 Hz and a fixed command.
+
+    Also the mean wall time of one control step's observation update (lidar render and
+    cloud, normal image, IMU, goal, stacker), from the same run: the closed loop's wall
+    time minus the plant-only wall time for the same simulated span, per control step.
+    """
+    builder = DiagramBuilder()
+    scene = AddDitchScene(builder, SceneConfig(environment=environment))
+    AddObservation(builder, scene)
+    AddController(builder, scene, ConstantCommandConfig([robot.MAX_SPEED_MPS, 0.0]))
+    diagram = builder.Build()
+    plant_only, _ = MakeRolloutDiagram(RolloutConfig(
+        scene=SceneConfig(environment=environment), controller=ConstantCommandConfig([robot.MAX_SPEED_MPS, 0.0])))
+    walls = []
+    for system in (diagram, plant_only):
+        simulator = Simulator(system)
+        context = simulator.get_mutable_context()
+        system.SetRandomContext(context, RandomGenerator(seed))
+        simulator.Initialize()
+        start = time.perf_counter()
+        simulator.AdvanceTo(duration_s)
+        walls.append((time.perf_counter() - start, context.get_time()))
+    (loop_wall, loop_time), (plant_wall, plant_time) = walls
+    steps = loop_time / robot.CONTROL_PERIOD_S
+    observation_ms = 1e3 * (loop_wall - plant_wall * loop_time / plant_time) / steps
+    return {
+        f"closed_loop_{environment}_rtf": loop_time / loop_wall,
+        f"observation_update_{environment}_ms": observation_ms,
+    }
+
+
 def run_bench(environments: list[str] | None = None) -> dict:
     """All figures, in a stable key order."""
     figures: dict[str, float] = {}
-    for name in environments or environment_names():
+    environments = environments or environment_names()
+    for name in environments:
         figures.update(measure_plant_rtf(name))
-    figures["plant_min_rtf"] = min(value for key, value in figures.items() if key.startswith("plant_"))
+    figures["plant_min_rtf"] = min(figures[f"plant_{name}_rtf"] for name in environments)
+    for name in environments:
+        figures.update(measure_closed_loop(name))
+    figures["closed_loop_min_rtf"] = min(figures[f"closed_loop_{name}_rtf"] for name in environments)
     figures["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return figures

@@ -10,8 +10,6 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from tqdm import tqdm
 
-from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
-from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
 from ditch_drake.demos.dataset import (
     DatasetError,
     Demonstration,
@@ -20,6 +18,8 @@ from ditch_drake.demos.dataset import (
     save_demonstration,
     standard_metadata,
 )
+from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
+from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
 from ditch_drake.environments import ConfigError, get_environment
 from ditch_drake.systems.demo_recorder import DemoRecorder
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style

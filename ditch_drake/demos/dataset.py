@@ -185,7 +185,7 @@ def dataset_summary(demonstrations: list[Demonstration]) -> dict:
     nonzero = per_label[per_label > 0]
     return {
         "demonstrations": len(demonstrations),
-        "steps": int(len(labels)),
+        "steps": len(labels),
         "per_label": per_label.tolist(),
         "per_task": per_task,
         "straight_fraction": float(per_label[actions.STRAIGHT_LABEL] / max(1, len(labels))),

@@ -123,7 +123,7 @@ class DemoRecorder(LeafSystem):
             imu_stack=_frozen(self._imu_port.Eval(context)),
             distance_stack=_frozen(self._distance_port.Eval(context)),
             bearing_stack=_frozen(self._bearing_port.Eval(context)),
-            label=int(round(self._label_port.Eval(context)[0])),
+            label=round(float(self._label_port.Eval(context)[0])),
             raw_command=_frozen(self._raw_command_port.Eval(context)),
             pose=_frozen([*X_WB.translation(), *rpy]),
         )
