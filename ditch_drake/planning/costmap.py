@@ -1,0 +1,397 @@
+"""A rolling slope costmap in the manner of ROS costmap_2d, in plain numpy/scipy.
+
+The paper's move_base baseline (section 4.2) replaced the obstacle layer's cost by one
+derived from the world z component of the lidar points' surface normals: flat ground
+costs nothing and cost rises with slope. This module is that layer plus costmap_2d's
+inflation layer on a rolling window. It holds no map itself: the observation layer and
+the window origin are passed in and returned, so the map lives in whichever Drake
+Context owns it (`ditch_drake.systems.dwa.DwaController`).
+
+Grid. A window of `ny x nx` square cells of side `resolution` (m). Its origin is kept in
+whole cells of a world lattice: cell (iy, ix) covers
+x in [(ox + ix) r, (ox + ix + 1) r), y in [(oy + iy) r, (oy + iy + 1) r) with r the
+resolution and (ox, oy) the origin in cells. Arrays are indexed [iy, ix]; flattened
+row-major their index is iy * nx + ix, as costmap_2d's `getIndex`. The window is re-centred
+on the robot every update (`rolling_window: true`), moving by whole cells.
+
+Cell values are costmap_2d's: 0 FREE_SPACE, 1..252 increasing cost, 253
+INSCRIBED_INFLATED_OBSTACLE, 254 LETHAL_OBSTACLE, 255 NO_INFORMATION.
+
+Slope cost of a point with unit normal n (oriented up, world frame W) and n_z = n . z_W:
+
+    cost = 0                                    if n_z >= cos(free_slope_deg)
+    cost = LETHAL_OBSTACLE (254)                if n_z <= cos(lethal_slope_deg)
+    cost = ceil(252 (cos(free) - n_z) / (cos(free) - cos(lethal)))   otherwise,
+
+linear in n_z between the two slopes (so roughly quadratic in the slope angle). A cell's
+value is the largest cost of the points that fall in it this update.
+
+Marking and clearing. A cell with at least one point (with a normal) this update is
+overwritten with that update's cost: a flat observation clears an old slope and a steep
+one marks it. Cells without a point of their own are raytraced, as costmap_2d's obstacle
+layer clears along each ray from the sensor to its return, but gated by height against
+a level plane through the ground under the robot's wheels (as the voxel layer only clears
+within its height band):
+- a ray to a return passing over an unknown cell no lower than `ground_tolerance` below
+  that plane makes it FREE (`raytrace_clearing`; this fills the sensor's blind zone ahead
+  of the bumper and the gaps between far scan lines; known costs are not erased, since a
+  ray above a cell does not see its slope);
+- a ray passing over a cell more than `negative_obstacle_depth` below that plane (and
+  not within `2 * resolution` of its return) proves the ground there lies deeper still,
+  while the sensor saw nothing of it: the hidden near wall of a pit or ditch. Such a cell
+  is LETHAL_OBSTACLE. Rays that returned nothing within range count too, up to the range,
+  when the caller knows their directions (an organized cloud; `no_return_W`). A lidar
+  cannot see a wall that falls away from it more steeply than its rays, so without this a
+  negative obstacle's near wall stays unknown (or, with ROS's plain 2D raytrace, is cleared
+  to FREE) until the robot is at its edge. Drop marking wins over clearing; a point's own
+  cost wins over both.
+A cell neither observed nor raytraced keeps its value (observations persist while the
+cell stays in the window); cells that leave the rolling window are forgotten and come
+back unknown. Cells under the robot's footprint are set FREE (costmap_2d's
+`footprint_clearing_enabled`): the lidar never sees the ground under the chassis.
+
+Unknown space (`track_unknown_space`). True: cells never observed hold NO_INFORMATION.
+False (costmap_2d's default): they hold FREE_SPACE, so unseen ground is free.
+
+Normals come from principal component analysis of each point's k nearest neighbours
+(`ditch_drake.perception.normal_image.estimate_normals_pca`) in the world frame, after the
+cloud is reduced to one point per `downsample_voxel_size` voxel (so a dense near field
+does not dominate the cost, and each normal fits a patch of about three voxels).
+"""
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage
+
+from ditch_drake import robot
+from ditch_drake.perception.normal_image import estimate_normals_pca
+
+FREE_SPACE = 0
+MAX_NON_OBSTACLE = 252
+INSCRIBED_INFLATED_OBSTACLE = 253
+LETHAL_OBSTACLE = 254
+NO_INFORMATION = 255
+
+
+def default_footprint() -> list[list[float]]:
+    """The chassis rectangle in the body frame B (m), counter-clockwise: [[x, y], ...]."""
+    hx, hy = (float(v) for v in robot.CHASSIS_SIZE_M[:2] / 2)
+    return [[hx, hy], [-hx, hy], [-hx, -hy], [hx, -hy]]
+
+
+@dataclass
+class CostmapConfig:
+    """The slope costmap (costmap_2d parameter names; lengths in m, angles in degrees).
+
+    Attributes:
+        width: window size along x.
+        height: window size along y.
+        resolution: cell side.
+        track_unknown_space: cells never seen are NO_INFORMATION (True) or FREE (False, as
+            costmap_2d's default).
+        obstacle_range: points farther than this from the sensor are not used (for marking
+            nor raytracing).
+        raytrace_clearing: clear the cells that rays pass over near or above the robot's
+            ground plane.
+        ground_tolerance: how far below the ground plane a ray still clears.
+        negative_obstacle_depth: rays deeper than this below the ground plane mark the
+            cells they pass over LETHAL (hidden drops); 0 disables.
+        free_slope_deg: slopes up to this cost 0 (flat ground, and noise of the normals).
+        lethal_slope_deg: slopes from this on are LETHAL_OBSTACLE. 45 makes the ditches'
+            55 deg walls lethal; above 55 the planners may cross them at a high cost (the
+            paper's baseline drove into the ditches); 90 makes no slope lethal.
+        downsample_voxel_size: the cloud is reduced to one point (the centroid) per occupied
+            cubic voxel of this side before normals are estimated; 0 keeps every point.
+        normal_neighbours: k of the k-nearest-neighbour PCA normals.
+        footprint: the robot's outline in B, a convex polygon [[x, y], ...].
+        footprint_padding: grown onto the footprint on every side.
+        footprint_clearing_enabled: set the cells under the footprint FREE each update.
+        inflation_radius: cost is inflated this far from lethal cells.
+        cost_scaling_factor: exponential decay rate (1/m) of the inflated cost beyond the
+            inscribed radius: 252 exp(-cost_scaling_factor (d - inscribed_radius)).
+    """
+
+    width: float = 20.0
+    height: float = 20.0
+    resolution: float = 0.1
+    track_unknown_space: bool = True
+    obstacle_range: float = float(robot.LIDAR_RANGE_M)
+    raytrace_clearing: bool = True
+    ground_tolerance: float = 0.1
+    negative_obstacle_depth: float = 0.3
+    free_slope_deg: float = 5.0
+    lethal_slope_deg: float = 45.0
+    downsample_voxel_size: float = 0.1
+    normal_neighbours: int = 12
+    footprint: list[list[float]] = field(default_factory=default_footprint)
+    footprint_padding: float = 0.01
+    footprint_clearing_enabled: bool = True
+    inflation_radius: float = 1.5
+    cost_scaling_factor: float = 3.0
+
+    def validate(self) -> None:
+        """Raises ValueError naming the first parameter out of range."""
+        if not (self.resolution > 0 and self.width >= 4 * self.resolution and self.height >= 4 * self.resolution):
+            raise ValueError(f"costmap width {self.width}, height {self.height} and resolution {self.resolution} "
+                             "must be positive, with at least 4 cells a side")
+        if not 0.0 <= self.free_slope_deg < self.lethal_slope_deg <= 90.0:
+            raise ValueError(f"need 0 <= free_slope_deg ({self.free_slope_deg}) < lethal_slope_deg "
+                             f"({self.lethal_slope_deg}) <= 90")
+        if self.normal_neighbours < 3:
+            raise ValueError(f"normal_neighbours {self.normal_neighbours} must be >= 3")
+        if len(self.footprint) < 3 or any(len(p) != 2 for p in self.footprint):
+            raise ValueError(f"footprint {self.footprint} must be a polygon of at least 3 [x, y] points")
+        if self.inflation_radius < 0 or self.cost_scaling_factor < 0 or self.obstacle_range <= 0:
+            raise ValueError("inflation_radius and cost_scaling_factor must be >= 0, obstacle_range > 0")
+
+
+def slope_cost(normal_z: np.ndarray, free_slope_deg: float, lethal_slope_deg: float) -> np.ndarray:
+    """Cost (0..252, or 254 lethal) of points whose unit normals have world z component `normal_z`."""
+    normal_z = np.abs(np.asarray(normal_z, dtype=float))
+    z_free, z_lethal = math.cos(math.radians(free_slope_deg)), math.cos(math.radians(lethal_slope_deg))
+    fraction = np.clip((z_free - normal_z) / (z_free - z_lethal), 0.0, 1.0)
+    cost = np.ceil(MAX_NON_OBSTACLE * fraction - 1e-9) + 0.0  # + 0.0: no -0.0
+    return np.where(normal_z <= z_lethal, float(LETHAL_OBSTACLE), cost)
+
+
+def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
+    """The centroid of the points (N, 3) in each occupied cubic voxel; all points if voxel_size <= 0."""
+    if voxel_size <= 0.0 or len(points) == 0:
+        return points
+    cells = np.floor(points / voxel_size).astype(np.int64)
+    cells -= cells.min(axis=0)
+    extent = cells.max(axis=0) + 1
+    key = (cells[:, 2] * extent[1] + cells[:, 1]) * extent[0] + cells[:, 0]
+    _, owner, counts = np.unique(key, return_inverse=True, return_counts=True)
+    sums = np.stack([np.bincount(owner, weights=points[:, axis]) for axis in range(3)], axis=1)
+    return sums / counts[:, None]
+
+
+def _pad_polygon(polygon: np.ndarray, padding: float) -> np.ndarray:
+    """Moves each vertex of a convex polygon outward from its centroid by `padding` along both axes."""
+    return polygon + padding * np.sign(polygon - polygon.mean(axis=0))
+
+
+class SlopeCostmap:
+    """The grid geometry and the update steps of the rolling slope costmap (no map inside).
+
+    Every method takes the arrays it works on and returns new ones; `layer` is the
+    (ny, nx) observation layer (slope costs, FREE or NO_INFORMATION), `origin` the
+    window origin in cells (2,) integers (x, y).
+    """
+
+    def __init__(self, config: CostmapConfig | None = None):
+        self.config = config or CostmapConfig()
+        self.config.validate()
+        self.resolution = float(self.config.resolution)
+        self.shape = (round(self.config.height / self.resolution), round(self.config.width / self.resolution))
+        self.size = self.shape[0] * self.shape[1]
+        footprint = np.asarray(self.config.footprint, dtype=float)
+        x, y = footprint.T
+        if np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) < 0.0:
+            footprint = footprint[::-1]  # Counter-clockwise, for the inside test.
+        self.footprint = _pad_polygon(footprint, self.config.footprint_padding)
+        edges = np.roll(self.footprint, -1, axis=0) - self.footprint
+        normals = np.stack([edges[:, 1], -edges[:, 0]], axis=1) / np.linalg.norm(edges, axis=1, keepdims=True)
+        # Distance from B's origin to each edge line (the footprint contains B's origin).
+        self.inscribed_radius = float(np.min(np.abs(np.sum(normals * self.footprint, axis=1))))
+        self.circumscribed_radius = float(np.max(np.linalg.norm(self.footprint, axis=1)))
+        self.unknown_value = float(NO_INFORMATION if self.config.track_unknown_space else FREE_SPACE)
+
+    # ----- geometry -----------------------------------------------------------------
+    def empty_layer(self) -> np.ndarray:
+        """A layer with nothing observed."""
+        return np.full(self.shape, self.unknown_value)
+
+    def window_origin(self, xy: np.ndarray) -> np.ndarray:
+        """Origin (cells, (2,) int) of the window centred on the planar point `xy` (m)."""
+        cell = np.floor(np.asarray(xy, dtype=float)[:2] / self.resolution).astype(int)
+        return cell - np.array([self.shape[1] // 2, self.shape[0] // 2])
+
+    def origin_m(self, origin: np.ndarray) -> np.ndarray:
+        """World xy (m) of the window's lower-left corner."""
+        return np.asarray(origin, dtype=float) * self.resolution
+
+    def world_to_cell(self, origin: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Cells (iy, ix) of world points xy (..., 2), and a mask of those inside the window."""
+        cells = np.floor(np.asarray(xy, dtype=float) / self.resolution).astype(int) - np.asarray(origin)
+        ix, iy = cells[..., 0], cells[..., 1]
+        inside = (ix >= 0) & (ix < self.shape[1]) & (iy >= 0) & (iy < self.shape[0])
+        return iy, ix, inside
+
+    def cell_centers(self, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World x (nx,) and y (ny,) of the cell centres (m)."""
+        ox, oy = self.origin_m(origin)
+        return (ox + (np.arange(self.shape[1]) + 0.5) * self.resolution,
+                oy + (np.arange(self.shape[0]) + 0.5) * self.resolution)
+
+    # ----- update steps ---------------------------------------------------------------
+    def roll(self, layer: np.ndarray, old_origin: np.ndarray, new_origin: np.ndarray) -> np.ndarray:
+        """Moves the window: cells in both windows keep their values, new cells are unobserved."""
+        out = self.empty_layer()
+        dx, dy = (int(v) for v in np.asarray(new_origin) - np.asarray(old_origin))
+        ny, nx = self.shape
+        if abs(dx) >= nx or abs(dy) >= ny:
+            return out
+        out[max(-dy, 0):ny + min(-dy, 0), max(-dx, 0):nx + min(-dx, 0)] = \
+            layer[max(dy, 0):ny + min(dy, 0), max(dx, 0):nx + min(dx, 0)]
+        return out
+
+    def estimate_normals(self, points_W: np.ndarray) -> np.ndarray:
+        """Unit normals (N, 3), oriented +z, of world points (N, 3); NaN where undefined."""
+        return estimate_normals_pca(points_W, self.config.normal_neighbours)
+
+    def mark(self, layer: np.ndarray, origin: np.ndarray, points_W: np.ndarray, p_WS: np.ndarray,
+             normals_W: np.ndarray | None = None, ground_W: tuple[np.ndarray, np.ndarray] | None = None,
+             no_return_W: np.ndarray | None = None) -> np.ndarray:
+        """Marks the cells observed in a cloud with their slope cost, and raytraces the rest.
+
+        Args:
+            layer: the observation layer (ny, nx).
+            origin: the window origin (cells).
+            points_W: (N, 3) points in the world frame; non-finite rows are ignored.
+            p_WS: the sensor's position in W; points farther than `obstacle_range` are ignored.
+            normals_W: (N, 3) unit normals in W; None: estimated from the points.
+            ground_W: (a point, the unit up normal) of the ground plane rays are gated by
+                (the level plane under the robot's wheels), in W; None: no raytracing.
+            no_return_W: (M, 3) unit directions in W of rays that returned nothing within
+                `obstacle_range` (nor hit the robot); they only mark drops. None: none known.
+
+        Returns:
+            The new layer.
+        """
+        points_W = np.asarray(points_W, dtype=float).reshape(-1, 3)
+        p_WS = np.asarray(p_WS, dtype=float)
+        with np.errstate(invalid="ignore"):
+            keep = np.isfinite(points_W).all(axis=1)
+            keep &= np.sum((points_W - p_WS) ** 2, axis=1) <= self.config.obstacle_range ** 2
+        points_W = points_W[keep]
+        layer = layer.copy()
+        if normals_W is None:
+            points_W = voxel_downsample(points_W, self.config.downsample_voxel_size)
+            normals_W = self.estimate_normals(points_W)
+        else:
+            normals_W = np.asarray(normals_W, dtype=float).reshape(-1, 3)[keep]
+        iy, ix, inside = self.world_to_cell(origin, points_W[:, :2])
+        inside &= np.isfinite(normals_W[:, 2])
+        observed = np.full(self.size, -1.0)
+        if inside.any():
+            cost = slope_cost(normals_W[inside, 2], self.config.free_slope_deg, self.config.lethal_slope_deg)
+            np.maximum.at(observed, iy[inside] * self.shape[1] + ix[inside], cost)
+        flat = layer.reshape(-1)
+        if ground_W is not None:
+            directions = np.zeros((0, 3)) if no_return_W is None else np.asarray(no_return_W, float).reshape(-1, 3)
+            ends = np.concatenate([points_W, p_WS + self.config.obstacle_range * directions])
+            hit = np.arange(len(ends)) < len(points_W)
+            cleared, dropped = self._raytrace(origin, ends, hit, p_WS, ground_W)
+            flat[cleared & ~dropped & (flat == NO_INFORMATION)] = FREE_SPACE
+            flat[dropped] = LETHAL_OBSTACLE
+        seen = observed >= 0.0
+        flat[seen] = observed[seen]
+        return layer
+
+    def _raytrace(self, origin: np.ndarray, ends_W: np.ndarray, hit: np.ndarray, p_WS: np.ndarray,
+                  ground_W: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Flat masks of the cells that rays from p_WS to `ends_W` clear (only rays that `hit`
+        something) and that they prove to be hidden drops."""
+        config, step = self.config, 0.5 * self.resolution
+        cleared = np.zeros(self.size, dtype=bool)
+        dropped = np.zeros(self.size, dtype=bool)
+        if len(ends_W) == 0:
+            return cleared, dropped
+        p_WG, n_W = (np.asarray(v, dtype=float) for v in ground_W)
+        height_S, height_P = float((p_WS - p_WG) @ n_W), (ends_W - p_WG) @ n_W
+        span = ends_W[:, :2] - p_WS[:2]
+        length = np.linalg.norm(span, axis=1)
+        counts = np.ceil(length / step).astype(int)
+        owner = np.repeat(np.arange(len(ends_W)), counts)
+        u = (np.arange(counts.sum()) - (np.cumsum(counts) - counts)[owner] + 0.5) / np.maximum(counts[owner], 1)
+        height = height_S + u * (height_P[owner] - height_S)
+        ny, nx = self.shape
+        ix = np.floor((p_WS[0] - origin[0] * self.resolution + u * span[owner, 0]) / self.resolution)
+        iy = np.floor((p_WS[1] - origin[1] * self.resolution + u * span[owner, 1]) / self.resolution)
+        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        index = (iy * nx + ix).astype(np.int64)
+        if config.raytrace_clearing:
+            cleared[index[inside & hit[owner] & (height >= -config.ground_tolerance)]] = True
+        if config.negative_obstacle_depth > 0.0:
+            short_of_hit = ~hit[owner] | ((1.0 - u) * length[owner] > 2.0 * self.resolution)
+            dropped[index[inside & (height < -config.negative_obstacle_depth) & short_of_hit]] = True
+        return cleared, dropped
+
+    def inside_footprint(self, xy_B: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Mask (...) of planar points in the body frame B inside the padded footprint grown by `margin`."""
+        xy_B = np.asarray(xy_B, dtype=float)
+        inside = np.ones(xy_B.shape[:-1], dtype=bool)
+        for a, b in zip(self.footprint, np.roll(self.footprint, -1, axis=0), strict=True):
+            cross = (b[0] - a[0]) * (xy_B[..., 1] - a[1]) - (b[1] - a[1]) * (xy_B[..., 0] - a[0])
+            inside &= cross >= -margin * float(np.linalg.norm(b - a))
+        return inside
+
+    def footprint_mask(self, origin: np.ndarray, pose: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """(ny, nx) mask of the cells whose centres lie inside the footprint at pose (x, y, yaw),
+        grown by `margin`."""
+        x, y, yaw = (float(v) for v in pose[:3])
+        mask = np.zeros(self.shape, dtype=bool)
+        reach = self.circumscribed_radius + margin
+        iy0, ix0, _ = self.world_to_cell(origin, np.array([x - reach, y - reach]))
+        iy1, ix1, _ = self.world_to_cell(origin, np.array([x + reach, y + reach]))
+        iy0, ix0 = max(int(iy0), 0), max(int(ix0), 0)
+        if ix1 < ix0 or iy1 < iy0:
+            return mask
+        xs, ys = self.cell_centers(origin)
+        dx, dy = np.meshgrid(xs[ix0:ix1 + 1] - x, ys[iy0:iy1 + 1] - y)
+        c, s = math.cos(yaw), math.sin(yaw)
+        xy_B = np.stack([c * dx + s * dy, c * dy - s * dx], axis=-1)
+        mask[iy0:iy1 + 1, ix0:ix1 + 1] = self.inside_footprint(xy_B, margin)
+        return mask
+
+    def clear_footprint(self, layer: np.ndarray, origin: np.ndarray, pose: np.ndarray) -> np.ndarray:
+        """Sets the cells the footprint at pose (x, y, yaw) covers, even partly, FREE (if enabled)."""
+        if not self.config.footprint_clearing_enabled:
+            return layer
+        layer = layer.copy()
+        layer[self.footprint_mask(origin, pose, margin=self.resolution / math.sqrt(2.0))] = FREE_SPACE
+        return layer
+
+    def clear_unknown_around(self, layer: np.ndarray, origin: np.ndarray, xy: np.ndarray, radius: float) -> np.ndarray:
+        """Sets the unknown cells whose centres lie within `radius` of xy FREE."""
+        xs, ys = self.cell_centers(origin)
+        near = (xs[None, :] - xy[0]) ** 2 + (ys[:, None] - xy[1]) ** 2 <= radius**2
+        return np.where(near & (layer == NO_INFORMATION), float(FREE_SPACE), layer)
+
+    def reset_outside(self, layer: np.ndarray, origin: np.ndarray, xy: np.ndarray, reset_distance: float) -> np.ndarray:
+        """Forgets every cell outside the square of side `reset_distance` centred on xy.
+
+        move_base's conservative_reset recovery (clear_costmap_recovery).
+        """
+        xs, ys = self.cell_centers(origin)
+        keep = (np.abs(ys - xy[1])[:, None] <= reset_distance / 2) & (np.abs(xs - xy[0])[None, :] <= reset_distance / 2)
+        return np.where(keep, layer, self.unknown_value)
+
+    def inflation_cost(self, distance_m: np.ndarray) -> np.ndarray:
+        """costmap_2d's inflation cost at a distance (m) from the nearest lethal cell."""
+        d = np.asarray(distance_m, dtype=float)
+        decay = np.floor(MAX_NON_OBSTACLE * np.exp(-self.config.cost_scaling_factor * (d - self.inscribed_radius)))
+        cost = np.where(d <= self.config.inflation_radius, decay, 0.0)
+        cost = np.where(d <= self.inscribed_radius, float(INSCRIBED_INFLATED_OBSTACLE), cost)
+        return np.where(d <= 0.0, float(LETHAL_OBSTACLE), cost)
+
+    def inflate(self, layer: np.ndarray) -> np.ndarray:
+        """The master costmap: the layer with costmap_2d's inflation around lethal cells.
+
+        A known cell takes the larger of its own and the inflated cost; an unknown cell
+        becomes INSCRIBED when it lies within the inscribed radius (inflate_unknown: false).
+        """
+        lethal = layer == LETHAL_OBSTACLE
+        if not lethal.any():
+            return layer.copy()
+        distance = ndimage.distance_transform_edt(~lethal, sampling=self.resolution)
+        inflated = self.inflation_cost(distance)
+        master = np.maximum(layer, inflated)
+        unknown = layer == NO_INFORMATION
+        master[unknown & (inflated >= INSCRIBED_INFLATED_OBSTACLE)] = inflated[
+            unknown & (inflated >= INSCRIBED_INFLATED_OBSTACLE)]
+        return master
