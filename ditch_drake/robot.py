@@ -58,8 +58,10 @@ SKID_STEER_TRACK_FACTORS = (
 LIDAR_HORIZONTAL_FOV_RAD = np.deg2rad(120.0)
 LIDAR_VERTICAL_FOV_RAD = np.deg2rad(80.0)
 LIDAR_RANGE_M = 4.0
-# Mount frame L in B: just above the chassis top near its front edge.
-LIDAR_MOUNT_XYZ_M = np.array([0.40, 0.0, 0.42])
+# Mount frame L in B: on a mast 0.3 m above the chassis top near its front edge, high
+# enough that the chassis does not hide the ground just ahead (a lower mount could not
+# see into a ditch until the robot tipped over its edge).
+LIDAR_MOUNT_XYZ_M = np.array([0.40, 0.0, 0.65])
 
 CONTROL_PERIOD_S = 0.1  # 10 Hz (SPEC; the paper gives none)
 MAX_SPEED_MPS = 1.0

@@ -1,0 +1,244 @@
+"""The lidar (`ditch_drake.systems.lidar`): rendered depth -> point cloud in the lidar frame L."""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import pytest
+from pydrake.common import RandomGenerator
+from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import CacheIndex, Diagram, DiagramBuilder
+from pydrake.systems.sensors import ImageDepth32F
+
+from ditch_drake import robot
+from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
+from ditch_drake.systems.lidar import (
+    AddLidar,
+    DepthImagesToLidarCloud,
+    LidarConfig,
+    LidarHandles,
+    lidar_camera_info,
+    lidar_camera_poses,
+)
+
+
+@dataclass
+class Setup:
+    diagram: Diagram
+    scene: DitchScene
+    lidar: LidarHandles
+
+
+def _build(environment: str, config: LidarConfig | None = None) -> Setup:
+    builder = DiagramBuilder()
+    scene = AddDitchScene(builder, SceneConfig(environment=environment))
+    lidar = AddLidar(builder, scene, config)
+    return Setup(builder.Build(), scene, lidar)
+
+
+@pytest.fixture(scope="module")
+def wide() -> Setup:
+    return _build("wide")
+
+
+@pytest.fixture(scope="module")
+def crater() -> Setup:
+    return _build("crater")
+
+
+def _chassis(setup: Setup):
+    return setup.scene.plant.GetBodyByName("chassis", setup.scene.husky)
+
+
+def _scan(setup: Setup, X_WB: RigidTransform | None = None, context=None):
+    """Sets the chassis pose (None: the task's start), forces the lidar update.
+
+    Returns (p_L (3, n), organized (3, rows * cols), X_WL).
+    """
+    context = context if context is not None else setup.diagram.CreateDefaultContext()
+    plant = setup.scene.plant
+    plant_context = plant.GetMyMutableContextFromRoot(context)
+    if X_WB is not None:
+        plant.SetFreeBodyPose(plant_context, _chassis(setup), X_WB)
+    converter = setup.lidar.converter
+    converter_context = converter.GetMyMutableContextFromRoot(context)
+    converter.ExecuteForcedEvents(converter_context)
+    cloud = converter.GetOutputPort("point_cloud").Eval(converter_context)
+    organized = converter.GetOutputPort("organized_points").Eval(converter_context)
+    X_WL = plant.EvalBodyPoseInWorld(plant_context, _chassis(setup)) @ setup.lidar.X_BL
+    return cloud.xyzs().astype(float), organized.xyzs().astype(float), X_WL
+
+
+def _on_hinge_nose_down(setup: Setup, pitch_deg: float = 35.0) -> RigidTransform:
+    """Facing +y across the ditch from the south, chassis origin over the hinge line, nose down."""
+    y = -setup.scene.terrain.hinge_distance_m
+    z = float(setup.scene.terrain.height(np.array([0.0, y]))) + 0.2
+    return RigidTransform(RollPitchYaw(0.0, math.radians(pitch_deg), math.pi / 2), [0.0, y, z])
+
+
+def _inside_chassis_box(p_L: np.ndarray, X_BL: RigidTransform, margin_m: float) -> np.ndarray:
+    p_B = X_BL.multiply(p_L)
+    half = robot.CHASSIS_SIZE_M[:, None] / 2 + margin_m
+    return np.all(np.abs(p_B - robot.chassis_center_in_body_frame()[:, None]) <= half, axis=0)
+
+
+@pytest.mark.parametrize("environment", ["wide", "crater"])
+def test_cloud_is_within_range_and_field_of_view(environment, request):
+    setup = request.getfixturevalue(environment)
+    config = setup.lidar.converter.config
+    p_L, organized, _ = _scan(setup)
+    assert p_L.shape[1] > 500
+    distance = np.linalg.norm(p_L, axis=0)
+    assert distance.max() <= config.range_m + 1e-5
+    assert distance.min() >= config.min_range_m - 1e-5
+    # Azimuth and elevation in the sensor frame S (L pitched down by pitch_deg).
+    p_S = RotationMatrix.MakeYRotation(math.radians(config.pitch_deg)).inverse().multiply(p_L)
+    azimuth = np.degrees(np.arctan2(p_S[1], p_S[0]))
+    elevation = np.degrees(np.arctan2(p_S[2], np.hypot(p_S[0], p_S[1])))
+    assert np.abs(azimuth).max() <= config.horizontal_fov_deg / 2 + 1e-3
+    assert np.abs(elevation).max() <= config.vertical_fov_deg / 2 + 1e-3
+    # Both halves of the field of view return (two cameras, leftmost first).
+    assert (azimuth > 30).any() and (azimuth < -30).any()
+    # The organized cloud: rows * cols points, NaN where no return; its returns are the cloud.
+    rows, cols = setup.lidar.converter.organized_shape
+    assert organized.shape == (3, rows * cols)
+    assert cols == config.num_cameras * config.width
+    returned = ~np.isnan(organized[0])
+    np.testing.assert_array_equal(organized[:, returned], p_L)
+    grid = organized.reshape(3, rows, cols)
+    left = grid[1, :, : cols // 2]
+    right = grid[1, :, cols // 2 :]
+    assert np.nanmin(left) > np.nanmax(right)  # +y (left) in the left half
+
+
+def test_no_point_inside_the_chassis_box():
+    # Rendered: uncropped, so the cameras' lower rows see the chassis top.
+    config = LidarConfig(width=32, height=24, crop_self_occluded=False)
+    setup = _build("wide", config)
+    context = setup.diagram.CreateDefaultContext()
+    p_L, _, _ = _scan(setup, context=context)
+    depths = [
+        sensor.depth_image_32F_output_port().Eval(sensor.GetMyContextFromRoot(context)).data
+        for sensor in setup.lidar.sensors
+    ]
+    assert sum(((d > 0) & (d < 0.3)).sum() for d in depths) > 50  # the chassis top is in view
+    assert p_L.shape[1] > 100
+    assert not _inside_chassis_box(p_L, setup.lidar.X_BL, 0.01).any()
+
+
+def test_converter_drops_self_returns_of_any_depth():
+    # A LeafSystem test: every pixel at one depth; rays that end inside the chassis box are dropped.
+    config = LidarConfig(width=24, height=16, crop_self_occluded=False)
+    # A mount just above the chassis top, so that the steep rays end inside the chassis.
+    X_BL = RigidTransform([0.40, 0.0, 0.42])
+    converter = DepthImagesToLidarCloud(config, X_BL)
+    context = converter.CreateDefaultContext()
+    info = lidar_camera_info(config, X_BL)
+    u, v = np.meshgrid(np.arange(config.width) + 0.5, np.arange(config.height) + 0.5)
+    ray_C = np.stack([(u - info.center_x()) / info.focal_x(), (v - info.center_y()) / info.focal_y(), np.ones(u.shape)])
+    for depth in (0.12, 0.2, 0.28):
+        image = ImageDepth32F(config.width, config.height)
+        image.mutable_data[:] = depth
+        for i in range(config.num_cameras):
+            converter.GetInputPort(f"depth_image_{i}").FixValue(context, image)
+        converter.ExecuteForcedEvents(context)
+        p_L = converter.GetOutputPort("point_cloud").Eval(context).xyzs().astype(float)
+        raw = np.concatenate(
+            [X_LC.rotation().multiply(depth * ray_C.reshape(3, -1)) for X_LC in lidar_camera_poses(config)], axis=1
+        )
+        inside = _inside_chassis_box(raw, X_BL, config.self_filter_margin_m)
+        assert inside.sum() > 10  # without the filter these would be returns
+        assert 0 < p_L.shape[1] <= raw.shape[1] - inside.sum()
+        assert not _inside_chassis_box(p_L, X_BL, config.self_filter_margin_m - 1e-4).any()
+
+
+@pytest.mark.parametrize(
+    ("environment", "on_hinge", "tolerance_m"),
+    # Flat ground is exact (a ray model half a pixel off errs by up to 4 cm at 4 m); on the
+    # walls the terrain's box pieces follow the analytic height within about 3 cm.
+    [("wide", False, 0.005), ("crater", False, 0.005), ("wide", True, 0.03), ("crater", True, 0.03)],
+)
+def test_points_lie_on_the_terrain(environment, on_hinge, tolerance_m, request):
+    setup = request.getfixturevalue(environment)
+    X_WB = _on_hinge_nose_down(setup) if on_hinge else None
+    p_L, _, X_WL = _scan(setup, X_WB)
+    assert p_L.shape[1] > 100
+    p_W = X_WL.multiply(p_L)
+    height = setup.scene.terrain.height(p_W[:2].T)
+    np.testing.assert_array_less(np.abs(p_W[2] - height), tolerance_m)
+
+
+def test_sees_into_the_ditch_from_its_edge(wide):
+    p_L, _, X_WL = _scan(wide, _on_hinge_nose_down(wide))
+    p_W = X_WL.multiply(p_L)
+    assert (p_W[2] < -1.0).sum() >= 50
+
+
+def test_noise_is_repeatable_per_seed():
+    config = LidarConfig(width=32, height=24, noise_std_m=0.05, dropout_probability=0.2)
+    setup = _build("wide", config)
+    assert setup.lidar.noise_seed_source is not None
+
+    def scan(seed: int) -> np.ndarray:
+        context = setup.diagram.CreateDefaultContext()
+        setup.diagram.SetRandomContext(context, RandomGenerator(seed))
+        p_L, _, _ = _scan(
+            setup, X_WB=RigidTransform(RotationMatrix.MakeZRotation(math.pi / 2), [0, -11, 0.17]), context=context
+        )
+        return p_L
+
+    first, again, other = scan(7), scan(7), scan(8)
+    np.testing.assert_array_equal(first, again)
+    assert first.shape != other.shape or not np.array_equal(first, other)
+    assert np.linalg.norm(first, axis=0).max() <= config.range_m + 1e-5
+
+
+@pytest.mark.parametrize(
+    ("field", "value"),
+    [
+        ("range_m", 0.0),
+        ("range_m", -1.0),
+        ("horizontal_fov_deg", 180.0),
+        ("vertical_fov_deg", 200.0),
+        ("width", 0),
+        ("num_cameras", 0),
+        ("dropout_probability", 1.0),
+        ("noise_std_m", -0.1),
+        ("min_range_m", 5.0),
+    ],
+)
+def test_bad_config_names_the_value(field, value):
+    with pytest.raises(ValueError, match=rf"{field}={value!r}"):
+        DepthImagesToLidarCloud(LidarConfig(**{field: value}))
+
+
+def _output_cache_entry(system, port_name: str):
+    """The cache entry of `system`'s output port `port_name` (found by its description)."""
+    for index in range(64):
+        entry = system.get_cache_entry(CacheIndex(index))
+        if entry is not None and f"({port_name})" in entry.description():
+            return entry
+    raise LookupError(port_name)
+
+
+def test_renders_only_at_the_control_rate(wide):
+    simulator = Simulator(wide.diagram)
+    context = simulator.get_mutable_context()
+    wide.scene.drive.GetInputPort("command").FixValue(wide.scene.drive.GetMyContextFromRoot(context), [1.0, 0.0])
+    sensor = wide.lidar.sensors[0]
+    sensor_context = sensor.GetMyContextFromRoot(context)
+    # The depth output's cache entry holds the last rendered image: mark it after every
+    # physics step and count the steps after which a render has overwritten the mark.
+    entry = _output_cache_entry(sensor, "depth_image_32f")
+    simulator.Initialize()
+    image = entry.get_cache_entry_value(sensor_context).GetMutableValueOrThrow()
+    plant_step = wide.scene.plant.time_step()
+    renders, steps = 0, round(1.0 / plant_step)
+    for k in range(1, steps + 1):
+        image.mutable_data[0, 0, 0] = -1.0
+        simulator.AdvanceTo(k * plant_step)
+        renders += bool(image.data[0, 0, 0] != -1.0)
+    control_ticks = round(1.0 / robot.CONTROL_PERIOD_S)
+    assert steps == 50
+    assert control_ticks - 1 <= renders <= control_ticks + 1
