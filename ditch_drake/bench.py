@@ -74,8 +74,26 @@ def measure_closed_loop(environment: str, seed: int = 0, duration_s: float = TRA
     }
 
 
-def run_bench(environments: list[str] | None = None) -> dict:
-    """All figures, in a stable key order."""
+def measure_blocks() -> dict:
+    """One control step of each expensive block, in ms (medians, one process)."""
+    from ditch_drake.benchmarks.bench_dwa import measure_dwa_step_ms
+    from ditch_drake.benchmarks.bench_lidar import measure_lidar_ms
+    from ditch_drake.benchmarks.bench_normal_image import measure_normal_image_ms
+    from ditch_drake.benchmarks.bench_training import measure_policy_step_ms
+
+    lidar = measure_lidar_ms("wide")
+    normal_image = measure_normal_image_ms(repeats=30)
+    return {
+        "lidar_render_and_cloud_ms": lidar["lidar_render_and_cloud_ms"],
+        "normal_image_organized_ms": normal_image["normal_image_organized_ms"],
+        "normal_image_pca_reference_ms": normal_image["normal_image_pca_ms"],
+        "policy_step_ms": measure_policy_step_ms()["policy_step_ms"],
+        "dwa_step_ms": measure_dwa_step_ms()["dwa_step_ms"],
+    }
+
+
+def run_bench(environments: list[str] | None = None, training: bool = False) -> dict:
+    """All figures, in a stable key order; `training` adds the slow training-memory run."""
     figures: dict[str, float] = {}
     environments = environments or environment_names()
     for name in environments:
@@ -84,5 +102,12 @@ def run_bench(environments: list[str] | None = None) -> dict:
     for name in environments:
         figures.update(measure_closed_loop(name))
     figures["closed_loop_min_rtf"] = min(figures[f"closed_loop_{name}_rtf"] for name in environments)
+    figures.update(measure_blocks())
+    if training:
+        from ditch_drake.benchmarks.bench_training import measure_training_memory_mib
+
+        memory = measure_training_memory_mib()
+        figures["train_peak_rss_mib"] = memory["train_peak_rss_mib"]
+        figures["train_pipeline_s"] = memory["train_pipeline_s"]
     figures["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return figures

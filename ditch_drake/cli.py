@@ -86,7 +86,7 @@ def cmd_calibrate(args) -> int:
 def cmd_bench(args) -> int:
     from ditch_drake.bench import run_bench
 
-    figures = run_bench(args.env or None)
+    figures = run_bench(args.env or None, training=args.training)
     if args.json:
         print(json.dumps(figures))
     else:
@@ -135,6 +135,14 @@ def cmd_train(args) -> int:
                       "stopped_early": result.stopped_early, "interrupted": result.interrupted,
                       "best": best}, default=float))
     return 130 if result.interrupted else 0
+
+
+def cmd_figure(args) -> int:
+    from ditch_drake.figures import normal_image_figure
+
+    for name in args.env or environment_names():
+        print(normal_image_figure(name, args.out, args.seed))
+    return 0
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -196,9 +204,18 @@ def build_parser() -> argparse.ArgumentParser:
     training.add_argument("--resume", action="store_true", help="continue an interrupted run")
     training.set_defaults(run=cmd_train)
 
+    figure = commands.add_parser("figure", help="figures for docs/: surface-normal images per environment")
+    figure.add_argument("kind", choices=["normal-images"])
+    add_env(figure, many=True)
+    figure.add_argument("--out", default="docs/img")
+    figure.add_argument("--seed", type=int, default=0)
+    figure.set_defaults(run=cmd_figure)
+
     bench = commands.add_parser("bench", help="speed and memory figures")
     add_env(bench, many=True)
     bench.add_argument("--json", action="store_true", help="one JSON object on stdout")
+    bench.add_argument("--training", action="store_true",
+                       help="also the training pipeline's peak memory on a synthetic 40-demo set (minutes)")
     bench.set_defaults(run=cmd_bench)
     return parser
 

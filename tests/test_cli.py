@@ -21,11 +21,13 @@ def test_unknown_environment_is_a_clear_error(capsys):
 def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     from ditch_drake import bench
 
-    monkeypatch.setattr(bench, "TRAVERSAL_S", 0.5)
     monkeypatch.setattr(bench.measure_plant_rtf, "__defaults__", (0, 0.5))
+    monkeypatch.setattr(bench.measure_closed_loop, "__defaults__", (0, 0.5))
+    monkeypatch.setattr(bench, "measure_blocks", lambda: {"lidar_render_and_cloud_ms": 1.0})
     assert main(["bench", "--json", "--env", "narrow"]) == 0
     figures = json.loads(capsys.readouterr().out)
-    assert set(figures) >= {"plant_narrow_rtf", "scene_build_narrow_s", "plant_min_rtf", "peak_rss_mib"}
+    assert set(figures) >= {"plant_narrow_rtf", "scene_build_narrow_s", "plant_min_rtf", "peak_rss_mib",
+                            "closed_loop_narrow_rtf", "observation_update_narrow_ms", "closed_loop_min_rtf"}
     assert all(key.rsplit("_", 1)[-1] in {"rtf", "s", "mib", "ms"} for key in figures)
     assert figures["plant_narrow_rtf"] > 0
 

@@ -1,8 +1,6 @@
 """Tests of the surface-normal image: the numpy functions and the NormalImageConverter system."""
 
-import importlib.util
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -12,6 +10,7 @@ from pydrake.systems.analysis import Simulator
 from scipy.spatial import cKDTree
 
 from ditch_drake import robot
+from ditch_drake.benchmarks import bench_normal_image as bench
 from ditch_drake.perception import normal_image as ni
 from ditch_drake.perception.normal_image import (
     IMAGE_SHAPE,
@@ -23,17 +22,6 @@ from ditch_drake.perception.normal_image import (
     normalize_to_unit_ball,
 )
 from ditch_drake.systems.normal_image import NormalImageConverter
-
-
-def _load_benchmark():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_normal_image.py"
-    spec = importlib.util.spec_from_file_location("bench_normal_image", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-bench = _load_benchmark()
 
 
 def tilted_plane_grid(tilt_deg: float, rows: int = 40, cols: int = 60, axis: str = "pitch") -> np.ndarray:
@@ -74,7 +62,8 @@ def test_lidar_sampled_plane_reads_cos_tilt():
 
 
 def test_organized_normals_agree_with_pca_and_truth_on_ditch():
-    grid = bench.lidar_depth_cloud(40, 60)
+    # A fixed viewpoint 0.585 m above the ground, independent of the robot's lidar mount.
+    grid = bench.lidar_depth_cloud(40, 60, height_m=0.585)
     points = grid.reshape(-1, 3)
     organized = estimate_normals_organized(grid).reshape(-1, 3)
     pca = estimate_normals_pca(points, k=12)

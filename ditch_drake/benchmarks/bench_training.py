@@ -85,7 +85,7 @@ def measure_training_memory_mib(samples: int = TRAINING_SAMPLES) -> dict:
         "train_synthetic_samples", "train_real_samples"}.
     """
     completed = subprocess.run(
-        [sys.executable, __file__, "--memory-worker", str(samples)],
+        [sys.executable, "-m", "ditch_drake.benchmarks.bench_training", "--memory-worker", str(samples)],
         check=True,
         capture_output=True,
         text=True,

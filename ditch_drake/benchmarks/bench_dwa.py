@@ -7,26 +7,17 @@ Dijkstra (every 10th step at planner_frequency 1 Hz) and the DWA. The cloud is
 ahead, in the lidar frame L; the robot advances 0.1 m a step.
 """
 
-import importlib.util
 import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 from pydrake.math import RigidTransform
 from pydrake.perception import BaseField, Fields, PointCloud
 
 from ditch_drake import robot
+from ditch_drake.benchmarks.bench_normal_image import lidar_depth_cloud
 from ditch_drake.systems.dwa import DwaController
-
-
-def _lidar_depth_cloud():
-    path = Path(__file__).resolve().parent / "bench_normal_image.py"
-    spec = importlib.util.spec_from_file_location("bench_normal_image", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.lidar_depth_cloud
 
 
 def realistic_cloud(points_count: int = 4000) -> tuple[PointCloud, np.ndarray]:
@@ -35,7 +26,7 @@ def realistic_cloud(points_count: int = 4000) -> tuple[PointCloud, np.ndarray]:
     rows = max(2, round(math.sqrt(points_count * 2 / 3)))
     cols = max(2, round(points_count / rows))
     height = robot.WHEEL_RADIUS_M + robot.LIDAR_MOUNT_XYZ_M[2]
-    points = _lidar_depth_cloud()(rows, cols, height_m=height).reshape(-1, 3) - [0.0, 0.0, height]
+    points = lidar_depth_cloud(rows, cols, height_m=height).reshape(-1, 3) - [0.0, 0.0, height]
     # The same rays as `lidar_depth_cloud`'s.
     elevation = np.linspace(-robot.LIDAR_VERTICAL_FOV_RAD / 2, -math.asin(height / robot.LIDAR_RANGE_M) - 0.002, rows)
     azimuth = np.linspace(robot.LIDAR_HORIZONTAL_FOV_RAD / 2, -robot.LIDAR_HORIZONTAL_FOV_RAD / 2, cols)

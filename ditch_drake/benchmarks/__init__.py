@@ -1,0 +1,1 @@
+"""Per-block speed and memory measurements, gathered by `ditch-drake bench`."""

@@ -1,0 +1,40 @@
+"""Figures for docs/, each made by a `ditch-drake figure ...` command."""
+
+from pathlib import Path
+
+import numpy as np
+
+from ditch_drake.demos.collect import record_demonstration
+
+
+def normal_image_figure(environment: str, out_dir: str | Path, seed: int = 0) -> Path:
+    """Surface-normal images from an expert run: on the flat, at the hinge, on the wall.
+
+    Saves `normal_image_<environment>.png` in `out_dir` and returns its path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    demonstration = record_demonstration(environment, 0, seed)
+    images, pose = demonstration.arrays["image"], demonstration.arrays["pose"]
+    tilt = np.degrees(np.abs(pose[:, 3:5]).max(axis=1))
+    moments = {
+        "flat approach": 10,
+        "at the hinge": int(np.argmax(tilt > 5.0)),
+        "on the wall": int(np.argmax(tilt > 40.0)),
+    }
+    figure, axes = plt.subplots(1, 3, figsize=(10, 3.8))
+    for axis, (title, step) in zip(axes, moments.items()):
+        shown = axis.imshow(images[step] / 255.0, cmap="gray", vmin=0.0, vmax=1.0)
+        axis.set_title(f"{title} (t = {demonstration.arrays['time_s'][step]:.1f} s)")
+        axis.set_xticks([])
+        axis.set_yticks([])
+    figure.colorbar(shown, ax=axes, fraction=0.02, label="normal z (1 = flat, 0.57 = 55 deg wall)")
+    figure.suptitle(f"{environment}: surface-normal images (paper Fig. 1a), forward is up, seed {seed}")
+    path = Path(out_dir) / f"normal_image_{environment}.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path, dpi=80)
+    plt.close(figure)
+    return path
