@@ -20,6 +20,17 @@ from ditch_drake.environments import environment_names
 TRAVERSAL_S = 30.0
 
 
+def _timed_run(diagram, seed: int, duration_s: float) -> tuple[float, float]:
+    """Wall seconds and simulated seconds of one seeded run (which may end early)."""
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    diagram.SetRandomContext(context, RandomGenerator(seed))
+    simulator.Initialize()
+    start = time.perf_counter()
+    simulator.AdvanceTo(duration_s)
+    return time.perf_counter() - start, context.get_time()
+
+
 def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVERSAL_S) -> dict:
     """Real-time factor of the plant driven by the scripted shallow-angle driver.
 
@@ -29,15 +40,9 @@ def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVE
     start = time.perf_counter()
     diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment)))
     build_s = time.perf_counter() - start
-    simulator = Simulator(diagram)
-    context = simulator.get_mutable_context()
-    diagram.SetRandomContext(context, RandomGenerator(seed))
-    simulator.Initialize()
-    start = time.perf_counter()
-    simulator.AdvanceTo(duration_s)
-    wall_s = time.perf_counter() - start
+    wall_s, sim_s = _timed_run(diagram, seed, duration_s)
     return {
-        f"plant_{environment}_rtf": context.get_time() / wall_s,
+        f"plant_{environment}_rtf": sim_s / wall_s,
         f"scene_build_{environment}_s": build_s,
     }
 
@@ -56,16 +61,8 @@ def measure_closed_loop(environment: str, seed: int = 0, duration_s: float = TRA
     diagram = builder.Build()
     plant_only, _ = MakeRolloutDiagram(RolloutConfig(
         scene=SceneConfig(environment=environment), controller=ConstantCommandConfig([robot.MAX_SPEED_MPS, 0.0])))
-    walls = []
-    for system in (diagram, plant_only):
-        simulator = Simulator(system)
-        context = simulator.get_mutable_context()
-        system.SetRandomContext(context, RandomGenerator(seed))
-        simulator.Initialize()
-        start = time.perf_counter()
-        simulator.AdvanceTo(duration_s)
-        walls.append((time.perf_counter() - start, context.get_time()))
-    (loop_wall, loop_time), (plant_wall, plant_time) = walls
+    loop_wall, loop_time = _timed_run(diagram, seed, duration_s)
+    plant_wall, plant_time = _timed_run(plant_only, seed, duration_s)
     steps = loop_time / robot.CONTROL_PERIOD_S
     observation_ms = 1e3 * (loop_wall - plant_wall * loop_time / plant_time) / steps
     return {
