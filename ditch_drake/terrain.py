@@ -220,18 +220,22 @@ class DitchTerrain:
         c = closest[rows, best]
         return d.reshape(xy.shape[:-1]), c.reshape(xy.shape)
 
-    def away_from_course(self, xy: np.ndarray) -> np.ndarray:
-        """Unit horizontal direction from the nearest course point to xy (..., 2).
+    def distance_and_away(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance (m) to the course and the unit direction away from it, for xy (..., 2).
 
-        This is the direction in which the terrain rises on the walls; the edge
+        The direction is the one in which the terrain rises on the walls; the edge
         runs perpendicular to it. On the course itself it is undefined and +y is
         returned.
         """
         xy = np.asarray(xy, dtype=float)
         d, c = self.nearest_on_course(xy)
-        delta = xy - c
         safe = d[..., None] > 1e-9
-        return np.where(safe, delta / np.maximum(d[..., None], 1e-9), np.array([0.0, 1.0]))
+        away = np.where(safe, (xy - c) / np.maximum(d[..., None], 1e-9), np.array([0.0, 1.0]))
+        return d, away
+
+    def away_from_course(self, xy: np.ndarray) -> np.ndarray:
+        """Unit horizontal direction away from the course at xy (..., 2); see `distance_and_away`."""
+        return self.distance_and_away(xy)[1]
 
     # ----- analytic queries ------------------------------------------------------
     def height(self, xy: np.ndarray) -> np.ndarray:
@@ -241,9 +245,7 @@ class DitchTerrain:
 
     def normal(self, xy: np.ndarray) -> np.ndarray:
         """Unit upward surface normal (..., 3) at points xy (..., 2)."""
-        xy = np.asarray(xy, dtype=float)
-        d, _ = self.nearest_on_course(xy)
-        n = self.away_from_course(xy)
+        d, n = self.distance_and_away(xy)
         slope = self.profile_slope(d)[..., None]
         normal = np.concatenate([-slope * n, np.ones(slope.shape)], axis=-1)
         return normal / np.linalg.norm(normal, axis=-1, keepdims=True)

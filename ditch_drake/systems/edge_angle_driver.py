@@ -100,8 +100,8 @@ class EdgeAngleDriver(LeafSystem):
         config, terrain = self._config, self._terrain
         to_goal = self._goal_xy - xy
         goal_heading = math.atan2(to_goal[1], to_goal[0])
-        distance = float(terrain.nearest_on_course(xy)[0])
-        away = terrain.away_from_course(xy)
+        distance, away = terrain.distance_and_away(xy)
+        distance = float(distance)
         toward = -away
         tangent = np.array([-away[1], away[0]])
         if phase == CLIMB and distance > terrain.hinge_distance_m:
