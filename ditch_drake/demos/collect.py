@@ -1,6 +1,7 @@
 """Collecting demonstrations with the scripted expert, resumably and in parallel."""
 
 import os
+import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -153,6 +154,7 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output path {out} is a file; expected a directory of demonstrations")
     out.mkdir(parents=True, exist_ok=True)
+    start = time.perf_counter()
     missing = [index for index in range(config.demos) if not _existing_demo(demo_path(config.out, index))]
     workers = config.workers or os.cpu_count() or 1
     results = []
@@ -164,14 +166,18 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
             results.append(future.result())
             bar.set_postfix(failed=sum(len(r["failures"]) for r in results))
     failures = [failure for result in results for failure in result["failures"]]
+    wall_s = time.perf_counter() - start
+    recorded = sum(result["seed"] is not None for result in results)
     return {
         "environment": config.environment,
         "out": str(config.out),
         "kept_before": config.demos - len(missing),
-        "recorded": sum(result["seed"] is not None for result in results),
+        "recorded": recorded,
         "unfilled_slots": [result["index"] for result in results if result["seed"] is None],
         "discarded": len(failures),
         "discarded_by_status": {status: sum(f["status"] == status for f in failures)
                                 for status in sorted({f["status"] for f in failures})},
         "steps_recorded": sum(result["steps"] for result in results),
+        "wall_s": wall_s,
+        "demos_per_minute": 60.0 * recorded / wall_s if recorded else 0.0,
     }
