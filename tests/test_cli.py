@@ -39,3 +39,9 @@ def test_calibration_passes_in_every_environment():
 
     report = run_calibration(CalibrationConfig(), progress=False)
     assert report["all_ok"], json.dumps(report, indent=1)
+
+
+def test_view_runs_an_episode_in_meshcat(capsys):
+    assert main(["view", "--env", "narrow", "--realtime-rate", "0"]) == 0
+    out = capsys.readouterr().out
+    assert "meshcat: http" in out and "outcome: reached_goal" in out
