@@ -127,11 +127,12 @@ def test_collect_resumes_keeping_what_is_written(tmp_path):
     first = collect(config, progress=False)
     assert first["recorded"] == 1 and demo_path(tmp_path, 0).exists()
     written = os.path.getmtime(demo_path(tmp_path, 0))
-    # A damaged second file is recorded again; the good first one is kept.
+    # A damaged second file is set aside and its slot recorded again; the good first one is kept.
     demo_path(tmp_path, 1).write_bytes(b"not a demonstration")
     config.demos = 2
     second = collect(config, progress=False)
     assert second["kept_before"] == 1 and second["recorded"] == 1
+    assert (tmp_path / "demo_001.npz.corrupt").read_bytes() == b"not a demonstration"
     assert os.path.getmtime(demo_path(tmp_path, 0)) == written
     demonstrations = load_dataset(tmp_path)
     assert [demo.metadata["task"]["index"] for demo in demonstrations] == [0, 1]

@@ -131,21 +131,33 @@ def _collect_slot(config: CollectConfig, index: int) -> dict:
     return {"index": index, "seed": None, "steps": 0, "failures": failures}
 
 
-def _existing_demo(path: Path) -> bool:
+def _existing_demo(path: Path, set_aside: list[str]) -> bool:
+    """Whether a valid demonstration is already at `path`.
+
+    A damaged file is renamed to `<name>.corrupt[.N]` (kept for inspection, never
+    overwritten) and its slot is recorded again.
+    """
     if not path.exists():
         return False
     try:
         load_demonstration(path)
         return True
     except DatasetError:
-        return False  # A damaged file is recorded again (and replaced atomically).
+        target = path.with_name(path.name + ".corrupt")
+        suffix = 1
+        while target.exists():
+            target = path.with_name(f"{path.name}.corrupt.{suffix}")
+            suffix += 1
+        path.rename(target)
+        set_aside.append(str(target))
+        return False
 
 
 def collect(config: CollectConfig, progress: bool = True) -> dict:
     """Collects the missing demonstrations of `config.out`; returns a report.
 
     Interrupted and rerun, it keeps the valid files already written and records
-    only the missing ones.
+    only the missing ones; a damaged file is renamed aside, not overwritten.
     """
     get_environment(config.environment)
     if not isinstance(config.demos, int) or config.demos <= 0:
@@ -155,7 +167,8 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
         raise ConfigError(f"output path {out} is a file; expected a directory of demonstrations")
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    missing = [index for index in range(config.demos) if not _existing_demo(demo_path(config.out, index))]
+    set_aside: list[str] = []
+    missing = [index for index in range(config.demos) if not _existing_demo(demo_path(config.out, index), set_aside)]
     workers = config.workers or os.cpu_count() or 1
     results = []
     with ProcessPoolExecutor(max_workers=workers) as pool:
@@ -172,6 +185,7 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
         "environment": config.environment,
         "out": str(config.out),
         "kept_before": config.demos - len(missing),
+        "corrupt_files_set_aside": set_aside,
         "recorded": recorded,
         "unfilled_slots": [result["index"] for result in results if result["seed"] is None],
         "discarded": len(failures),
