@@ -151,3 +151,20 @@ def test_collect_refuses_bad_arguments(tmp_path):
     with pytest.raises(ConfigError, match="is a file"):
         collect(CollectConfig(out=str(a_file)))
     assert a_file.read_bytes() == b"keep me"
+
+
+def test_a_reused_rig_records_what_a_fresh_build_records():
+    """Collection workers reuse one built diagram per task; the style is set per demonstration."""
+    from ditch_drake.demos.collect import _worker_rig, record_demonstration
+
+    config = CollectConfig(environment="narrow")
+    seed = 7
+    delay = draw_expert_style(seed).reaction_delay_steps
+    other = next(s for s in range(20, 60) if draw_expert_style(s).reaction_delay_steps == delay)
+    rig = _worker_rig(config, 1, delay)
+    record_demonstration("narrow", 1, other, rig=rig)  # Another style first, on the same rig.
+    reused = record_demonstration("narrow", 1, seed, rig=rig)
+    fresh = record_demonstration("narrow", 1, seed)
+    assert reused.metadata["expert_style"] == fresh.metadata["expert_style"]
+    for key, array in fresh.arrays.items():
+        assert np.array_equal(reused.arrays[key], array), key

@@ -61,6 +61,7 @@ class DemonstrationRig:
     diagram: Diagram
     scene: DitchScene
     observation: Observation
+    expert: ExpertDriver
     recorder: DemoRecorder
 
 
@@ -85,18 +86,26 @@ def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
     builder.Connect(scene.plant.get_body_poses_output_port(), recorder.GetInputPort("body_poses"))
     diagram = builder.Build()
     diagram.set_name(f"demonstration_{scene_config.environment}")
-    return DemonstrationRig(diagram, scene, observation, recorder)
+    return DemonstrationRig(diagram, scene, observation, expert, recorder)
 
 
 def record_demonstration(environment: str, task: int, seed: int,
                          observation_config: ObservationConfig | None = None,
-                         variation: ExpertVariation | None = None) -> Demonstration:
-    """Runs one expert episode; returns the demonstration, successful or not (see metadata)."""
-    rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task), seed,
-                                   observation_config, variation)
+                         variation: ExpertVariation | None = None,
+                         rig: DemonstrationRig | None = None) -> Demonstration:
+    """Runs one expert episode; returns the demonstration, successful or not (see metadata).
+
+    `rig` reuses a diagram built for this environment and task (its expert's reaction
+    delay must match the seed's style); None builds one.
+    """
+    style = draw_expert_style(seed, variation)
+    if rig is None:
+        rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task), seed,
+                                       observation_config, variation)
     simulator = Simulator(rig.diagram)
     context = simulator.get_mutable_context()
     rig.diagram.SetRandomContext(context, RandomGenerator(seed))
+    rig.expert.set_style(context, style)
     simulator.Initialize()
     simulator.AdvanceTo(rig.scene.episode.time_limit_s + 1.0)
     outcome = rig.scene.monitor.outcome(rig.scene.monitor.GetMyContextFromRoot(context))
@@ -107,7 +116,7 @@ def record_demonstration(environment: str, task: int, seed: int,
         seed=seed,
         outcome=asdict(outcome),
         control_period_s=float(log.steps[1].time_s - log.steps[0].time_s) if len(log) > 1 else None,
-        expert_style=asdict(draw_expert_style(seed, variation)),
+        expert_style=asdict(style),
     )
     return Demonstration(log_to_arrays(log), metadata)
 
@@ -116,13 +125,32 @@ def demo_path(out: str | Path, index: int) -> Path:
     return Path(out) / f"demo_{index:03d}.npz"
 
 
+# A collection worker's built rigs, reused across its demonstrations: building a scene
+# costs up to several seconds (the sine ditch's ~2000 terrain pieces), more than a
+# demonstration's simulation. Keyed by everything the diagram is built from; a rig
+# holds no episode state (each demonstration simulates in a fresh Context).
+_WORKER_RIGS: dict[tuple, DemonstrationRig] = {}
+
+
+def _worker_rig(config: CollectConfig, task: int, reaction_delay_steps: int) -> DemonstrationRig:
+    key = (config.environment, task, reaction_delay_steps, repr(config.observation), repr(config.variation))
+    if key not in _WORKER_RIGS:
+        # Any seed with this delay builds the same diagram; each demonstration sets its own style.
+        style_seed = next(seed for seed in range(10_000)
+                          if draw_expert_style(seed, config.variation).reaction_delay_steps == reaction_delay_steps)
+        _WORKER_RIGS[key] = MakeDemonstrationDiagram(SceneConfig(environment=config.environment, task=task),
+                                                     style_seed, config.observation, config.variation)
+    return _WORKER_RIGS[key]
+
+
 def _collect_slot(config: CollectConfig, index: int) -> dict:
     tasks = len(get_environment(config.environment).tasks)
     failures = []
     for attempt in range(ATTEMPTS_PER_DEMO):
         seed = config.seed + index + 1000 * attempt
+        rig = _worker_rig(config, index % tasks, draw_expert_style(seed, config.variation).reaction_delay_steps)
         demonstration = record_demonstration(config.environment, index % tasks, seed,
-                                             config.observation, config.variation)
+                                             config.observation, config.variation, rig)
         status = demonstration.metadata["outcome"]["status"]
         if status == "reached_goal":
             save_demonstration(demo_path(config.out, index), demonstration)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydrake.common.value import Value
 from pydrake.math import RigidTransform
-from pydrake.systems.framework import LeafSystem
+from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ditch_drake import robot
 from ditch_drake.planar import planar_yaw, wrap_to_pi
@@ -80,16 +80,32 @@ class EdgeAngleDriver(LeafSystem):
         self._command_index = self.DeclareDiscreteState(2)
         # [along-edge direction sign (0 until chosen), phase (DESCEND, CLIMB, EXITED)].
         self._plan_index = self.DeclareDiscreteState(2)
+        # The angles and margin are numeric parameters, so one built diagram can drive
+        # each demonstration in its own style (`set_style`).
+        self._style_index = self.DeclareNumericParameter(BasicVector(self._style_vector(self._config)))
         self.DeclareStateOutputPort("command", self._command_index)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._update)
+
+    @staticmethod
+    def _style_vector(config: EdgeAngleDriverConfig) -> np.ndarray:
+        climb = np.nan if config.climb_angle_deg is None else config.climb_angle_deg
+        return np.array([config.wall_angle_deg, climb, config.approach_margin_m])
+
+    def set_style(self, context, config: EdgeAngleDriverConfig) -> None:
+        """Sets the wall and climb angles and the approach margin in this system's `context`."""
+        context.get_mutable_numeric_parameter(self._style_index).SetFromVector(self._style_vector(config))
 
     def _path_is_clear(self, xy: np.ndarray) -> bool:
         """Whether the straight line to the goal stays on the flat, off the ditch."""
         samples = np.linspace(xy, self._goal_xy, 50)
         return bool(np.all(self._terrain.nearest_on_course(samples)[0] > self._terrain.hinge_distance_m + 0.5))
 
-    def desired_heading(self, xy: np.ndarray, along_sign: float, phase: int) -> tuple[float, float, int]:
+    def desired_heading(self, xy: np.ndarray, along_sign: float, phase: int,
+                        style: np.ndarray | None = None) -> tuple[float, float, int]:
         """Desired heading (rad) at xy, and the along-edge sign and phase to keep.
+
+        `style` is [wall angle deg, climb angle deg (NaN: the wall angle), approach
+        margin m]; None uses the constructor's config.
 
         Phases: DESCEND until the robot reaches the bottom, then CLIMB, then EXITED
         once it is back on the flat. Holding the phase keeps a curved edge from
@@ -98,6 +114,8 @@ class EdgeAngleDriver(LeafSystem):
         the rim).
         """
         config, terrain = self._config, self._terrain
+        wall_angle_deg, climb_angle_deg, approach_margin_m = (
+            self._style_vector(config) if style is None else np.asarray(style, dtype=float))
         to_goal = self._goal_xy - xy
         goal_heading = math.atan2(to_goal[1], to_goal[0])
         distance, away = terrain.distance_and_away(xy)
@@ -112,7 +130,7 @@ class EdgeAngleDriver(LeafSystem):
             rim_sign = 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
             rim = math.cos(math.radians(10)) * rim_sign * tangent + math.sin(math.radians(10)) * away
             return math.atan2(rim[1], rim[0]), 0.0, phase
-        if distance > terrain.hinge_distance_m + config.approach_margin_m:
+        if distance > terrain.hinge_distance_m + approach_margin_m:
             return goal_heading, 0.0, phase
         if distance <= terrain.toe_distance_m:
             phase = CLIMB
@@ -123,10 +141,10 @@ class EdgeAngleDriver(LeafSystem):
         cross_sign = 1.0 if phase == DESCEND or float(to_goal @ toward) > 0.0 else -1.0
         if on_flat_bottom:
             angle = config.bottom_angle_deg
-        elif phase == CLIMB and config.climb_angle_deg is not None:
-            angle = config.climb_angle_deg
+        elif phase == CLIMB and not math.isnan(climb_angle_deg):
+            angle = climb_angle_deg
         else:
-            angle = config.wall_angle_deg
+            angle = wall_angle_deg
         angle = math.radians(angle)
         direction = math.cos(angle) * along_sign * tangent + math.sin(angle) * cross_sign * toward
         return math.atan2(direction[1], direction[0]), along_sign, phase
@@ -135,7 +153,8 @@ class EdgeAngleDriver(LeafSystem):
         X_WB = self._poses_port.Eval(context)[self._chassis_index]
         heading = planar_yaw(X_WB)
         along_sign, phase = context.get_discrete_state(self._plan_index).get_value()
-        desired, along_sign, phase = self.desired_heading(X_WB.translation()[:2], float(along_sign), int(phase))
+        style = context.get_numeric_parameter(self._style_index).get_value()
+        desired, along_sign, phase = self.desired_heading(X_WB.translation()[:2], float(along_sign), int(phase), style)
         w = np.clip(self._config.heading_gain * wrap_to_pi(desired - heading),
                     -robot.MAX_ANGULAR_RATE_RADPS, robot.MAX_ANGULAR_RATE_RADPS)
         discrete_state.set_value(self._command_index, [self._config.speed_mps, w])

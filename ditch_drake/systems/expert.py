@@ -99,3 +99,16 @@ class ExpertDriver(Diagram):
             output = delay.get_output_port()
         builder.ExportOutput(output, "raw_command")
         builder.BuildInto(self)
+        self._driver = driver
+        self._structure = (style.reaction_delay_steps, style.steering_noise_radps)
+
+    def set_style(self, root_context, style: ExpertStyle) -> None:
+        """Gives a built expert another demonstration's angles and margin, in `root_context`.
+
+        The reaction delay and the noise level are part of the diagram's structure, so
+        they must match the style the expert was built with.
+        """
+        if (style.reaction_delay_steps, style.steering_noise_radps) != self._structure:
+            raise ValueError(f"style needs delay {style.reaction_delay_steps} and noise {style.steering_noise_radps}; "
+                             f"this expert was built with {self._structure}")
+        self._driver.set_style(self._driver.GetMyMutableContextFromRoot(root_context), style.driver)
