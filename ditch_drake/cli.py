@@ -103,6 +103,24 @@ def cmd_collect(args) -> int:
     return 0 if not report["unfilled_slots"] else 1
 
 
+def cmd_teleop(args) -> int:
+    """A person drives (arrow keys or gamepad in the meshcat page); a success is kept."""
+    from pydrake.geometry import StartMeshcat
+
+    from ditch_drake.demos.collect import next_free_demo_path, record_person_demonstration
+    from ditch_drake.demos.dataset import save_demonstration
+
+    meshcat = StartMeshcat()
+    print(f"meshcat: {meshcat.web_url()}  steer with the arrow keys (or a gamepad) in that tab", flush=True)
+    demonstration = record_person_demonstration(args.env, args.task, meshcat, args.seed, args.realtime_rate)
+    status = demonstration.metadata["outcome"]["status"]
+    if status != "reached_goal":
+        print(f"outcome: {status}; not kept")
+        return 1
+    print(f"outcome: reached_goal; saved {save_demonstration(next_free_demo_path(args.out), demonstration)}")
+    return 0
+
+
 def cmd_dataset_info(args) -> int:
     from ditch_drake.demos.dataset import dataset_summary, load_dataset
 
@@ -186,6 +204,14 @@ def build_parser() -> argparse.ArgumentParser:
     collect.add_argument("--out", required=True, help="directory of demo_NNN.npz files")
     collect.add_argument("--workers", type=int, default=0, help="processes (0: one per core)")
     collect.set_defaults(run=cmd_collect)
+
+    teleop = commands.add_parser("teleop", help="record your own demonstration: steer in meshcat")
+    add_env(teleop)
+    teleop.add_argument("--task", type=int, default=0)
+    teleop.add_argument("--seed", type=int, default=0)
+    teleop.add_argument("--out", required=True, help="directory of demo_NNN.npz files")
+    teleop.add_argument("--realtime-rate", type=float, default=1.0)
+    teleop.set_defaults(run=cmd_teleop)
 
     info = commands.add_parser("dataset-info", help="counts per label and task, class imbalance")
     info.add_argument("path", help="a directory of demonstrations")

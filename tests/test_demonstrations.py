@@ -168,3 +168,15 @@ def test_a_reused_rig_records_what_a_fresh_build_records():
     assert reused.metadata["expert_style"] == fresh.metadata["expert_style"]
     for key, array in fresh.arrays.items():
         assert np.array_equal(reused.arrays[key], array), key
+
+
+def test_a_person_drives_through_meshcat_and_is_recorded():
+    from pydrake.geometry import Meshcat
+
+    rig = MakeDemonstrationDiagram(SceneConfig(environment="wide"), 0, meshcat=Meshcat(), person_drives=True)
+    simulator = Simulator(rig.diagram)
+    simulator.AdvanceTo(1.05)
+    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(simulator.get_context()))
+    assert len(log) == 11
+    # No key pressed: straight ahead at the paper's speed.
+    assert all(step.label == actions.STRAIGHT_LABEL for step in log.steps)

@@ -7,8 +7,9 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 from pydrake.common import RandomGenerator
+from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.framework import Diagram, DiagramBuilder, System
 from tqdm import tqdm
 
 from ditch_drake.demos.dataset import (
@@ -24,6 +25,7 @@ from ditch_drake.diagrams.observation import AddObservation, ConnectObservation,
 from ditch_drake.environments import ConfigError, get_environment
 from ditch_drake.systems.demo_recorder import DemoRecorder
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
+from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
 from ditch_drake.systems.teleop import ActionQuantizer
 
 ATTEMPTS_PER_DEMO = 5
@@ -61,32 +63,39 @@ class DemonstrationRig:
     diagram: Diagram
     scene: DitchScene
     observation: Observation
-    expert: ExpertDriver
+    source: System  # The raw-command source: an `ExpertDriver` or a `MeshcatTeleop`.
     recorder: DemoRecorder
 
 
 def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
                              observation_config: ObservationConfig | None = None,
-                             variation: ExpertVariation | None = None, meshcat=None) -> DemonstrationRig:
-    """The expert drives through `ActionQuantizer`, whose label the recorder stores."""
+                             variation: ExpertVariation | None = None, meshcat: Meshcat | None = None,
+                             person_drives: bool = False) -> DemonstrationRig:
+    """The expert (or, with `person_drives`, a person through `meshcat`) drives through
+    `ActionQuantizer`, whose label the recorder stores."""
+    if person_drives and meshcat is None:
+        raise ConfigError("a person drives through meshcat: pass a Meshcat")
     builder = DiagramBuilder()
     scene = AddDitchScene(builder, scene_config, meshcat)
     observation = AddObservation(builder, scene, observation_config)
     chassis = scene.plant.GetBodyByName("chassis", scene.husky)
-    expert = builder.AddNamedSystem("expert", ExpertDriver(
-        scene.terrain, scene.task.goal, chassis.index(), draw_expert_style(style_seed, variation)))
-    builder.Connect(scene.plant.get_body_poses_output_port(), expert.GetInputPort("body_poses"))
+    if person_drives:
+        source = builder.AddNamedSystem("meshcat_teleop", MeshcatTeleop(meshcat))
+    else:
+        source = builder.AddNamedSystem("expert", ExpertDriver(
+            scene.terrain, scene.task.goal, chassis.index(), draw_expert_style(style_seed, variation)))
+        builder.Connect(scene.plant.get_body_poses_output_port(), source.GetInputPort("body_poses"))
     quantizer = builder.AddNamedSystem("action_quantizer", ActionQuantizer())
-    builder.Connect(expert.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
+    builder.Connect(source.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
     builder.Connect(quantizer.GetOutputPort("command"), scene.drive.GetInputPort("command"))
     recorder = builder.AddNamedSystem("demo_recorder", DemoRecorder(chassis.index()))
     ConnectObservation(builder, observation, recorder)
     builder.Connect(quantizer.GetOutputPort("label"), recorder.GetInputPort("label"))
-    builder.Connect(expert.GetOutputPort("raw_command"), recorder.GetInputPort("raw_command"))
+    builder.Connect(source.GetOutputPort("raw_command"), recorder.GetInputPort("raw_command"))
     builder.Connect(scene.plant.get_body_poses_output_port(), recorder.GetInputPort("body_poses"))
     diagram = builder.Build()
     diagram.set_name(f"demonstration_{scene_config.environment}")
-    return DemonstrationRig(diagram, scene, observation, expert, recorder)
+    return DemonstrationRig(diagram, scene, observation, source, recorder)
 
 
 def record_demonstration(environment: str, task: int, seed: int,
@@ -105,7 +114,7 @@ def record_demonstration(environment: str, task: int, seed: int,
     simulator = Simulator(rig.diagram)
     context = simulator.get_mutable_context()
     rig.diagram.SetRandomContext(context, RandomGenerator(seed))
-    rig.expert.set_style(context, style)
+    rig.source.set_style(context, style)
     simulator.Initialize()
     simulator.AdvanceTo(rig.scene.episode.time_limit_s + 1.0)
     outcome = rig.scene.monitor.outcome(rig.scene.monitor.GetMyContextFromRoot(context))
@@ -119,6 +128,34 @@ def record_demonstration(environment: str, task: int, seed: int,
         expert_style=asdict(style),
     )
     return Demonstration(log_to_arrays(log), metadata)
+
+
+def record_person_demonstration(environment: str, task: int, meshcat: Meshcat, seed: int = 0,
+                                realtime_rate: float = 1.0) -> Demonstration:
+    """A person steers with the arrow keys or a gamepad in the meshcat page, in real time."""
+    rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task), seed, meshcat=meshcat,
+                                   person_drives=True)
+    simulator = Simulator(rig.diagram)
+    simulator.set_target_realtime_rate(realtime_rate)
+    context = simulator.get_mutable_context()
+    rig.diagram.SetRandomContext(context, RandomGenerator(seed))
+    simulator.Initialize()
+    simulator.AdvanceTo(rig.scene.episode.time_limit_s + 1.0)
+    outcome = rig.scene.monitor.outcome(rig.scene.monitor.GetMyContextFromRoot(context))
+    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(context))
+    metadata = standard_metadata(
+        environment=environment,
+        task={"index": task, "name": rig.scene.task.name, "start": rig.scene.task.start, "goal": rig.scene.task.goal},
+        seed=seed, outcome=asdict(outcome), control_period_s=0.1, driver="person (meshcat teleop)")
+    return Demonstration(log_to_arrays(log), metadata)
+
+
+def next_free_demo_path(out: str | Path) -> Path:
+    """The first `demo_NNN.npz` in `out` that does not exist yet."""
+    index = 0
+    while demo_path(out, index).exists():
+        index += 1
+    return demo_path(out, index)
 
 
 def demo_path(out: str | Path, index: int) -> Path:
