@@ -12,6 +12,7 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder, System
 from tqdm import tqdm
 
+from ditch_drake import robot
 from ditch_drake.demos.dataset import (
     DatasetError,
     Demonstration,
@@ -98,6 +99,29 @@ def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
     return DemonstrationRig(diagram, scene, observation, source, recorder)
 
 
+def _run_and_record(rig: DemonstrationRig, environment: str, task: int, seed: int, realtime_rate: float = 0.0,
+                    **metadata) -> Demonstration:
+    """Runs one seeded episode on `rig` and packs the recorder's log with its metadata.
+
+    An `expert_style` in `metadata` is set on the rig's expert before the run.
+    """
+    simulator = Simulator(rig.diagram)
+    simulator.set_target_realtime_rate(realtime_rate)
+    context = simulator.get_mutable_context()
+    rig.diagram.SetRandomContext(context, RandomGenerator(seed))
+    if "expert_style" in metadata:
+        rig.source.set_style(context, metadata["expert_style"])
+        metadata["expert_style"] = asdict(metadata["expert_style"])
+    simulator.Initialize()
+    simulator.AdvanceTo(rig.scene.episode.time_limit_s + 1.0)
+    outcome = rig.scene.monitor.outcome(rig.scene.monitor.GetMyContextFromRoot(context))
+    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(context))
+    task_info = {"index": task, "name": rig.scene.task.name, "start": rig.scene.task.start, "goal": rig.scene.task.goal}
+    return Demonstration(log_to_arrays(log), standard_metadata(
+        environment=environment, task=task_info, seed=seed, outcome=asdict(outcome),
+        control_period_s=robot.CONTROL_PERIOD_S, **metadata))
+
+
 def record_demonstration(environment: str, task: int, seed: int,
                          observation_config: ObservationConfig | None = None,
                          variation: ExpertVariation | None = None,
@@ -107,27 +131,10 @@ def record_demonstration(environment: str, task: int, seed: int,
     `rig` reuses a diagram built for this environment and task (its expert's reaction
     delay must match the seed's style); None builds one.
     """
-    style = draw_expert_style(seed, variation)
     if rig is None:
         rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task), seed,
                                        observation_config, variation)
-    simulator = Simulator(rig.diagram)
-    context = simulator.get_mutable_context()
-    rig.diagram.SetRandomContext(context, RandomGenerator(seed))
-    rig.source.set_style(context, style)
-    simulator.Initialize()
-    simulator.AdvanceTo(rig.scene.episode.time_limit_s + 1.0)
-    outcome = rig.scene.monitor.outcome(rig.scene.monitor.GetMyContextFromRoot(context))
-    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(context))
-    metadata = standard_metadata(
-        environment=environment,
-        task={"index": task, "name": rig.scene.task.name, "start": rig.scene.task.start, "goal": rig.scene.task.goal},
-        seed=seed,
-        outcome=asdict(outcome),
-        control_period_s=float(log.steps[1].time_s - log.steps[0].time_s) if len(log) > 1 else None,
-        expert_style=asdict(style),
-    )
-    return Demonstration(log_to_arrays(log), metadata)
+    return _run_and_record(rig, environment, task, seed, expert_style=draw_expert_style(seed, variation))
 
 
 def record_person_demonstration(environment: str, task: int, meshcat: Meshcat, seed: int = 0,
@@ -135,19 +142,7 @@ def record_person_demonstration(environment: str, task: int, meshcat: Meshcat, s
     """A person steers with the arrow keys or a gamepad in the meshcat page, in real time."""
     rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task), seed, meshcat=meshcat,
                                    person_drives=True)
-    simulator = Simulator(rig.diagram)
-    simulator.set_target_realtime_rate(realtime_rate)
-    context = simulator.get_mutable_context()
-    rig.diagram.SetRandomContext(context, RandomGenerator(seed))
-    simulator.Initialize()
-    simulator.AdvanceTo(rig.scene.episode.time_limit_s + 1.0)
-    outcome = rig.scene.monitor.outcome(rig.scene.monitor.GetMyContextFromRoot(context))
-    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(context))
-    metadata = standard_metadata(
-        environment=environment,
-        task={"index": task, "name": rig.scene.task.name, "start": rig.scene.task.start, "goal": rig.scene.task.goal},
-        seed=seed, outcome=asdict(outcome), control_period_s=0.1, driver="person (meshcat teleop)")
-    return Demonstration(log_to_arrays(log), metadata)
+    return _run_and_record(rig, environment, task, seed, realtime_rate, driver="person (meshcat teleop)")
 
 
 def next_free_demo_path(out: str | Path) -> Path:
