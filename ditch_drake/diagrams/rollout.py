@@ -10,11 +10,17 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder, System
 from pydrake.systems.primitives import ConstantVectorSource
 
+from ditch_drake import schedule
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
+from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, ObservationConfig
 from ditch_drake.environments import ConfigError
+from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint_path
+from ditch_drake.systems.dwa import DwaConfig, DwaController
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
+from ditch_drake.systems.lidar import AddLidar, LidarConfig
+from ditch_drake.systems.policy import LearnedPolicy
 from ditch_drake.systems.teleop import ActionQuantizer
 
 
@@ -33,7 +39,34 @@ class ExpertConfig:
     variation: ExpertVariation = field(default_factory=ExpertVariation)
 
 
-ControllerConfig = EdgeAngleDriverConfig | ConstantCommandConfig | ExpertConfig
+@dataclass
+class LearnedPolicyConfig:
+    """The behavioural clone of a checkpoint on the observation blocks.
+
+    Attributes:
+        checkpoint: a shipped model's name (`ditch_drake.learning.checkpoint.SHIPPED_MODELS`,
+            e.g. "wide") or the path of a checkpoint file.
+        observation: the perception blocks feeding it (their defaults match the demonstrations').
+    """
+
+    checkpoint: str = "wide"
+    observation: ObservationConfig = field(default_factory=ObservationConfig)
+
+
+@dataclass
+class DwaBaselineConfig:
+    """The move_base baseline (`DwaController`) on its own lidar.
+
+    Attributes:
+        planner: costmap, global and local planner parameters.
+        lidar: the lidar feeding the costmap (the same sensor the learned policy sees).
+    """
+
+    planner: DwaConfig = field(default_factory=DwaConfig)
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+
+
+ControllerConfig = EdgeAngleDriverConfig | ConstantCommandConfig | ExpertConfig | LearnedPolicyConfig | DwaBaselineConfig
 
 
 @dataclass
@@ -70,6 +103,28 @@ def AddController(builder: DiagramBuilder, scene: DitchScene, config: Controller
         quantizer = builder.AddNamedSystem("action_quantizer", ActionQuantizer())
         builder.Connect(controller.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
         command = quantizer.GetOutputPort("command")
+    elif isinstance(config, LearnedPolicyConfig):
+        checkpoint = load_checkpoint(resolve_checkpoint_path(config.checkpoint))
+        observation = AddObservation(builder, scene, config.observation)
+        controller = builder.AddNamedSystem(
+            "learned_policy", LearnedPolicy(checkpoint, offset_s=schedule.CONTROLLER_OFFSET_S))
+        for name, port in observation.ports.items():
+            expected = controller.GetInputPort(name).size()
+            if port.size() != expected:
+                raise CheckpointError(
+                    f"checkpoint {config.checkpoint!r} expects {name} of {expected} values; the observation "
+                    f"blocks give {port.size()} (a model trained on another input shape)")
+        ConnectObservation(builder, observation, controller)
+        command = controller.GetOutputPort("command")
+    elif isinstance(config, DwaBaselineConfig):
+        chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+        lidar = AddLidar(builder, scene, config.lidar)
+        controller = builder.AddNamedSystem("dwa", DwaController(
+            scene.task.goal, chassis.index(), lidar.X_BL, config.planner, offset_s=schedule.CONTROLLER_OFFSET_S,
+            ray_directions_L=lidar.converter.ray_directions_L))
+        builder.Connect(lidar.converter.GetOutputPort("organized_points"), controller.GetInputPort("point_cloud"))
+        builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
+        command = controller.GetOutputPort("command")
     else:
         raise ConfigError(f"unknown controller config {type(config).__name__}: expected one of "
                           f"{[kind.__name__ for kind in typing.get_args(ControllerConfig)]}")

@@ -36,6 +36,10 @@ from ditch_drake.learning.model import FourInputClassifier, ModelConfig
 
 SCHEMA = "ditch_drake.policy_checkpoint"
 SCHEMA_VERSION = 1
+# The trained policies that ship inside the package (`ditch_drake/models/<name>.pt`), made by
+# the commands in docs/learning.md.
+SHIPPED_MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
+SHIPPED_MODELS = ("crater", "wide", "narrow", "sine")
 
 
 class CheckpointError(ValueError):
@@ -214,12 +218,34 @@ def _require(payload: dict, key: str, kind: type | tuple[type, ...], path: Path)
     return payload[key]
 
 
-def load_checkpoint(path: str | os.PathLike) -> PolicyCheckpoint:
+def resolve_checkpoint_path(name_or_path: str | os.PathLike) -> Path:
+    """The file of a shipped model's name (`SHIPPED_MODELS`), or `name_or_path` as a path.
+
+    Raises:
+        FileNotFoundError: neither a shipped model nor an existing file, naming both options.
+    """
+    text = str(name_or_path)
+    if text in SHIPPED_MODELS:
+        path = SHIPPED_MODELS_DIR / f"{text}.pt"
+        if not path.is_file():
+            raise FileNotFoundError(f"shipped model {text!r} is missing from the package ({path})")
+        return path
+    path = Path(text)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"checkpoint {text!r}: no such file, and not a shipped model (expected one of {list(SHIPPED_MODELS)} "
+            "or the path of a .pt file written by `ditch-drake train`)")
+    return path
+
+
+def load_checkpoint(path: str | os.PathLike, allow_other_action_table: bool = False) -> PolicyCheckpoint:
     """Reads and checks a checkpoint written by `save_checkpoint`.
 
     The weights are checked against the stored model config (by building the network),
-    so a file that loads here also runs. An action table that differs from the current
-    `actions.COMMANDS` gives a warning; the checkpoint's own table is what it returns.
+    so a file that loads here also runs. A checkpoint trained with an action table other
+    than the current `actions.COMMANDS` would turn its labels into other commands than
+    the demonstrations meant, so it is refused unless `allow_other_action_table`; then the
+    checkpoint's own table is what it returns.
 
     Raises:
         FileNotFoundError: no file at `path`.
@@ -245,8 +271,11 @@ def load_checkpoint(path: str | os.PathLike) -> PolicyCheckpoint:
             f"{path}: 'action_commands' has shape {commands.shape}; expected ({model_config.num_labels}, 2) finite "
             "[v m/s, w rad/s] rows"
         )
-    if commands.shape != actions.COMMANDS.shape or not np.allclose(commands, actions.COMMANDS):
-        warnings.warn(f"{path} was trained with an action table other than ditch_drake.actions.COMMANDS", stacklevel=2)
+    if not allow_other_action_table and (
+            commands.shape != actions.COMMANDS.shape or not np.allclose(commands, actions.COMMANDS)):
+        raise CheckpointError(
+            f"{path} was trained with another action table {commands.tolist()}; expected "
+            f"ditch_drake.actions.COMMANDS {actions.COMMANDS.tolist()} (allow_other_action_table=True uses its own)")
     try:
         input_stats = InputStats.from_dict(_require(payload, "input_stats", dict, path))
     except ValueError as error:

@@ -316,6 +316,7 @@ def train(
         "num_synthetic_samples": len(synthetic),
         "num_val_samples": len(val_rows),
         "train_config": _config_dict(config),
+        "smote_seconds": time.perf_counter() - start,
     }
 
     previous_threads = torch.get_num_threads()
@@ -439,6 +440,8 @@ def _checkpoint(
         "stopped_early": stopped_early,
         "interrupted": interrupted,
         "history": run["history"],
+        # SMOTE plus every finished epoch (training and validation); loading the data is not in it.
+        "training_seconds": summary["smote_seconds"] + sum(record["seconds"] for record in run["history"]),
     }
     model = FourInputClassifier(config.model)
     model.load_state_dict(run["best_state"])

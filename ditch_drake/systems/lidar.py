@@ -338,6 +338,13 @@ class DepthImagesToLidarCloud(LeafSystem):
         """(rows, cols) of `organized_points`: (height, num_cameras * width)."""
         return tuple(int(n) for n in self._organized_shape)
 
+    @property
+    def ray_directions_L(self) -> np.ndarray:
+        """(rows * cols, 3) unit direction in L of each `organized_points` ray; NaN rows for the
+        rays outside the field of view (they never return). A ray inside it that has no point
+        saw nothing within range (or only the robot itself)."""
+        return np.where(self._in_fov[:, None], self._unit_rays_L.T, np.nan)
+
     def organized_points_from_depths(
         self, depths: list[np.ndarray], rng: np.random.Generator | None = None
     ) -> np.ndarray:

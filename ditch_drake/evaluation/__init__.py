@@ -1,0 +1,1 @@
+"""Batch evaluation of controllers: seeded rollouts, results files, reports."""

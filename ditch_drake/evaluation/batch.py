@@ -1,0 +1,296 @@
+"""Batch evaluation: seeded rollouts in parallel worker processes, recorded as they end.
+
+`evaluate(specs, results_path)` runs every `RolloutSpec` not yet in the results file with
+the Drake Simulator (no visualization), in a pool of worker processes, and appends each
+rollout's `RolloutRecord` the moment it ends. Interrupted (Ctrl-C, a killed job) and run
+again, it skips the recorded rollouts: nothing is lost and nothing is recorded twice.
+
+A Python exception inside a rollout is recorded as status "error" with its message. A
+worker process that dies (a crash in compiled code, the out-of-memory killer) takes its
+rollouts with it: they are retried once in a fresh pool, then recorded as errors.
+
+Each worker builds a diagram once per (controller, checkpoint, environment, task, time
+limit) and reuses it for every seed: building the sine ditch costs seconds, more than some
+rollouts. Every rollout starts from a fresh random Context (`RunEpisode`), so its record
+depends only on its spec, not on what the worker ran before.
+"""
+
+import hashlib
+import os
+import signal
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field, replace
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+from pydrake.systems.analysis import Simulator
+from tqdm import tqdm
+
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import (
+    DwaBaselineConfig,
+    ExpertConfig,
+    LearnedPolicyConfig,
+    MakeRolloutDiagram,
+    RolloutConfig,
+    RunEpisode,
+)
+from ditch_drake.environments import ConfigError, get_environment
+from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, read_records
+from ditch_drake.learning.checkpoint import resolve_checkpoint_path
+from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
+from ditch_drake.systems.episode_monitor import EpisodeConfig
+
+CONTROLLERS = ("learned", "dwa", "expert", "edge_angle")
+# Pools broken by a dying worker before each remaining rollout runs in a process of its own.
+_ATTEMPTS = 2
+
+
+@dataclass
+class EvaluationReport:
+    """What `evaluate` did.
+
+    Attributes:
+        results_path: the results file.
+        skipped: rollouts already recorded before this run.
+        recorded: records appended by this run.
+        successes: successes among them.
+        errors: error records among them.
+        interrupted: Ctrl-C ended the run early (what finished is recorded).
+        wall_s: wall-clock time of the run (s).
+        warnings: e.g. a torn last line dropped from the results file.
+    """
+
+    results_path: str
+    skipped: int = 0
+    recorded: int = 0
+    successes: int = 0
+    errors: int = 0
+    interrupted: bool = False
+    wall_s: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def rollouts_per_minute(self) -> float:
+        return 60.0 * self.recorded / self.wall_s if self.wall_s > 0 else 0.0
+
+
+def make_specs(controller: str, checkpoint: str, environment: str, tasks: list[int] | None = None,
+               rollouts: int = 10, seed: int = 0, time_limit_s: float = EpisodeConfig.time_limit_s) -> list[RolloutSpec]:
+    """`rollouts` seeded rollouts (seeds seed, seed + 1, ...) for each task of `environment`.
+
+    Raises:
+        ConfigError: an unknown controller, environment or task, a missing checkpoint, or
+            non-positive counts, each named.
+    """
+    check_controller(controller, checkpoint)
+    task_count = len(get_environment(environment).tasks)
+    tasks = list(range(task_count)) if tasks is None else list(tasks)
+    bad = [task for task in tasks if not 0 <= task < task_count]
+    if bad:
+        raise ConfigError(f"tasks {bad} of {environment!r} do not exist; expected indices in 0..{task_count - 1}")
+    if rollouts < 1 or not time_limit_s > 0:
+        raise ConfigError(f"rollouts={rollouts} must be >= 1 and time_limit_s={time_limit_s} positive")
+    return [RolloutSpec(controller, checkpoint if controller == "learned" else "", environment, task, seed + i,
+                        float(time_limit_s))
+            for task in tasks for i in range(rollouts)]
+
+
+def check_controller(controller: str, checkpoint: str) -> None:
+    """Raises ConfigError for an unknown controller or a learned one without a usable checkpoint."""
+    if controller not in CONTROLLERS:
+        raise ConfigError(f"unknown controller {controller!r}; expected one of {list(CONTROLLERS)}")
+    if controller == "learned":
+        try:
+            resolve_checkpoint_path(checkpoint)
+        except FileNotFoundError as error:
+            raise ConfigError(str(error)) from error
+
+
+def rollout_config(spec: RolloutSpec) -> RolloutConfig:
+    """The diagram configuration of a spec (the expert's style comes from the seed at run time)."""
+    controller = {
+        "learned": lambda: LearnedPolicyConfig(checkpoint=spec.checkpoint),
+        "dwa": DwaBaselineConfig,
+        "expert": lambda: ExpertConfig(style_seed=spec.seed),
+        "edge_angle": EdgeAngleDriverConfig,
+    }[spec.controller]()
+    scene = SceneConfig(environment=spec.environment, task=spec.task,
+                        episode=replace(EpisodeConfig(), time_limit_s=spec.time_limit_s))
+    return RolloutConfig(scene=scene, controller=controller)
+
+
+@lru_cache(maxsize=None)
+def checkpoint_digest(checkpoint: str) -> str:
+    """First 16 hex digits of the checkpoint file's SHA-256 ("" for no checkpoint)."""
+    if not checkpoint:
+        return ""
+    return hashlib.sha256(resolve_checkpoint_path(checkpoint).read_bytes()).hexdigest()[:16]
+
+
+def failure_region(terrain, start_xy, final_xy) -> str:
+    """Where a rollout ended relative to the ditch (see `RolloutRecord.failure_region`)."""
+    distance, away = terrain.distance_and_away(np.asarray([start_xy, final_xy], dtype=float))
+    same_side = float(np.dot(away[0], away[1])) > 0.0
+    if distance[1] < terrain.toe_distance_m:
+        return "floor"
+    if distance[1] <= terrain.hinge_distance_m:
+        return "down_wall" if same_side else "up_wall"
+    return "approach" if same_side else "beyond"
+
+
+# A worker's built rollout diagrams, by everything they are built from; see the module docstring.
+_WORKER_RIGS: dict[tuple, tuple] = {}
+
+
+def _rig(spec: RolloutSpec):
+    # The expert's style (drawn from the seed) is part of its diagram's structure.
+    seed = spec.seed if spec.controller == "expert" else None
+    key = (spec.controller, spec.checkpoint, spec.environment, spec.task, spec.time_limit_s, seed)
+    if key not in _WORKER_RIGS:
+        diagram, scene = MakeRolloutDiagram(rollout_config(spec))
+        _WORKER_RIGS[key] = (diagram, scene, Simulator(diagram))
+    return _WORKER_RIGS[key]
+
+
+def run_rollout(spec: RolloutSpec) -> RolloutRecord:
+    """Runs one rollout; an exception becomes a record with status "error"."""
+    common = dict(key=spec.key, controller=spec.controller, checkpoint=spec.checkpoint,
+                  environment=spec.environment, task=spec.task, seed=spec.seed, time_limit_s=spec.time_limit_s)
+    start = time.perf_counter()
+    try:
+        digest = checkpoint_digest(spec.checkpoint)
+        diagram, scene, simulator = _rig(spec)
+        outcome = RunEpisode(simulator, diagram, scene, spec.seed)
+    except Exception as error:  # noqa: BLE001 (recorded, the run goes on)
+        return _error_record(spec, f"{type(error).__name__}: {error}", time.perf_counter() - start)
+    region = "" if outcome.success else failure_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
+    return RolloutRecord(
+        **common, checkpoint_sha256=digest, status=outcome.status, success=outcome.success, time_s=outcome.time_s,
+        path_length_m=outcome.path_length_m, peak_abs_roll_deg=outcome.peak_abs_roll_deg,
+        peak_abs_pitch_deg=outcome.peak_abs_pitch_deg, peak_tilt_deg=outcome.peak_tilt_deg,
+        min_stability_margin_deg=outcome.min_stability_margin_deg, final_x_m=float(outcome.final_xy[0]),
+        final_y_m=float(outcome.final_xy[1]), failure_region=region, wall_s=time.perf_counter() - start)
+
+
+def _worker_init() -> None:
+    # Ctrl-C is the parent's to handle: it stops handing out rollouts and keeps what ended.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # Each worker is one of `workers` processes sharing the cores: one thread each.
+    import torch  # noqa: PLC0415
+
+    torch.set_num_threads(1)
+
+
+def _error_record(spec: RolloutSpec, message: str, wall_s: float = float("nan")) -> RolloutRecord:
+    nan = float("nan")
+    return RolloutRecord(key=spec.key, controller=spec.controller, checkpoint=spec.checkpoint,
+                         environment=spec.environment, task=spec.task, seed=spec.seed,
+                         time_limit_s=spec.time_limit_s, checkpoint_sha256="", status="error", success=False,
+                         time_s=nan, path_length_m=nan, peak_abs_roll_deg=nan, peak_abs_pitch_deg=nan,
+                         peak_tilt_deg=nan, min_stability_margin_deg=nan, final_x_m=nan, final_y_m=nan,
+                         failure_region="", wall_s=wall_s, error=message)
+
+
+def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers: int | None = None,
+             progress: bool = True) -> EvaluationReport:
+    """Runs the specs not yet recorded in `results_path`, appending each record as it ends.
+
+    Args:
+        specs: the rollouts; duplicates (same key) run once.
+        results_path: the JSON Lines results file (created with its folder if missing).
+        workers: worker processes (default: all cores); 0 runs in this process (tests, debugging).
+        progress: a progress bar (rollouts done, success so far, ETA) on stderr.
+
+    Returns:
+        What was skipped, recorded, and how long it took.
+
+    Raises:
+        ResultsError: the results file is of another schema or version.
+    """
+    start = time.perf_counter()
+    existing, warnings = read_records(results_path)
+    done = {record.key for record in existing}
+    pending = list({spec.key: spec for spec in specs if spec.key not in done}.values())
+    report = EvaluationReport(str(results_path), skipped=len({s.key for s in specs} & done), warnings=warnings)
+    workers = os.cpu_count() or 1 if workers is None else workers
+    bar = tqdm(total=len(pending), desc="rollouts", disable=not progress, file=sys.stderr)
+
+    def keep(writer: RecordWriter, record: RolloutRecord) -> None:
+        writer.append(record)
+        report.recorded += 1
+        report.successes += record.success
+        report.errors += record.status == "error"
+        bar.update(1)
+        bar.set_postfix(success=f"{report.successes}/{report.recorded}", errors=report.errors)
+
+    try:
+        with RecordWriter(results_path) as writer:
+            if workers == 0:
+                for spec in pending:
+                    keep(writer, run_rollout(spec))
+            else:
+                _run_in_pools(pending, workers, lambda record: keep(writer, record))
+    except KeyboardInterrupt:
+        report.interrupted = True
+    finally:
+        bar.close()
+    report.wall_s = time.perf_counter() - start
+    return report
+
+
+def _run_in_pools(pending: list[RolloutSpec], workers: int, keep) -> None:
+    """Runs `pending` in process pools; see the module docstring for a worker that dies.
+
+    A dead worker breaks its whole pool and fails every unfinished future, so which
+    rollout killed it is unknown: the unfinished ones run again in a fresh pool, and after
+    `_ATTEMPTS` broken pools each remaining rollout runs in a process of its own, where a
+    death is its own and is recorded as its error.
+    """
+    broken_pools = 0
+    while pending:
+        isolated = broken_pools >= _ATTEMPTS
+        batches = [[spec] for spec in pending] if isolated else [pending]
+        pending = []
+        for batch in batches:
+            died = _run_pool(batch, 1 if isolated else workers, keep)
+            if died and isolated:
+                keep(_error_record(died[0], f"the worker process running it died ({broken_pools} pools broke before)"))
+            elif died:
+                pending += died
+        broken_pools += bool(pending)
+
+
+def _run_pool(specs: list[RolloutSpec], workers: int, keep) -> list[RolloutSpec]:
+    """Runs `specs` in one pool, passing each record to `keep`; returns the specs a dead worker took down."""
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(specs)), initializer=_worker_init)
+    died = []
+    try:
+        futures = {pool.submit(run_rollout, spec): spec for spec in specs}
+        for future in as_completed(futures):
+            try:
+                record = future.result()
+            except BrokenProcessPool:
+                died.append(futures[future])
+                continue
+            keep(record)
+    except KeyboardInterrupt:
+        pool.shutdown(wait=False, cancel_futures=True)
+        raise
+    pool.shutdown()
+    return died
+
+
+def load_results(paths: list[str | os.PathLike]) -> list[RolloutRecord]:
+    """Every record of the given results files, or of the *.jsonl files in given folders."""
+    records = []
+    for path in paths:
+        path = Path(path)
+        files = sorted(path.glob("**/*.jsonl")) if path.is_dir() else [path]
+        for file in files:
+            records += read_records(file)[0]
+    return records

@@ -1,0 +1,178 @@
+"""Rollout records: one JSON object per line, appended as each rollout ends.
+
+A results file is JSON Lines. Every line is one finished rollout (`RolloutRecord`) with
+`schema` and `schema_version`; a line is written whole and flushed to disk before the next
+starts, so a run killed at any moment leaves at most a torn last line, which `read_records`
+reports and drops (its rollout simply runs again). Rollouts are identified by their `key`,
+so a rerun skips what is already recorded and never records a rollout twice.
+"""
+
+import json
+import math
+import os
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+SCHEMA = "ditch_drake.rollout_record"
+SCHEMA_VERSION = 1
+
+
+class ResultsError(ValueError):
+    """A results file that cannot be read as this schema and version."""
+
+
+@dataclass(frozen=True)
+class RolloutSpec:
+    """One seeded rollout to run.
+
+    Attributes:
+        controller: "learned", "dwa", "expert" or "edge_angle".
+        checkpoint: the learned policy's shipped name or file ("" for other controllers).
+        environment: the environment the robot drives in.
+        task: index of its start/goal task.
+        seed: the episode's seed (start jitter, sensor noise, expert style).
+        time_limit_s: the episode's timeout (s).
+    """
+
+    controller: str
+    checkpoint: str
+    environment: str
+    task: int
+    seed: int
+    time_limit_s: float
+
+    @property
+    def key(self) -> str:
+        """Identifies the rollout within a results file."""
+        return f"{self.controller}|{self.checkpoint}|{self.environment}|{self.task}|{self.seed}|{self.time_limit_s:g}"
+
+
+@dataclass
+class RolloutRecord:
+    """What one rollout did (SI units, angles in degrees).
+
+    Attributes:
+        key: `RolloutSpec.key`.
+        controller, checkpoint, environment, task, seed, time_limit_s: the spec.
+        checkpoint_sha256: first 16 hex digits of the checkpoint file's hash ("" if none).
+        status: reached_goal, rolled_over, timeout, stuck, or error.
+        success: status == reached_goal.
+        time_s: simulated time at the end.
+        path_length_m: planar distance driven.
+        peak_abs_roll_deg, peak_abs_pitch_deg, peak_tilt_deg: largest chassis attitudes.
+        min_stability_margin_deg: smallest static tip-over margin seen.
+        final_x_m, final_y_m: where the chassis ended.
+        failure_region: where it ended relative to the ditch: "approach" (outside, on the
+            start side), "down_wall" (the wall it entered by), "floor", "up_wall" (the wall
+            it leaves by), "beyond" (outside, past the ditch), or "" on success.
+        wall_s: wall-clock time of the rollout, building excluded (s).
+        error: the exception's type and message when status is error, else "".
+    """
+
+    key: str
+    controller: str
+    checkpoint: str
+    environment: str
+    task: int
+    seed: int
+    time_limit_s: float
+    checkpoint_sha256: str
+    status: str
+    success: bool
+    time_s: float
+    path_length_m: float
+    peak_abs_roll_deg: float
+    peak_abs_pitch_deg: float
+    peak_tilt_deg: float
+    min_stability_margin_deg: float
+    final_x_m: float
+    final_y_m: float
+    failure_region: str
+    wall_s: float
+    error: str = ""
+
+    def to_json(self) -> str:
+        """One line: the fields plus the schema and its version (non-finite numbers as null)."""
+        values = {"schema": SCHEMA, "schema_version": SCHEMA_VERSION}
+        for name, value in asdict(self).items():
+            values[name] = None if isinstance(value, float) and not math.isfinite(value) else value
+        return json.dumps(values, sort_keys=True)
+
+    @classmethod
+    def from_dict(cls, values: dict, where: str) -> "RolloutRecord":
+        """The record of a parsed line.
+
+        Raises:
+            ResultsError: another schema or version, or missing fields, naming `where`.
+        """
+        if values.get("schema") != SCHEMA or values.get("schema_version") != SCHEMA_VERSION:
+            raise ResultsError(
+                f"{where}: schema {values.get('schema')!r} version {values.get('schema_version')!r}; expected "
+                f"{SCHEMA!r} version {SCHEMA_VERSION} (a file from another version of ditch_drake: write to a new file)")
+        names = [f.name for f in fields(cls)]
+        missing = [name for name in names if name not in values and name != "error"]
+        if missing:
+            raise ResultsError(f"{where}: record lacks {missing}")
+        return cls(**{name: (math.nan if values[name] is None else values[name]) for name in names if name in values})
+
+
+def read_records(path: str | os.PathLike) -> tuple[list[RolloutRecord], list[str]]:
+    """The records of a results file (none if it does not exist) and warnings.
+
+    A last line without its newline is a write cut short by an interruption: it is
+    reported in the warnings and left out (its rollout runs again). A bad line elsewhere
+    means the file is not ours.
+
+    Raises:
+        ResultsError: a line that is not a record of this schema version, naming the line.
+    """
+    path = Path(path)
+    if not path.exists():
+        return [], []
+    text = path.read_text()
+    lines = text.split("\n")
+    warnings = []
+    if lines and lines[-1] != "":
+        warnings.append(f"{path}: the last line was cut short by an interruption; its rollout runs again")
+    records = []
+    for number, line in enumerate(lines[:-1], start=1):
+        if not line.strip():
+            continue
+        try:
+            values = json.loads(line)
+        except json.JSONDecodeError as error:
+            raise ResultsError(f"{path}:{number}: not a JSON record ({error})") from error
+        if not isinstance(values, dict):
+            raise ResultsError(f"{path}:{number}: expected a JSON object, got {type(values).__name__}")
+        records.append(RolloutRecord.from_dict(values, f"{path}:{number}"))
+    return records, warnings
+
+
+class RecordWriter:
+    """Appends records to a results file, each line flushed and synced before `append` returns."""
+
+    def __init__(self, path: str | os.PathLike):
+        """Opens `path` for appending (creating its folder), first trimming a torn last line."""
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        if self.path.exists():
+            data = self.path.read_bytes()
+            if data and not data.endswith(b"\n"):
+                # Cut back to the last whole line so the next record starts on its own line.
+                with open(self.path, "r+b") as handle:
+                    handle.truncate(data.rfind(b"\n") + 1)
+        self._handle = open(self.path, "a", encoding="utf-8")
+
+    def append(self, record: RolloutRecord) -> None:
+        self._handle.write(record.to_json() + "\n")
+        self._handle.flush()
+        os.fsync(self._handle.fileno())
+
+    def close(self) -> None:
+        self._handle.close()
+
+    def __enter__(self) -> "RecordWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()

@@ -1,0 +1,71 @@
+"""Success rates with Wilson score intervals, and failure breakdowns, from rollout records."""
+
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+
+from scipy.stats import norm
+
+from ditch_drake.evaluation.results import RolloutRecord
+
+
+def wilson_interval(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float]:
+    """Wilson score interval of a binomial proportion.
+
+    Raises:
+        ValueError: counts out of range or a confidence outside (0, 1).
+    """
+    if trials < 0 or not 0 <= successes <= trials or not 0 < confidence < 1:
+        raise ValueError(f"successes={successes}, trials={trials}, confidence={confidence}: "
+                         "need 0 <= successes <= trials and 0 < confidence < 1")
+    if trials == 0:
+        return 0.0, 1.0
+    z = float(norm.ppf(0.5 + confidence / 2))
+    p = successes / trials
+    denominator = 1 + z * z / trials
+    centre = (p + z * z / (2 * trials)) / denominator
+    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denominator
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+@dataclass
+class GroupSummary:
+    """Rollouts of one group (e.g. one controller in one environment).
+
+    Attributes:
+        trials, successes: counts (error records are counted apart, not as trials).
+        rate: successes / trials (nan without trials).
+        low, high: the 95 % Wilson interval.
+        statuses: count per status, errors included.
+        failure_regions: count per failure region of the failed trials.
+        errors: rollouts that raised (not trials).
+    """
+
+    trials: int
+    successes: int
+    rate: float
+    low: float
+    high: float
+    statuses: dict[str, int] = field(default_factory=dict)
+    failure_regions: dict[str, int] = field(default_factory=dict)
+    errors: int = 0
+
+
+def summarize(records: list[RolloutRecord]) -> GroupSummary:
+    """The summary of a group of records."""
+    valid = [r for r in records if r.status != "error"]
+    successes = sum(r.success for r in valid)
+    low, high = wilson_interval(successes, len(valid))
+    return GroupSummary(
+        trials=len(valid), successes=successes, rate=successes / len(valid) if valid else math.nan, low=low, high=high,
+        statuses=dict(Counter(r.status for r in records)),
+        failure_regions=dict(Counter(f"{r.status}@{r.failure_region}" for r in valid if not r.success)),
+        errors=len(records) - len(valid))
+
+
+def group_by(records: list[RolloutRecord], *names: str) -> dict[tuple, list[RolloutRecord]]:
+    """Records grouped by the values of the named fields, groups in sorted key order."""
+    groups: dict[tuple, list[RolloutRecord]] = {}
+    for record in records:
+        groups.setdefault(tuple(getattr(record, name) for name in names), []).append(record)
+    return dict(sorted(groups.items()))

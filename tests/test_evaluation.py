@@ -1,0 +1,151 @@
+"""Batch evaluation: seeded rollouts, the results file, resuming, Wilson intervals."""
+
+import dataclasses
+import json
+
+import pytest
+import torch
+
+from ditch_drake.environments import ConfigError
+from ditch_drake.evaluation.batch import evaluate, make_specs, run_rollout
+from ditch_drake.evaluation.results import RecordWriter, ResultsError, RolloutSpec, read_records
+from ditch_drake.evaluation.summary import group_by, summarize, wilson_interval
+from ditch_drake.learning.checkpoint import make_checkpoint, save_checkpoint
+from ditch_drake.learning.model import FourInputClassifier
+
+# Short episodes: the expert is still on its approach when they time out.
+SPECS = make_specs("expert", "", "wide", tasks=[0], rollouts=2, seed=3, time_limit_s=1.5)
+
+
+def outcome_fields(record) -> dict:
+    values = dataclasses.asdict(record)
+    values.pop("wall_s")
+    return values
+
+
+def test_wilson_interval_on_known_counts():
+    assert wilson_interval(5, 10) == pytest.approx((0.2366, 0.7634), abs=1e-4)
+    assert wilson_interval(0, 10) == pytest.approx((0.0, 0.2775), abs=1e-4)
+    assert wilson_interval(10, 10) == pytest.approx((0.7225, 1.0), abs=1e-4)
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    with pytest.raises(ValueError, match="successes=11"):
+        wilson_interval(11, 10)
+
+
+def test_same_seed_gives_the_same_rollout_twice():
+    first, second = run_rollout(SPECS[0]), run_rollout(SPECS[0])
+    assert first.status == "timeout" and first.failure_region == "approach"
+    assert first.path_length_m > 0.5
+    assert outcome_fields(first) == outcome_fields(second)
+
+
+def test_evaluate_records_every_rollout_once_and_resumes_after_an_interruption(tmp_path):
+    full = tmp_path / "full.jsonl"
+    report = evaluate(SPECS, full, workers=0, progress=False)
+    assert (report.recorded, report.skipped, report.errors) == (2, 0, 0)
+    complete = {record.key: outcome_fields(record) for record in read_records(full)[0]}
+    assert set(complete) == {spec.key for spec in SPECS}
+
+    again = evaluate(SPECS, full, workers=0, progress=False)
+    assert (again.recorded, again.skipped) == (0, 2)
+    assert len(read_records(full)[0]) == 2
+
+    # An interruption while the second record was being written: one whole line and a torn one.
+    interrupted = tmp_path / "interrupted.jsonl"
+    first_line, second_line = full.read_text().splitlines()
+    interrupted.write_text(first_line + "\n" + second_line[:40])
+    records, warnings = read_records(interrupted)
+    assert len(records) == 1 and "cut short" in warnings[0]
+    resumed = evaluate(SPECS, interrupted, workers=0, progress=False)
+    assert (resumed.recorded, resumed.skipped) == (1, 1)
+    records, warnings = read_records(interrupted)
+    assert warnings == []
+    assert {record.key: outcome_fields(record) for record in records} == complete
+
+
+def test_worker_processes_give_the_same_records_as_one_process(tmp_path):
+    evaluate(SPECS, tmp_path / "pool.jsonl", workers=2, progress=False)
+    evaluate(SPECS, tmp_path / "here.jsonl", workers=0, progress=False)
+    by_key = [{r.key: outcome_fields(r) for r in read_records(tmp_path / name)[0]} for name in ("pool.jsonl", "here.jsonl")]
+    assert by_key[0] == by_key[1]
+
+
+def test_a_rollout_that_raises_is_recorded_as_an_error_and_the_run_goes_on(tmp_path):
+    broken = tmp_path / "broken.pt"
+    broken.write_bytes(b"not a checkpoint")
+    bad = make_specs("learned", str(broken), "wide", tasks=[0], rollouts=1, time_limit_s=1.0)
+    report = evaluate(bad + SPECS[:1], tmp_path / "results.jsonl", workers=0, progress=False)
+    assert (report.recorded, report.errors, report.successes) == (2, 1, 0)
+    errors = [r for r in read_records(tmp_path / "results.jsonl")[0] if r.status == "error"]
+    assert len(errors) == 1 and "CheckpointError" in errors[0].error and str(broken) in errors[0].error
+
+
+def test_a_learned_policy_checkpoint_drives_a_rollout(tmp_path):
+    torch.manual_seed(0)
+    path = tmp_path / "random.pt"
+    save_checkpoint(make_checkpoint(FourInputClassifier()), path)
+    specs = make_specs("learned", str(path), "wide", tasks=[1], rollouts=1, time_limit_s=1.0)
+    record = run_rollout(specs[0])
+    assert record.status == "timeout", record.error
+    assert len(record.checkpoint_sha256) == 16
+
+
+def test_bad_specs_are_refused_with_the_bad_value_named(tmp_path):
+    with pytest.raises(ConfigError, match="'teleporter'"):
+        make_specs("teleporter", "", "wide")
+    with pytest.raises(ConfigError, match="'moon'"):
+        make_specs("expert", "", "moon")
+    with pytest.raises(ConfigError, match=r"tasks \[7\]"):
+        make_specs("expert", "", "wide", tasks=[7])
+    with pytest.raises(ConfigError, match="missing.pt"):
+        make_specs("learned", str(tmp_path / "missing.pt"), "wide")
+
+
+def test_a_results_file_of_another_schema_version_is_refused(tmp_path):
+    path = tmp_path / "old.jsonl"
+    path.write_text(json.dumps({"schema": "ditch_drake.rollout_record", "schema_version": 0, "key": "x"}) + "\n")
+    with pytest.raises(ResultsError, match="version 0"):
+        read_records(path)
+    with pytest.raises(ResultsError, match="version 0"):
+        evaluate(SPECS, path, workers=0, progress=False)
+    assert path.read_text().count("\n") == 1  # Nothing was written to it.
+
+
+def test_summaries_count_successes_failures_and_errors(tmp_path):
+    record = run_rollout(SPECS[0])
+    succeeded = dataclasses.replace(record, key="a", status="reached_goal", success=True, failure_region="")
+    errored = dataclasses.replace(record, key="b", status="error", error="boom")
+    summary = summarize([record, succeeded, errored])
+    assert (summary.trials, summary.successes, summary.errors) == (2, 1, 1)
+    assert summary.rate == 0.5 and summary.failure_regions == {"timeout@approach": 1}
+    assert list(group_by([record, succeeded], "environment", "task")) == [("wide", 0)]
+    with RecordWriter(tmp_path / "r.jsonl") as writer:
+        writer.append(errored)
+    assert read_records(tmp_path / "r.jsonl")[0][0].error == "boom"
+
+
+def test_spec_keys_identify_rollouts():
+    a = RolloutSpec("learned", "wide", "narrow", 1, 4, 120.0)
+    assert a.key == "learned|wide|narrow|1|4|120"
+    assert a.key != dataclasses.replace(a, seed=5).key
+
+
+def test_checkpoints_of_another_action_table_or_input_shape_are_refused(tmp_path):
+    from ditch_drake import actions
+    from ditch_drake.diagrams.ditch_scene import SceneConfig
+    from ditch_drake.diagrams.rollout import LearnedPolicyConfig, MakeRolloutDiagram, RolloutConfig
+    from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
+    from ditch_drake.learning.model import ModelConfig
+
+    other_table = tmp_path / "other_table.pt"
+    checkpoint = make_checkpoint(FourInputClassifier())
+    save_checkpoint(dataclasses.replace(checkpoint, action_commands=actions.COMMANDS * 2.0), other_table)
+    with pytest.raises(CheckpointError, match="another action table"):
+        load_checkpoint(other_table)
+    assert load_checkpoint(other_table, allow_other_action_table=True).action_commands[0][0] == 2 * actions.COMMANDS[0][0]
+
+    small_images = tmp_path / "small_images.pt"
+    save_checkpoint(make_checkpoint(FourInputClassifier(ModelConfig(image_size=64))), small_images)
+    config = RolloutConfig(scene=SceneConfig(environment="wide"), controller=LearnedPolicyConfig(str(small_images)))
+    with pytest.raises(CheckpointError, match="expects image_stack of 16384 values; the observation blocks give 65536"):
+        MakeRolloutDiagram(config)
