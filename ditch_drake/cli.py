@@ -4,6 +4,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 
 from ditch_drake.actions import ANGULAR_RATES_RADPS
 from ditch_drake.demos.dataset import DatasetError
@@ -146,13 +147,50 @@ def cmd_train(args) -> int:
     demonstrations = []
     for directory in args.data:  # Several directories train the amalgam model.
         demonstrations += load_dataset(directory, max_demos=args.max_demos)
-    config = TrainConfig(epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size)
+    defaults = TrainConfig()
+    config = TrainConfig(
+        epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
+        max_batches_per_epoch=args.batches_per_epoch,
+        smote=replace(defaults.smote, max_synthetic_fraction=args.synthetic_fraction),
+        num_threads=args.threads)
     result = train(to_array_set(demonstrations), config, output_path=args.out, resume=args.resume)
     best = next((record for record in result.history if record["epoch"] == result.best_epoch), {})
     print(json.dumps({"out": str(result.output_path), "best_epoch": result.best_epoch,
                       "stopped_early": result.stopped_early, "interrupted": result.interrupted,
                       "best": best}, default=float))
     return 130 if result.interrupted else 0
+
+
+def cmd_evaluate(args) -> int:
+    """Seeded rollouts of one controller in one or more environments, appended to a results file."""
+    from ditch_drake.evaluation.batch import evaluate, load_results, make_specs
+    from ditch_drake.evaluation.summary import group_by, summarize
+
+    specs = []
+    for environment in args.env or environment_names():
+        specs += make_specs(args.controller, args.checkpoint, environment, args.task, args.rollouts, args.seed,
+                            args.time_limit)
+    report = evaluate(specs, args.out, workers=args.workers)
+    for warning in report.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    keys = {spec.key for spec in specs}
+    records = [record for record in load_results([args.out]) if record.key in keys]
+    rows = []
+    for (controller, checkpoint, environment, task), group in group_by(
+            records, "controller", "checkpoint", "environment", "task").items():
+        summary = summarize(group)
+        rows.append({"controller": controller, "checkpoint": checkpoint or "-", "env": environment, "task": task,
+                     "success": f"{summary.successes}/{summary.trials}",
+                     "wilson95": f"{summary.low:.2f}-{summary.high:.2f}",
+                     "failures": " ".join(f"{k}:{v}" for k, v in sorted(summary.failure_regions.items())) or "-",
+                     "errors": summary.errors})
+    if rows:
+        _print_table(rows, ["controller", "checkpoint", "env", "task", "success", "wilson95", "failures", "errors"])
+    print(json.dumps({"out": str(args.out), "skipped": report.skipped, "recorded": report.recorded,
+                      "successes_recorded": report.successes, "errors_recorded": report.errors,
+                      "wall_s": round(report.wall_s, 1), "rollouts_per_minute": round(report.rollouts_per_minute, 2),
+                      "interrupted": report.interrupted}))
+    return 130 if report.interrupted else 0
 
 
 def cmd_figure(args) -> int:
@@ -218,15 +256,35 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true")
     info.set_defaults(run=cmd_dataset_info)
 
+    evaluation = commands.add_parser("evaluate", help="seeded rollouts in parallel, appended to a results file")
+    evaluation.add_argument("--controller", default="learned", help="learned, dwa, expert or edge_angle")
+    evaluation.add_argument("--checkpoint", default="wide", help="the learned policy: a shipped name or a .pt file")
+    add_env(evaluation, many=True)
+    evaluation.add_argument("--task", type=int, action="append", default=None, help="task index (repeatable; default all)")
+    evaluation.add_argument("--rollouts", type=int, default=10, help="seeded rollouts per task")
+    evaluation.add_argument("--seed", type=int, default=0, help="first seed; rollout i uses seed + i")
+    evaluation.add_argument("--time-limit", type=float, default=120.0, help="episode timeout (s)")
+    evaluation.add_argument("--out", default="results/evaluate.jsonl", help="results file (JSON Lines), appended")
+    evaluation.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    evaluation.set_defaults(run=cmd_evaluate)
+
     training = commands.add_parser("train", help="behavioural cloning from demonstrations")
     training.add_argument("--data", action="append", required=True, metavar="DIR",
                           help="demonstration directory (repeat for an amalgam of environments)")
     training.add_argument("--out", required=True, help="checkpoint path (.pt)")
     training.add_argument("--seed", type=int, default=0)
     training.add_argument("--max-demos", type=int, default=None, help="use the first N demonstrations of each directory")
-    training.add_argument("--epochs", type=int, default=50)
-    training.add_argument("--patience", type=int, default=10)
-    training.add_argument("--batch-size", type=int, default=64)
+    from ditch_drake.learning.train import TrainConfig
+
+    defaults = TrainConfig()
+    training.add_argument("--epochs", type=int, default=defaults.epochs)
+    training.add_argument("--patience", type=int, default=defaults.patience)
+    training.add_argument("--batch-size", type=int, default=defaults.batch_size)
+    training.add_argument("--batches-per-epoch", type=int, default=defaults.max_batches_per_epoch,
+                          help="batches drawn (without replacement) from the shuffled training set per epoch")
+    training.add_argument("--synthetic-fraction", type=float, default=defaults.smote.max_synthetic_fraction,
+                          help="at most this many SMOTE samples per real training sample")
+    training.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     training.add_argument("--resume", action="store_true", help="continue an interrupted run")
     training.set_defaults(run=cmd_train)
 
