@@ -9,6 +9,7 @@ from dataclasses import replace
 from ditch_drake.actions import ANGULAR_RATES_RADPS
 from ditch_drake.demos.dataset import DatasetError
 from ditch_drake.environments import ConfigError, environment_names
+from ditch_drake.evaluation.results import ResultsError
 from ditch_drake.learning.checkpoint import CheckpointError
 from ditch_drake.terrain import TerrainError
 
@@ -193,6 +194,30 @@ def cmd_evaluate(args) -> int:
     return 130 if report.interrupted else 0
 
 
+def cmd_experiment(args) -> int:
+    """The paper's pipeline from an experiment file: collect, train, evaluate, report."""
+    from ditch_drake.evaluation.experiment import load_experiment, run_experiment
+
+    config = load_experiment(args.file)
+    stages = tuple(args.stage) if args.stage else ("collect", "train", "evaluate", "report")
+    try:
+        timings = run_experiment(config, only=args.only, stages=stages)
+    except KeyboardInterrupt:
+        print("interrupted; finished work is kept, run the same command again to continue", file=sys.stderr)
+        return 130
+    print(json.dumps({name: round(value, 1) for name, value in timings.items()}))
+    return 0
+
+
+def cmd_report(args) -> int:
+    """The results page and its figures from results files."""
+    from ditch_drake.evaluation.report import write_report
+
+    command = "ditch-drake report " + " ".join(args.results) + f" --out {args.out} --figures {args.figures}"
+    print(write_report(args.results, args.out, args.figures, title=args.title, command=command))
+    return 0
+
+
 def cmd_figure(args) -> int:
     from ditch_drake.figures import normal_image_figure
 
@@ -268,6 +293,21 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
     evaluation.set_defaults(run=cmd_evaluate)
 
+    experiment = commands.add_parser("experiment", help="the paper's pipeline from an experiment YAML")
+    experiment.add_argument("file", help="experiment file, e.g. experiments/paper.yaml")
+    experiment.add_argument("--only", action="append", metavar="ENV",
+                            help="only the models and evaluations that involve this environment (repeatable)")
+    experiment.add_argument("--stage", action="append", choices=["collect", "train", "evaluate", "report"],
+                            help="run only this stage (repeatable; default all, in order)")
+    experiment.set_defaults(run=cmd_experiment)
+
+    report = commands.add_parser("report", help="results page (Markdown) and figures from results files")
+    report.add_argument("results", nargs="+", help="results files or folders of them (*.jsonl)")
+    report.add_argument("--out", default="docs/results.md")
+    report.add_argument("--figures", default="docs/img", help="folder of the PNG figures")
+    report.add_argument("--title", default="Results")
+    report.set_defaults(run=cmd_report)
+
     training = commands.add_parser("train", help="behavioural cloning from demonstrations")
     training.add_argument("--data", action="append", required=True, metavar="DIR",
                           help="demonstration directory (repeat for an amalgam of environments)")
@@ -308,7 +348,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (ConfigError, TerrainError, DatasetError, CheckpointError) as error:
+    except (ConfigError, TerrainError, DatasetError, CheckpointError, ResultsError) as error:
         print(f"ditch-drake: error: {error}", file=sys.stderr)
         return 2
 

@@ -1,0 +1,315 @@
+"""The paper's experiments as data: collect, train, evaluate and report, each stage resumable.
+
+An experiment YAML (`experiments/paper.yaml`) names the studies of the paper (section 5,
+SPEC "Experiments"): scalability (10/20/40 demonstrations, evaluated in the training
+environment), generalization (each 40-demonstration model in the other environments),
+baseline (the DWA in every environment) and amalgam (one model trained on several
+environments, evaluated in another). `run_experiment` turns it into work:
+
+1. collect: `collect` the missing demonstrations of every environment a model trains on;
+2. train: every distinct model (environments, number of demonstrations), skipping a
+   finished checkpoint and resuming an interrupted one from its `.resume` file;
+3. evaluate: every study's rollouts, appended to `<results_dir>/<study>.jsonl` (finished
+   rollouts are skipped);
+4. report: `ditch_drake.evaluation.report.write_report` over the results.
+
+`only` restricts every stage to the models and evaluations that involve the named
+environments, so the protocol can also be completed in parts. Each stage's wall time is
+returned and printed.
+"""
+
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import yaml
+from pydrake.common.yaml import yaml_load_typed
+
+from ditch_drake.environments import ConfigError, environment_names
+from ditch_drake.evaluation.results import RolloutSpec
+
+
+@dataclass
+class TrainingSettings:
+    """`ditch-drake train` settings shared by every model of the experiment (see `TrainConfig`)."""
+
+    epochs: int = 8
+    patience: int = 4
+    batches_per_epoch: int = 96
+    synthetic_fraction: float = 0.5
+
+
+@dataclass
+class ScalabilityStudy:
+    """Models trained on the first N demonstrations, evaluated in their own environment."""
+
+    environments: list[str] = field(default_factory=list)
+    demos: list[int] = field(default_factory=lambda: [10, 20, 40])
+
+
+@dataclass
+class GeneralizationStudy:
+    """Each environment's model (`demos` demonstrations) evaluated in the other environments."""
+
+    environments: list[str] = field(default_factory=list)
+    demos: int = 40
+
+
+@dataclass
+class BaselineStudy:
+    """The DWA controller in each environment."""
+
+    environments: list[str] = field(default_factory=list)
+
+
+@dataclass
+class AmalgamStudy:
+    """One model trained on several environments together, evaluated elsewhere."""
+
+    train: list[str] = field(default_factory=list)
+    evaluate: list[str] = field(default_factory=list)
+    demos: int = 40
+
+
+@dataclass
+class Studies:
+    scalability: ScalabilityStudy | None = None
+    generalization: GeneralizationStudy | None = None
+    baseline: BaselineStudy | None = None
+    amalgam: AmalgamStudy | None = None
+
+
+@dataclass
+class ExperimentConfig:
+    """An experiment file.
+
+    Attributes:
+        name: names the report.
+        seed: the seed of collection, training and the first rollout.
+        demos_dir: demonstrations, one folder per environment.
+        models_dir: trained checkpoints.
+        results_dir: results files, one per study.
+        report: the report's Markdown file; its figures go to `figures_dir`.
+        figures_dir: PNG figures.
+        tasks: task indices evaluated in every environment (empty: all).
+        rollouts: seeded rollouts per task.
+        time_limit_s: the episode timeout (s).
+        workers: worker processes (0: all cores).
+        training: training settings.
+        studies: what to run.
+    """
+
+    name: str = "experiment"
+    seed: int = 0
+    demos_dir: str = "data/demos"
+    models_dir: str = "models"
+    results_dir: str = "results"
+    report: str = "docs/results.md"
+    figures_dir: str = "docs/img"
+    tasks: list[int] = field(default_factory=list)
+    rollouts: int = 10
+    time_limit_s: float = 120.0
+    workers: int = 0
+    training: TrainingSettings = field(default_factory=TrainingSettings)
+    studies: Studies = field(default_factory=Studies)
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A model to train: its environments and the first `demos` demonstrations of each."""
+
+    environments: tuple[str, ...]
+    demos: int
+
+    @property
+    def name(self) -> str:
+        return f"{'+'.join(self.environments)}_{self.demos}"
+
+
+def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
+    """Reads and checks an experiment file.
+
+    Raises:
+        ConfigError: unreadable or malformed YAML, an unknown key (a typo), or an unknown
+            environment, naming the file and the value.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as error:
+        raise ConfigError(f"cannot read experiment file {path}: {error}") from error
+    try:
+        config = yaml_load_typed(schema=ExperimentConfig, data=text)
+    except yaml.YAMLError as error:
+        raise ConfigError(f"malformed YAML in {path}: {error}") from error
+    except (RuntimeError, ValueError, TypeError, AssertionError) as error:
+        raise ConfigError(f"invalid experiment file {path}: {error}") from error
+    known = set(environment_names())
+    named = list(_study_environments(config))
+    unknown = sorted({env for env in named if env not in known})
+    if unknown:
+        raise ConfigError(f"experiment file {path} names unknown environments {unknown}; expected some of {sorted(known)}")
+    if config.rollouts < 1 or not config.time_limit_s > 0:
+        raise ConfigError(f"experiment file {path}: rollouts={config.rollouts} must be >= 1 and "
+                          f"time_limit_s={config.time_limit_s} positive")
+    return config
+
+
+def _study_environments(config: ExperimentConfig):
+    studies = config.studies
+    for study in (studies.scalability, studies.generalization, studies.baseline):
+        yield from study.environments if study else []
+    if studies.amalgam:
+        yield from studies.amalgam.train + studies.amalgam.evaluate
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One study's rollouts of one controller in one environment."""
+
+    study: str
+    controller: str
+    model: ModelSpec | None
+    environment: str
+
+
+def plan(config: ExperimentConfig, only: list[str] | None = None) -> tuple[list[ModelSpec], list[Evaluation]]:
+    """The models to train and the evaluations to run, restricted to `only`'s environments.
+
+    A model is kept when one of its training environments is in `only`; an evaluation
+    when its environment or one of its model's environments is.
+    """
+    studies = config.studies
+    evaluations: list[Evaluation] = []
+    if studies.scalability:
+        for env in studies.scalability.environments:
+            for demos in studies.scalability.demos:
+                evaluations.append(Evaluation("scalability", "learned", ModelSpec((env,), demos), env))
+    if studies.generalization:
+        environments = studies.generalization.environments
+        for trained in environments:
+            for env in environments:
+                if env != trained:
+                    model = ModelSpec((trained,), studies.generalization.demos)
+                    evaluations.append(Evaluation("generalization", "learned", model, env))
+    if studies.baseline:
+        for env in studies.baseline.environments:
+            evaluations.append(Evaluation("baseline", "dwa", None, env))
+    if studies.amalgam:
+        model = ModelSpec(tuple(studies.amalgam.train), studies.amalgam.demos)
+        for env in studies.amalgam.evaluate:
+            evaluations.append(Evaluation("amalgam", "learned", model, env))
+
+    def involved(environments) -> bool:
+        return only is None or any(env in only for env in environments)
+
+    evaluations = [e for e in evaluations
+                   if involved([e.environment, *(e.model.environments if e.model else ())])]
+    models = list(dict.fromkeys(e.model for e in evaluations if e.model is not None))
+    return models, evaluations
+
+
+def model_path(config: ExperimentConfig, model: ModelSpec) -> Path:
+    return Path(config.models_dir) / f"{model.name}.pt"
+
+
+def evaluation_specs(config: ExperimentConfig, evaluation: Evaluation) -> list[RolloutSpec]:
+    from ditch_drake.evaluation.batch import make_specs  # noqa: PLC0415 (Drake import on demand)
+
+    checkpoint = str(model_path(config, evaluation.model)) if evaluation.model else ""
+    return make_specs(evaluation.controller, checkpoint, evaluation.environment, config.tasks or None,
+                      config.rollouts, config.seed,
+                      config.time_limit_s) if evaluation.controller != "learned" or Path(checkpoint).exists() else []
+
+
+def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stages: tuple[str, ...] = (
+        "collect", "train", "evaluate", "report"), progress: bool = True) -> dict:
+    """Runs the stages of the experiment (see the module docstring); returns each stage's wall time (s)."""
+    models, evaluations = plan(config, only)
+    timings: dict[str, float] = {}
+    if "collect" in stages:
+        start = time.perf_counter()
+        _collect(config, models, progress)
+        timings["collect_s"] = time.perf_counter() - start
+    if "train" in stages:
+        start = time.perf_counter()
+        for model in models:
+            _train(config, model, progress)
+        timings["train_s"] = time.perf_counter() - start
+    if "evaluate" in stages:
+        start = time.perf_counter()
+        _evaluate(config, evaluations, progress)
+        timings["evaluate_s"] = time.perf_counter() - start
+    if "report" in stages:
+        from ditch_drake.evaluation.report import write_report  # noqa: PLC0415
+
+        start = time.perf_counter()
+        write_report([config.results_dir], config.report, config.figures_dir, title=config.name)
+        timings["report_s"] = time.perf_counter() - start
+    return timings
+
+
+def _collect(config: ExperimentConfig, models: list[ModelSpec], progress: bool) -> None:
+    from ditch_drake.demos.collect import CollectConfig, collect  # noqa: PLC0415
+
+    needed: dict[str, int] = {}
+    for model in models:
+        for env in model.environments:
+            needed[env] = max(needed.get(env, 0), model.demos)
+    for env, demos in needed.items():
+        report = collect(CollectConfig(environment=env, demos=demos, seed=config.seed,
+                                       out=str(Path(config.demos_dir) / env), workers=config.workers), progress)
+        _log(progress, f"collect {env}: {report['kept_before']} kept, {report['recorded']} recorded")
+
+
+def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
+    from ditch_drake.demos.dataset import load_dataset, to_array_set  # noqa: PLC0415
+    from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint  # noqa: PLC0415
+    from ditch_drake.learning.train import TrainConfig, resume_path, train  # noqa: PLC0415
+
+    out = model_path(config, model)
+    if out.exists() and not resume_path(out).exists():
+        try:
+            if not load_checkpoint(out).metrics.get("interrupted", False):
+                _log(progress, f"train {model.name}: {out} exists, kept")
+                return
+            _log(progress, f"train {model.name}: {out} is from an interrupted run; training again")
+        except CheckpointError as error:
+            _log(progress, f"train {model.name}: {error}; training again")
+    demonstrations = []
+    for env in model.environments:
+        demonstrations += load_dataset(Path(config.demos_dir) / env, max_demos=model.demos)
+    settings = config.training
+    defaults = TrainConfig()
+    train_config = TrainConfig(epochs=settings.epochs, patience=settings.patience, seed=config.seed,
+                               max_batches_per_epoch=settings.batches_per_epoch,
+                               smote=replace(defaults.smote, max_synthetic_fraction=settings.synthetic_fraction))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    train(to_array_set(demonstrations), train_config, progress=progress, output_path=out, resume=True)
+    resume_path(out).unlink(missing_ok=True)  # Finished: a later run keeps the checkpoint.
+
+
+def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool) -> None:
+    from ditch_drake.evaluation.batch import evaluate  # noqa: PLC0415
+
+    by_study: dict[str, list[RolloutSpec]] = {}
+    for evaluation in evaluations:
+        specs = evaluation_specs(config, evaluation)
+        if not specs:
+            _log(progress, f"evaluate {evaluation.study}: no checkpoint {model_path(config, evaluation.model)}; skipped")
+        by_study.setdefault(evaluation.study, []).extend(specs)
+    for study, specs in by_study.items():
+        report = evaluate(specs, Path(config.results_dir) / f"{study}.jsonl", workers=config.workers or None,
+                          progress=progress)
+        _log(progress, f"evaluate {study}: " + json.dumps(
+            {"recorded": report.recorded, "skipped": report.skipped, "wall_s": round(report.wall_s, 1)}))
+        if report.interrupted:
+            raise KeyboardInterrupt
+
+
+def _log(progress: bool, line: str) -> None:
+    if progress:
+        print(line, file=sys.stderr, flush=True)

@@ -1,0 +1,107 @@
+"""The experiment pipeline end to end on a tiny experiment, its file checks, and the report."""
+
+import json
+
+import pytest
+
+from ditch_drake.environments import ConfigError
+from ditch_drake.evaluation.experiment import load_experiment, plan, run_experiment
+from ditch_drake.evaluation.report import write_report
+from ditch_drake.evaluation.results import read_records
+
+TINY = """
+name: tiny
+seed: 0
+demos_dir: {root}/demos
+models_dir: {root}/models
+results_dir: {root}/results
+report: {root}/docs/results.md
+figures_dir: {root}/docs/img
+tasks: [0]
+rollouts: 1
+time_limit_s: 2.0
+workers: 1
+training: {{epochs: 1, patience: 1, batches_per_epoch: 2, synthetic_fraction: 0.5}}
+studies:
+  scalability: {{environments: [wide], demos: [2]}}
+  baseline: {{environments: [wide]}}
+"""
+
+
+@pytest.fixture
+def tiny_experiment(tmp_path):
+    path = tmp_path / "tiny.yaml"
+    path.write_text(TINY.format(root=tmp_path))
+    return path
+
+
+def test_a_tiny_experiment_runs_end_to_end_and_a_rerun_redoes_nothing(tmp_path, tiny_experiment):
+    config = load_experiment(tiny_experiment)
+    timings = run_experiment(config, progress=False)
+    assert set(timings) == {"collect_s", "train_s", "evaluate_s", "report_s"}
+    assert len(list((tmp_path / "demos" / "wide").glob("demo_*.npz"))) == 2
+    assert (tmp_path / "models" / "wide_2.pt").exists()
+    records = {study: read_records(tmp_path / "results" / f"{study}.jsonl")[0] for study in ("scalability", "baseline")}
+    assert [r.controller for r in records["scalability"]] == ["learned"]
+    assert [r.controller for r in records["baseline"]] == ["dwa"]
+    assert all(r.status != "error" for rs in records.values() for r in rs), records
+    page = (tmp_path / "docs" / "results.md").read_text()
+    assert "| wide_2 | wide | 0/1 |" in page and "| dwa | wide |" in page
+    assert (tmp_path / "docs" / "img" / "fig5_wide.png").stat().st_size > 1000
+    assert (tmp_path / "docs" / "img" / "fig5_baseline.png").stat().st_size > 1000
+
+    model_time = (tmp_path / "models" / "wide_2.pt").stat().st_mtime_ns
+    run_experiment(config, stages=("collect", "train", "evaluate"), progress=False)
+    assert (tmp_path / "models" / "wide_2.pt").stat().st_mtime_ns == model_time
+    assert len(read_records(tmp_path / "results" / "scalability.jsonl")[0]) == 1
+
+
+def test_experiment_files_with_a_typo_or_an_unknown_environment_are_refused(tmp_path, tiny_experiment):
+    typo = tmp_path / "typo.yaml"
+    typo.write_text(tiny_experiment.read_text().replace("rollouts: 1", "rolouts: 1"))
+    with pytest.raises(ConfigError, match="rolouts"):
+        load_experiment(typo)
+    unknown = tmp_path / "unknown.yaml"
+    unknown.write_text(tiny_experiment.read_text().replace("[wide], demos", "[wide, moon], demos"))
+    with pytest.raises(ConfigError, match="'moon'"):
+        load_experiment(unknown)
+    with pytest.raises(ConfigError, match="cannot read"):
+        load_experiment(tmp_path / "missing.yaml")
+
+
+def test_the_paper_protocol_plans_13_models_and_29_evaluations():
+    config = load_experiment("experiments/paper.yaml")
+    models, evaluations = plan(config)
+    assert len(models) == 13  # 4 x (10, 20, 40) + the amalgam
+    assert len(evaluations) == 12 + 12 + 4 + 1
+    models, evaluations = plan(config, only=["wide"])
+    assert {m.name for m in models} >= {"wide_10", "wide_20", "wide_40", "crater+narrow+sine_40"}
+    assert all("wide" in (e.environment, *(e.model.environments if e.model else ())) for e in evaluations)
+
+
+def test_the_report_renders_from_a_small_fixture(tmp_path):
+    base = {"schema": "ditch_drake.rollout_record", "schema_version": 1, "checkpoint_sha256": "", "task": 0,
+            "time_limit_s": 120.0, "time_s": 50.0, "path_length_m": 20.0, "peak_abs_roll_deg": 10.0,
+            "peak_abs_pitch_deg": 30.0, "peak_tilt_deg": 31.0, "min_stability_margin_deg": 20.0, "final_x_m": 0.0,
+            "final_y_m": 0.0, "wall_s": 5.0, "error": ""}
+
+    def rows(controller, checkpoint, env, outcomes):
+        return [dict(base, key=f"{controller}{checkpoint}{env}{i}", controller=controller, checkpoint=checkpoint,
+                     environment=env, seed=i, status=status, success=status == "reached_goal",
+                     failure_region="" if status == "reached_goal" else region)
+                for i, (status, region) in enumerate(outcomes)]
+
+    ok, rolled = ("reached_goal", ""), ("rolled_over", "up_wall")
+    results = tmp_path / "results"
+    results.mkdir()
+    scal = rows("learned", "m/wide_10.pt", "wide", [ok, rolled]) + rows("learned", "m/wide_40.pt", "wide", [ok, ok])
+    (results / "scalability.jsonl").write_text("".join(json.dumps(r) + "\n" for r in scal))
+    (results / "baseline.jsonl").write_text(
+        "".join(json.dumps(r) + "\n" for r in rows("dwa", "", "wide", [rolled, rolled])))
+    page = write_report([results], tmp_path / "results.md", tmp_path / "img", command="ditch-drake report results")
+    text = page.read_text()
+    assert "| wide_10 | wide | 1/2 | 50% |" in text
+    assert "rolled_over@up_wall 2" in text
+    assert "| every learned model beats move_base in its own environment | wide 100% vs 0% | yes |" in text
+    assert "| success generally rises with demonstrations | wide 10: 50% -> 40: 100% | yes |" in text
+    assert (tmp_path / "img" / "fig5_wide.png").exists() and (tmp_path / "img" / "fig5_baseline.png").exists()
