@@ -89,6 +89,20 @@ def measure_blocks() -> dict:
     }
 
 
+def measure_rollouts_per_minute(rollouts: int = 4, environment: str = "wide") -> dict:
+    """Full learned-policy rollouts per minute of `ditch-drake evaluate` on all cores (a fresh
+    temporary results file; diagram builds included, as in a real evaluation)."""
+    import tempfile
+    from pathlib import Path
+
+    from ditch_drake.evaluation.batch import evaluate, make_specs
+
+    specs = make_specs("learned", environment, environment, tasks=[1], rollouts=rollouts)
+    with tempfile.TemporaryDirectory() as folder:
+        report = evaluate(specs, Path(folder) / "bench.jsonl", progress=False)
+    return {"evaluate_rollouts_per_minute": report.rollouts_per_minute}
+
+
 def run_bench(environments: list[str] | None = None, training: bool = False) -> dict:
     """All figures, in a stable key order; `training` adds the slow training-memory run."""
     figures: dict[str, float] = {}
@@ -100,6 +114,11 @@ def run_bench(environments: list[str] | None = None, training: bool = False) -> 
         figures.update(measure_closed_loop(name))
     figures["closed_loop_min_rtf"] = min(figures[f"closed_loop_{name}_rtf"] for name in environments)
     figures.update(measure_blocks())
+    from ditch_drake.benchmarks.bench_training import measure_training_throughput, shipped_model_figures
+
+    figures.update(measure_training_throughput())
+    figures.update(shipped_model_figures())
+    figures.update(measure_rollouts_per_minute())
     if training:
         from ditch_drake.benchmarks.bench_training import measure_training_memory_mib
 

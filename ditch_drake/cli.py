@@ -162,6 +162,36 @@ def cmd_train(args) -> int:
     return 130 if result.interrupted else 0
 
 
+def cmd_checkpoint_info(args) -> int:
+    """What each checkpoint was trained on and how it validated."""
+    from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
+
+    rows = []
+    for name in args.checkpoints:
+        checkpoint = load_checkpoint(resolve_checkpoint_path(name))
+        training, metrics = checkpoint.training, checkpoint.metrics
+        best = metrics.get("best", {})
+        rows.append({
+            "checkpoint": name,
+            "demos_train/val": f"{len(training.get('train_demo_ids', []))}/{len(training.get('val_demo_ids', []))}",
+            "samples_real/smote/val": f"{training.get('num_train_samples')}/{training.get('num_synthetic_samples')}/"
+                                      f"{training.get('num_val_samples')}",
+            "epochs": metrics.get("epochs_run"),
+            "best_epoch": metrics.get("best_epoch"),
+            f"val_ordinal_pm{metrics.get('ordinal_tolerance', 1)}": f"{best.get('val_ordinal_accuracy', float('nan')):.3f}",
+            "val_exact": f"{best.get('val_exact_accuracy', float('nan')):.3f}",
+            "training_s": f"{metrics.get('training_seconds', float('nan')):.0f}",
+        })
+    _print_table(rows, list(rows[0]))
+    if args.confusion:
+        for name in args.checkpoints:
+            matrix = load_checkpoint(resolve_checkpoint_path(name)).metrics.get("val_confusion_matrix") or []
+            print(f"\n{name}: validation confusion matrix (row: demonstrated label, column: predicted)")
+            _print_table([{"label": str(label), **{str(j): str(v) for j, v in enumerate(row)}}
+                          for label, row in enumerate(matrix)], ["label", *map(str, range(len(matrix)))])
+    return 0
+
+
 def cmd_evaluate(args) -> int:
     """Seeded rollouts of one controller in one or more environments, appended to a results file."""
     from ditch_drake.evaluation.batch import evaluate, load_results, make_specs
@@ -280,6 +310,11 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("path", help="a directory of demonstrations")
     info.add_argument("--json", action="store_true")
     info.set_defaults(run=cmd_dataset_info)
+
+    info = commands.add_parser("checkpoint-info", help="training data and validation metrics of checkpoints")
+    info.add_argument("checkpoints", nargs="+", help="shipped model names or .pt files")
+    info.add_argument("--confusion", action="store_true", help="also the validation confusion matrices")
+    info.set_defaults(run=cmd_checkpoint_info)
 
     evaluation = commands.add_parser("evaluate", help="seeded rollouts in parallel, appended to a results file")
     evaluation.add_argument("--controller", default="learned", help="learned, dwa, expert or edge_angle")

@@ -122,6 +122,48 @@ def measure_policy_step_ms(repeats: int = 50) -> dict:
     return {"policy_step_ms": 1e3 * float(np.median(times)), "policy_step_max_ms": 1e3 * float(np.max(times))}
 
 
+def measure_training_throughput(batches: int = 6, warmup: int = 2) -> dict:
+    """Training samples per second of the paper's network with the default `TrainConfig`
+    (batch 64, Adam, layer-specific rates; forward, backward and step) on random inputs."""
+    import torch
+    from torch import nn
+
+    from ditch_drake.learning.model import FourInputClassifier, parameter_groups
+    from ditch_drake.learning.train import TrainConfig
+
+    config = TrainConfig()
+    generator = torch.Generator().manual_seed(0)
+    model = FourInputClassifier(config.model)
+    optimizer = torch.optim.Adam(parameter_groups(model, config.lr, config.scalar_lr_factor))
+    b = config.batch_size
+    inputs = [torch.rand(b, *IMAGE_STACK_SHAPE, generator=generator), torch.rand(b, IMU_STACK_SIZE, generator=generator),
+              torch.rand(b, DISTANCE_STACK_SIZE, generator=generator), torch.rand(b, BEARING_STACK_SIZE, generator=generator)]
+    labels = torch.randint(0, NUM_LABELS, (b,), generator=generator)
+    model.train()
+    for step in range(warmup + batches):
+        if step == warmup:
+            start = time.perf_counter()
+        loss = nn.functional.cross_entropy(model(*inputs), labels)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+    return {"train_samples_per_s": batches * b / (time.perf_counter() - start), "train_threads": torch.get_num_threads()}
+
+
+def shipped_model_figures() -> dict:
+    """What the shipped checkpoints recorded when `ditch-drake train` made them: wall time of
+    training (SMOTE and every epoch, s) and validation accuracies."""
+    from ditch_drake.learning.checkpoint import SHIPPED_MODELS, SHIPPED_MODELS_DIR, load_checkpoint
+
+    figures = {}
+    for name in SHIPPED_MODELS:
+        path = SHIPPED_MODELS_DIR / f"{name}.pt"
+        if path.exists():
+            metrics = load_checkpoint(path).metrics
+            figures[f"train_{name}_40_demos_s"] = float(metrics.get("training_seconds", float("nan")))
+    return figures
+
+
 if __name__ == "__main__":
     if len(sys.argv) == 3 and sys.argv[1] == "--memory-worker":
         print(json.dumps(_training_memory_worker(int(sys.argv[2]))))

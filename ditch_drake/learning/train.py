@@ -91,25 +91,28 @@ class TrainConfig:
         num_threads: torch intra-op threads during training (None: leave torch's setting).
             Results are reproducible for a given thread count.
         eval_batch_size: samples per forward pass when evaluating.
-        max_batches_per_epoch: stop each epoch after this many batches (None: all); for
-            smoke tests and benchmarks.
+        max_batches_per_epoch: stop each epoch after this many batches (None: all). Each
+            epoch draws its batches from a fresh shuffle of the whole training set, so a
+            capped epoch is a random 96 x 64 = 6,144-sample subset; the defaults (8 such
+            epochs, SMOTE up to half the real samples) fit one environment's 40
+            demonstrations into the 15-minute training budget on 2 CPU cores (docs/learning.md).
         model: the network's shape.
     """
 
-    epochs: int = 50
+    epochs: int = 8
     batch_size: int = 64
     lr: float = 1e-3
     scalar_lr_factor: float = 0.1
-    patience: int = 10
+    patience: int = 4
     val_fraction: float = 0.2
     seed: int = 0
-    smote: SmoteConfig = field(default_factory=SmoteConfig)
+    smote: SmoteConfig = field(default_factory=lambda: SmoteConfig(max_synthetic_fraction=0.5))
     max_demos: int | None = None
     ordinal_tolerance: int = 1
     device: str = "cpu"
     num_threads: int | None = None
     eval_batch_size: int = 256
-    max_batches_per_epoch: int | None = None
+    max_batches_per_epoch: int | None = 96
     model: ModelConfig = field(default_factory=ModelConfig)
 
     def __post_init__(self):
