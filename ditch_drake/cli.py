@@ -201,7 +201,7 @@ def cmd_evaluate(args) -> int:
     for environment in args.env or environment_names():
         specs += make_specs(args.controller, args.checkpoint, environment, args.task, args.rollouts, args.seed,
                             args.time_limit)
-    report = evaluate(specs, args.out, workers=args.workers)
+    report = evaluate(specs, args.out, workers=args.workers, backend=args.backend, address=args.address)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     keys = {spec.key for spec in specs}
@@ -326,6 +326,9 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--time-limit", type=float, default=120.0, help="episode timeout (s)")
     evaluation.add_argument("--out", default="results/evaluate.jsonl", help="results file (JSON Lines), appended")
     evaluation.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    evaluation.add_argument("--backend", default="local", choices=["local", "ray"],
+                            help="local process pool, or a Ray cluster (pip install -e '.[ray]')")
+    evaluation.add_argument("--address", default=None, help="Ray cluster address (default: start Ray here)")
     evaluation.set_defaults(run=cmd_evaluate)
 
     experiment = commands.add_parser("experiment", help="the paper's pipeline from an experiment YAML")

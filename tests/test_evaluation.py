@@ -149,3 +149,19 @@ def test_checkpoints_of_another_action_table_or_input_shape_are_refused(tmp_path
     config = RolloutConfig(scene=SceneConfig(environment="wide"), controller=LearnedPolicyConfig(str(small_images)))
     with pytest.raises(CheckpointError, match="expects image_stack of 16384 values; the observation blocks give 65536"):
         MakeRolloutDiagram(config)
+
+
+def test_the_ray_backend_gives_the_same_records_as_the_local_pool(tmp_path):
+    pytest.importorskip("ray", reason="the ray extra is not installed (pip install -e '.[ray]')")
+    report = evaluate(SPECS, tmp_path / "ray.jsonl", workers=2, progress=False, backend="ray", address="local")
+    assert (report.recorded, report.errors) == (2, 0)
+    evaluate(SPECS, tmp_path / "here.jsonl", workers=0, progress=False)
+    by_key = [{r.key: outcome_fields(r) for r in read_records(tmp_path / name)[0]} for name in ("ray.jsonl", "here.jsonl")]
+    assert by_key[0] == by_key[1]
+    again = evaluate(SPECS, tmp_path / "ray.jsonl", workers=2, progress=False, backend="ray", address="local")
+    assert (again.recorded, again.skipped) == (0, 2)
+
+
+def test_an_unknown_backend_is_refused(tmp_path):
+    with pytest.raises(ConfigError, match="'spark'"):
+        evaluate(SPECS, tmp_path / "r.jsonl", backend="spark")

@@ -46,6 +46,7 @@ from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 
 CONTROLLERS = ("learned", "dwa", "expert", "edge_angle")
+BACKENDS = ("local", "ray")
 # Pools broken by a dying worker before each remaining rollout runs in a process of its own.
 _ATTEMPTS = 2
 
@@ -197,27 +198,34 @@ def _error_record(spec: RolloutSpec, message: str, wall_s: float = float("nan"))
 
 
 def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers: int | None = None,
-             progress: bool = True) -> EvaluationReport:
+             progress: bool = True, backend: str = "local", address: str | None = None) -> EvaluationReport:
     """Runs the specs not yet recorded in `results_path`, appending each record as it ends.
 
     Args:
         specs: the rollouts; duplicates (same key) run once.
         results_path: the JSON Lines results file (created with its folder if missing).
         workers: worker processes (default: all cores); 0 runs in this process (tests, debugging).
+            With Ray: at most this many rollouts at once (default: as many as the cluster takes).
         progress: a progress bar (rollouts done, success so far, ETA) on stderr.
+        backend: "local" (a process pool on this machine) or "ray" (a Ray cluster; the
+            optional `ray` extra). Records are appended here, by this process, either way.
+        address: the Ray cluster's address (None or "local": start a Ray instance here).
 
     Returns:
         What was skipped, recorded, and how long it took.
 
     Raises:
         ResultsError: the results file is of another schema or version.
+        ConfigError: an unknown backend, or Ray asked for but not installed.
     """
+    if backend not in BACKENDS:
+        raise ConfigError(f"unknown backend {backend!r}; expected one of {list(BACKENDS)}")
     start = time.perf_counter()
     existing, warnings = read_records(results_path)
     done = {record.key for record in existing}
     pending = list({spec.key: spec for spec in specs if spec.key not in done}.values())
     report = EvaluationReport(str(results_path), skipped=len({s.key for s in specs} & done), warnings=warnings)
-    workers = os.cpu_count() or 1 if workers is None else workers
+    local_workers = (os.cpu_count() or 1) if workers is None else workers
     bar = tqdm(total=len(pending), desc="rollouts", disable=not progress, file=sys.stderr)
 
     def keep(writer: RecordWriter, record: RolloutRecord) -> None:
@@ -230,11 +238,17 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
 
     try:
         with RecordWriter(results_path) as writer:
-            if workers == 0:
+            if not pending:
+                pass
+            elif backend == "ray":
+                from ditch_drake.evaluation.ray_backend import run_on_ray  # noqa: PLC0415 (optional extra)
+
+                run_on_ray(pending, address, workers, lambda record: keep(writer, record))
+            elif local_workers == 0:
                 for spec in pending:
                     keep(writer, run_rollout(spec))
             else:
-                _run_in_pools(pending, workers, lambda record: keep(writer, record))
+                _run_in_pools(pending, local_workers, lambda record: keep(writer, record))
     except KeyboardInterrupt:
         report.interrupted = True
     finally:

@@ -30,6 +30,12 @@ class EdgeAngleDriverConfig:
         bottom_margin_m: distance from the toe within which the bottom counts as wall.
         heading_gain: yaw-rate command per radian of heading error (1/s).
         speed_mps: forward speed.
+        straight_across_deg: when the goal lies within this angle of straight across
+            the ditch, the driver always turns right along the edge (a convention);
+            otherwise toward the goal's side. Turning to a random side where the goal
+            gives no reason would teach a behavioural clone two opposite answers to the
+            same observation, whose average (straight on, head-on down the wall) is the
+            one thing it must not do.
     """
 
     wall_angle_deg: float = 20.0
@@ -39,6 +45,7 @@ class EdgeAngleDriverConfig:
     bottom_margin_m: float = 1.0
     heading_gain: float = 1.5
     speed_mps: float = robot.MAX_SPEED_MPS
+    straight_across_deg: float = 15.0
 
 
 DESCEND, CLIMB, EXITED = 0, 1, 2
@@ -100,6 +107,13 @@ class EdgeAngleDriver(LeafSystem):
         samples = np.linspace(xy, self._goal_xy, 50)
         return bool(np.all(self._terrain.nearest_on_course(samples)[0] > self._terrain.hinge_distance_m + 0.5))
 
+    def _approach_side(self, to_goal: np.ndarray, toward: np.ndarray, tangent: np.ndarray) -> float:
+        """+1 (along `tangent`: to the right when facing the ditch) or -1, see `straight_across_deg`."""
+        off_axis = math.degrees(math.atan2(abs(float(to_goal @ tangent)), float(to_goal @ toward)))
+        if off_axis < self._config.straight_across_deg:
+            return 1.0
+        return 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
+
     def desired_heading(self, xy: np.ndarray, along_sign: float, phase: int,
                         style: np.ndarray | None = None) -> tuple[float, float, int]:
         """Desired heading (rad) at xy, and the along-edge sign and phase to keep.
@@ -135,8 +149,10 @@ class EdgeAngleDriver(LeafSystem):
         if distance <= terrain.toe_distance_m:
             phase = CLIMB
         on_flat_bottom = distance < terrain.toe_distance_m - config.bottom_margin_m
-        if along_sign == 0.0 or on_flat_bottom:
+        if on_flat_bottom:
             along_sign = 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
+        elif along_sign == 0.0:
+            along_sign = self._approach_side(to_goal, toward, tangent)
         # Down toward the course; from the bottom on, across toward the goal's side and up.
         cross_sign = 1.0 if phase == DESCEND or float(to_goal @ toward) > 0.0 else -1.0
         if on_flat_bottom:
