@@ -22,28 +22,36 @@ def _print_table(rows: list[dict], columns: list[str]) -> None:
 
 
 def cmd_demo(args) -> int:
-    """The main job: the scripted drivers through one ditch, an outcome table."""
+    """The main job: the shipped policy, the DWA baseline and a head-on driver through one ditch;
+    an outcome table and the policy's rollout as a standalone HTML page."""
     from pydrake.systems.analysis import Simulator
 
     from ditch_drake.diagrams.ditch_scene import SceneConfig
+    from ditch_drake.diagrams.replay import ReplayConfig, record_replay
     from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
-    from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
 
-    drivers = {
-        "shallow angle (20 deg down, 35 deg up)": EdgeAngleDriverConfig(),
-        "head-on (perpendicular to the edge)": EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None),
-    }
+    scene = SceneConfig(environment=args.env, task=args.task)
+    checkpoint = args.checkpoint or args.env
     rows = []
-    for name, driver in drivers.items():
-        diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=args.env, task=args.task),
-                                                          controller=driver))
-        start = time.perf_counter()
-        outcome = RunEpisode(Simulator(diagram), diagram, scene, args.seed)
-        rows.append({"driver": name, "outcome": outcome.status, "sim_time_s": f"{outcome.time_s:.1f}",
+
+    def row(name, outcome, wall_s):
+        rows.append({"controller": name, "outcome": outcome.status, "sim_time_s": f"{outcome.time_s:.1f}",
                      "path_m": f"{outcome.path_length_m:.1f}", "peak_tilt_deg": f"{outcome.peak_tilt_deg:.0f}",
-                     "wall_s": f"{time.perf_counter() - start:.1f}"})
-    print(f"environment {args.env}, task {scene.task.name}, seed {args.seed}")
-    _print_table(rows, ["driver", "outcome", "sim_time_s", "path_m", "peak_tilt_deg", "wall_s"])
+                     "wall_s": f"{wall_s:.1f}"})
+
+    start = time.perf_counter()
+    replay = record_replay(ReplayConfig(
+        rollout=RolloutConfig(scene=scene, controller=_controller_config("learned", checkpoint)),
+        seed=args.seed, out=args.html))
+    row(f"learned policy ({checkpoint} model)", replay.outcome, time.perf_counter() - start)
+    for name, controller in (("DWA baseline (move_base-style)", "dwa"),
+                             ("head-on scripted driver (reference)", "head_on")):
+        start = time.perf_counter()
+        diagram, built = MakeRolloutDiagram(RolloutConfig(scene=scene, controller=_controller_config(controller, "")))
+        row(name, RunEpisode(Simulator(diagram), diagram, built, args.seed), time.perf_counter() - start)
+    print(f"environment {args.env}, task {args.task} ({built.task.name}), seed {args.seed}")
+    _print_table(rows, ["controller", "outcome", "sim_time_s", "path_m", "peak_tilt_deg", "wall_s"])
+    print(f"recording of the learned policy's rollout: {replay.html_path} (open it in any browser)")
     return 0
 
 
@@ -162,6 +170,37 @@ def cmd_train(args) -> int:
     return 130 if result.interrupted else 0
 
 
+def _controller_config(name: str, checkpoint: str):
+    from ditch_drake.diagrams.rollout import DwaBaselineConfig, ExpertConfig, LearnedPolicyConfig
+    from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
+
+    configs = {"learned": lambda: LearnedPolicyConfig(checkpoint=checkpoint), "dwa": DwaBaselineConfig,
+               "expert": ExpertConfig, "edge_angle": EdgeAngleDriverConfig,
+               "head_on": lambda: EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None)}
+    if name not in configs:
+        raise ConfigError(f"unknown controller {name!r}; expected one of {list(configs)}")
+    return configs[name]()
+
+
+def cmd_replay(args) -> int:
+    """One seeded rollout recorded as a standalone HTML page (opens offline in any browser)."""
+    from ditch_drake.diagrams.ditch_scene import SceneConfig
+    from ditch_drake.diagrams.replay import ReplayConfig, record_replay
+    from ditch_drake.diagrams.rollout import RolloutConfig
+    from ditch_drake.systems.episode_monitor import EpisodeConfig
+
+    scene = SceneConfig(environment=args.env, task=args.task, episode=EpisodeConfig(time_limit_s=args.time_limit))
+    config = ReplayConfig(rollout=RolloutConfig(scene=scene, controller=_controller_config(args.controller,
+                                                                                           args.checkpoint)),
+                          seed=args.seed, out=args.out)
+    result = record_replay(config)
+    outcome = result.outcome
+    print(f"{args.controller} in {args.env} task {args.task} seed {args.seed}: {outcome.status} after "
+          f"{outcome.time_s:.1f} s, {outcome.path_length_m:.1f} m; wrote {result.html_path} "
+          f"({result.html_bytes / 2**20:.1f} MiB, {result.snapshots} lidar snapshots)")
+    return 0
+
+
 def cmd_checkpoint_info(args) -> int:
     """What each checkpoint was trained on and how it validated."""
     from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
@@ -267,10 +306,13 @@ def build_parser() -> argparse.ArgumentParser:
         else:
             sub.add_argument("--env", default="wide", metavar="NAME", help=f"one of {environment_names()}")
 
-    demo = commands.add_parser("demo", help="the main job: scripted drivers through a ditch, outcome table")
+    demo = commands.add_parser("demo", help="the main job: shipped policy, DWA baseline and a head-on driver "
+                                             "through a ditch; outcome table and an HTML recording")
     add_env(demo)
     demo.add_argument("--task", type=int, default=1)
     demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--checkpoint", default=None, help="the learned policy (default: the environment's shipped model)")
+    demo.add_argument("--html", default="results/demo.html", help="where the recording goes")
     demo.set_defaults(run=cmd_demo)
 
     view = commands.add_parser("view", help="open the scene in meshcat and drive through it")
@@ -310,6 +352,16 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("path", help="a directory of demonstrations")
     info.add_argument("--json", action="store_true")
     info.set_defaults(run=cmd_dataset_info)
+
+    replay = commands.add_parser("replay", help="record one rollout as a standalone HTML page (meshcat animation)")
+    replay.add_argument("--controller", default="learned", help="learned, dwa, expert, edge_angle or head_on")
+    replay.add_argument("--checkpoint", default="wide", help="the learned policy: a shipped name or a .pt file")
+    add_env(replay)
+    replay.add_argument("--task", type=int, default=1)
+    replay.add_argument("--seed", type=int, default=0)
+    replay.add_argument("--time-limit", type=float, default=120.0, help="episode timeout (s)")
+    replay.add_argument("--out", default="results/replay.html")
+    replay.set_defaults(run=cmd_replay)
 
     info = commands.add_parser("checkpoint-info", help="training data and validation metrics of checkpoints")
     info.add_argument("checkpoints", nargs="+", help="shipped model names or .pt files")

@@ -45,3 +45,16 @@ def test_view_runs_an_episode_in_meshcat(capsys):
     assert main(["view", "--env", "narrow", "--realtime-rate", "0"]) == 0
     out = capsys.readouterr().out
     assert "meshcat: http" in out and "outcome: reached_goal" in out
+
+
+def test_ci_runs_exactly_the_readme_test_command():
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parent.parent
+    readme_commands = [line.strip() for line in (root / "README.md").read_text().splitlines()
+                       if line.strip().startswith("pip install -e ")]
+    assert readme_commands[:2] == ["pip install -e . && ditch-drake demo",
+                                   "pip install -e '.[test]' && python -m pytest -q"]
+    ci_lines = [line.strip() for line in (root / ".ci" / "run").read_text().splitlines()
+                if line.strip() and not line.lstrip().startswith("#")]
+    assert ci_lines[-1] == readme_commands[1]
