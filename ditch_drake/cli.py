@@ -250,12 +250,13 @@ def cmd_evaluate(args) -> int:
             records, "controller", "checkpoint", "environment", "task").items():
         summary = summarize(group)
         rows.append({"controller": controller, "checkpoint": checkpoint or "-", "env": environment, "task": task,
-                     "success": f"{summary.successes}/{summary.trials}",
+                     "success": f"{summary.successes}/{summary.trials}", "around": summary.around,
                      "wilson95": f"{summary.low:.2f}-{summary.high:.2f}",
                      "failures": " ".join(f"{k}:{v}" for k, v in sorted(summary.failure_regions.items())) or "-",
                      "errors": summary.errors})
     if rows:
-        _print_table(rows, ["controller", "checkpoint", "env", "task", "success", "wilson95", "failures", "errors"])
+        _print_table(rows, ["controller", "checkpoint", "env", "task", "success", "around", "wilson95", "failures",
+                            "errors"])
     print(json.dumps({"out": str(args.out), "skipped": report.skipped, "recorded": report.recorded,
                       "successes_recorded": report.successes, "errors_recorded": report.errors,
                       "wall_s": round(report.wall_s, 1), "rollouts_per_minute": round(report.rollouts_per_minute, 2),

@@ -100,7 +100,7 @@ def test_the_report_renders_from_a_small_fixture(tmp_path):
         "".join(json.dumps(r) + "\n" for r in rows("dwa", "", "wide", [rolled, rolled])))
     page = write_report([results], tmp_path / "results.md", tmp_path / "img", command="ditch-drake report results")
     text = page.read_text()
-    assert "| wide_10 | wide | 1/2 | 50% |" in text
+    assert "| wide_10 | wide | 1/2 | 50% | 9%-91% | 0 |" in text
     assert "rolled_over@up_wall 2" in text
     assert "| every learned model beats move_base in its own environment | wide 100% vs 0% | yes |" in text
     assert "| success generally rises with demonstrations | wide 10: 50% -> 40: 100% | yes |" in text

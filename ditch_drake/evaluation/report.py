@@ -64,12 +64,13 @@ def _table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str, str
     for record in records:
         groups[(model_label(record), record.environment)].append(record)
     summaries = {key: summarize(group) for key, group in sorted(groups.items())}
-    lines = ["| model | environment | success | rate | 95 % Wilson | failures (status@region) | errors |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+    lines = ["| model | environment | success | rate | 95 % Wilson | of which around the ditch | "
+             "failures (status@region) | errors |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for (model, env), s in summaries.items():
         failures = ", ".join(f"{k} {v}" for k, v in sorted(s.failure_regions.items())) or "-"
         lines.append(f"| {model} | {env} | {s.successes}/{s.trials} | {_pct(s.rate)} | "
-                     f"{_pct(s.low)}-{_pct(s.high)} | {failures} | {s.errors} |")
+                     f"{_pct(s.low)}-{_pct(s.high)} | {s.around} | {failures} | {s.errors} |")
     return lines, summaries
 
 

@@ -8,6 +8,11 @@ from scipy.stats import norm
 
 from ditch_drake.evaluation.results import RolloutRecord
 
+# A rollout that reached the goal with the chassis never tilted this far went around the
+# ditch's end instead of through it: a 55 deg wall tilts it by 20 deg or more however
+# shallow the crossing (docs/physics.md).
+AROUND_TILT_DEG = 15.0
+
 
 def wilson_interval(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float]:
     """Wilson score interval of a binomial proportion.
@@ -39,6 +44,7 @@ class GroupSummary:
         statuses: count per status, errors included.
         failure_regions: count per failure region of the failed trials.
         errors: rollouts that raised (not trials).
+        around: successes that went around the ditch (peak tilt below `AROUND_TILT_DEG`).
     """
 
     trials: int
@@ -49,6 +55,7 @@ class GroupSummary:
     statuses: dict[str, int] = field(default_factory=dict)
     failure_regions: dict[str, int] = field(default_factory=dict)
     errors: int = 0
+    around: int = 0
 
 
 def summarize(records: list[RolloutRecord]) -> GroupSummary:
@@ -60,7 +67,8 @@ def summarize(records: list[RolloutRecord]) -> GroupSummary:
         trials=len(valid), successes=successes, rate=successes / len(valid) if valid else math.nan, low=low, high=high,
         statuses=dict(Counter(r.status for r in records)),
         failure_regions=dict(Counter(f"{r.status}@{r.failure_region}" for r in valid if not r.success)),
-        errors=len(records) - len(valid))
+        errors=len(records) - len(valid),
+        around=sum(r.success and r.peak_tilt_deg < AROUND_TILT_DEG for r in valid))
 
 
 def group_by(records: list[RolloutRecord], *names: str) -> dict[tuple, list[RolloutRecord]]:
