@@ -289,8 +289,18 @@ def cmd_report(args) -> int:
 
 
 def cmd_figure(args) -> int:
-    from ditch_drake.figures import normal_image_figure
+    from ditch_drake.figures import diagram_figure, normal_image_figure
 
+    if args.kind == "diagram":
+        print(diagram_figure(args.out))
+        return 0
+    if args.kind == "screenshot":
+        from pathlib import Path
+
+        from ditch_drake.browser import screenshot
+
+        print(screenshot(args.html, Path(args.out) / f"{Path(args.html).stem}.png"))
+        return 0
     for name in args.env or environment_names():
         print(normal_image_figure(name, args.out, args.seed))
     return 0
@@ -419,8 +429,9 @@ def build_parser() -> argparse.ArgumentParser:
     training.add_argument("--resume", action="store_true", help="continue an interrupted run")
     training.set_defaults(run=cmd_train)
 
-    figure = commands.add_parser("figure", help="figures for docs/: surface-normal images per environment")
-    figure.add_argument("kind", choices=["normal-images"])
+    figure = commands.add_parser("figure", help="figures for docs/: surface-normal images per environment, the diagram")
+    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot"])
+    figure.add_argument("--html", default="results/demo.html", help="screenshot: the recording to open in Chromium")
     add_env(figure, many=True)
     figure.add_argument("--out", default="docs/img")
     figure.add_argument("--seed", type=int, default=0)

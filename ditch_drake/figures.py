@@ -38,3 +38,33 @@ def normal_image_figure(environment: str, out_dir: str | Path, seed: int = 0) ->
     figure.savefig(path, dpi=80)
     plt.close(figure)
     return path
+
+
+def diagram_figure(out_dir: str | Path, environment: str = "wide", controller: str = "learned",
+                   max_depth: int = 1) -> Path:
+    """The rollout diagram (scene, observation blocks, controller) drawn by Drake's own
+    `GetGraphvizString` and rendered by Graphviz's `dot` to `<out_dir>/diagram.svg`.
+
+    Raises:
+        FileNotFoundError: Graphviz's `dot` is not installed (Debian: apt-get install graphviz).
+    """
+    import os
+    import shutil
+    import subprocess
+
+    from ditch_drake.diagrams.ditch_scene import SceneConfig
+    from ditch_drake.diagrams.rollout import DwaBaselineConfig, LearnedPolicyConfig, MakeRolloutDiagram, RolloutConfig
+
+    dot = shutil.which("dot")
+    if dot is None:
+        raise FileNotFoundError("Graphviz's `dot` is needed to draw the diagram (apt-get install graphviz)")
+    config = LearnedPolicyConfig() if controller == "learned" else DwaBaselineConfig()
+    diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment), controller=config))
+    svg = subprocess.run([dot, "-Tsvg"], input=diagram.GetGraphvizString(max_depth=max_depth), capture_output=True,
+                         text=True, check=True).stdout
+    out = Path(out_dir) / "diagram.svg"
+    out.parent.mkdir(parents=True, exist_ok=True)
+    temporary = out.with_name(f".{out.name}.tmp")
+    temporary.write_text(svg)
+    os.replace(temporary, out)
+    return out

@@ -1,12 +1,10 @@
 """The standalone HTML recording, checked as a user sees it: in a headless Chromium."""
 
-import shutil
-import subprocess
-
 import numpy as np
 import pytest
 from matplotlib.image import imread
 
+from ditch_drake.browser import find_chromium, screenshot
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.diagrams.replay import ReplayConfig, record_replay
 from ditch_drake.diagrams.rollout import ExpertConfig, RolloutConfig
@@ -31,15 +29,9 @@ def test_the_recording_is_a_standalone_page_with_the_animation(replay):
 
 
 def test_the_recording_renders_in_a_headless_browser(replay, tmp_path):
-    browser = shutil.which("chromium") or shutil.which("chromium-browser")
-    if browser is None:
+    if find_chromium() is None:
         pytest.skip("no chromium on this machine (.ci/run installs Debian's chromium package)")
-    shot = tmp_path / "shot.png"
-    # SwiftShader gives the page's WebGL a software renderer; --timeout lets three.js draw first.
-    subprocess.run([browser, "--headless=new", "--no-sandbox", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                    "--window-size=800,600", "--timeout=15000", f"--screenshot={shot}",
-                    replay.html_path.as_uri()], check=True, capture_output=True, timeout=120)
-    pixels = imread(shot)[..., :3]
+    pixels = imread(screenshot(replay.html_path, tmp_path / "shot.png"))[..., :3]
     assert pixels.shape[:2] == (600, 800)
     colours = np.unique((pixels * 255).astype(np.uint8).reshape(-1, 3), axis=0)
     assert len(colours) > 500  # A lit 3-D scene, not a blank or single-colour page.
