@@ -103,10 +103,10 @@ def test_bad_specs_are_refused_with_the_bad_value_named(tmp_path):
 
 def test_a_results_file_of_another_schema_version_is_refused(tmp_path):
     path = tmp_path / "old.jsonl"
-    path.write_text(json.dumps({"schema": "ditch_drake.rollout_record", "schema_version": 0, "key": "x"}) + "\n")
-    with pytest.raises(ResultsError, match="version 0"):
+    path.write_text(json.dumps({"schema": "ditch_drake.rollout_record", "schema_version": 1, "key": "x"}) + "\n")
+    with pytest.raises(ResultsError, match="version 1"):
         read_records(path)
-    with pytest.raises(ResultsError, match="version 0"):
+    with pytest.raises(ResultsError, match="version 1"):
         evaluate(SPECS, path, workers=0, progress=False)
     assert path.read_text().count("\n") == 1  # Nothing was written to it.
 
@@ -125,8 +125,8 @@ def test_summaries_count_successes_failures_and_errors(tmp_path):
 
 
 def test_spec_keys_identify_rollouts():
-    a = RolloutSpec("learned", "wide", "narrow", 1, 4, 120.0)
-    assert a.key == "learned|wide|narrow|1|4|120"
+    a = RolloutSpec("learned", "wide", "narrow", 1, 4, 120.0, 1.5)
+    assert a.key == "learned|wide|narrow|1|4|120|1.5"
     assert a.key != dataclasses.replace(a, seed=5).key
 
 

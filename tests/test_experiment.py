@@ -80,8 +80,8 @@ def test_the_paper_protocol_plans_13_models_and_29_evaluations():
 
 
 def test_the_report_renders_from_a_small_fixture(tmp_path):
-    base = {"schema": "ditch_drake.rollout_record", "schema_version": 1, "checkpoint_sha256": "", "task": 0,
-            "time_limit_s": 120.0, "time_s": 50.0, "path_length_m": 20.0, "peak_abs_roll_deg": 10.0,
+    base = {"schema": "ditch_drake.rollout_record", "schema_version": 2, "checkpoint_sha256": "", "task": 0,
+            "time_limit_s": 120.0, "goal_radius_m": 1.5, "time_s": 50.0, "path_length_m": 20.0, "peak_abs_roll_deg": 10.0,
             "peak_abs_pitch_deg": 30.0, "peak_tilt_deg": 31.0, "min_stability_margin_deg": 20.0, "final_x_m": 0.0,
             "final_y_m": 0.0, "wall_s": 5.0, "error": ""}
 

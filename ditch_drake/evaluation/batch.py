@@ -97,7 +97,7 @@ def make_specs(controller: str, checkpoint: str, environment: str, tasks: list[i
     if rollouts < 1 or not time_limit_s > 0:
         raise ConfigError(f"rollouts={rollouts} must be >= 1 and time_limit_s={time_limit_s} positive")
     return [RolloutSpec(controller, checkpoint if controller == "learned" else "", environment, task, seed + i,
-                        float(time_limit_s))
+                        float(time_limit_s), float(EpisodeConfig.goal_radius_m))
             for task in tasks for i in range(rollouts)]
 
 
@@ -121,7 +121,8 @@ def rollout_config(spec: RolloutSpec) -> RolloutConfig:
         "edge_angle": EdgeAngleDriverConfig,
     }[spec.controller]()
     scene = SceneConfig(environment=spec.environment, task=spec.task,
-                        episode=replace(EpisodeConfig(), time_limit_s=spec.time_limit_s))
+                        episode=replace(EpisodeConfig(), time_limit_s=spec.time_limit_s,
+                                                goal_radius_m=spec.goal_radius_m))
     return RolloutConfig(scene=scene, controller=controller)
 
 
@@ -151,7 +152,7 @@ _WORKER_RIGS: dict[tuple, tuple] = {}
 def _rig(spec: RolloutSpec):
     # The expert's style (drawn from the seed) is part of its diagram's structure.
     seed = spec.seed if spec.controller == "expert" else None
-    key = (spec.controller, spec.checkpoint, spec.environment, spec.task, spec.time_limit_s, seed)
+    key = (spec.controller, spec.checkpoint, spec.environment, spec.task, spec.time_limit_s, spec.goal_radius_m, seed)
     if key not in _WORKER_RIGS:
         diagram, scene = MakeRolloutDiagram(rollout_config(spec))
         _WORKER_RIGS[key] = (diagram, scene, Simulator(diagram))
@@ -161,7 +162,8 @@ def _rig(spec: RolloutSpec):
 def run_rollout(spec: RolloutSpec) -> RolloutRecord:
     """Runs one rollout; an exception becomes a record with status "error"."""
     common = dict(key=spec.key, controller=spec.controller, checkpoint=spec.checkpoint,
-                  environment=spec.environment, task=spec.task, seed=spec.seed, time_limit_s=spec.time_limit_s)
+                  environment=spec.environment, task=spec.task, seed=spec.seed, time_limit_s=spec.time_limit_s,
+                  goal_radius_m=spec.goal_radius_m)
     start = time.perf_counter()
     try:
         digest = checkpoint_digest(spec.checkpoint)
@@ -191,7 +193,8 @@ def _error_record(spec: RolloutSpec, message: str, wall_s: float = float("nan"))
     nan = float("nan")
     return RolloutRecord(key=spec.key, controller=spec.controller, checkpoint=spec.checkpoint,
                          environment=spec.environment, task=spec.task, seed=spec.seed,
-                         time_limit_s=spec.time_limit_s, checkpoint_sha256="", status="error", success=False,
+                         time_limit_s=spec.time_limit_s, goal_radius_m=spec.goal_radius_m, checkpoint_sha256="",
+                         status="error", success=False,
                          time_s=nan, path_length_m=nan, peak_abs_roll_deg=nan, peak_abs_pitch_deg=nan,
                          peak_tilt_deg=nan, min_stability_margin_deg=nan, final_x_m=nan, final_y_m=nan,
                          failure_region="", wall_s=wall_s, error=message)

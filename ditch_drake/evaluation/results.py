@@ -14,7 +14,7 @@ from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
 SCHEMA = "ditch_drake.rollout_record"
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 
 
 class ResultsError(ValueError):
@@ -32,6 +32,7 @@ class RolloutSpec:
         task: index of its start/goal task.
         seed: the episode's seed (start jitter, sensor noise, expert style).
         time_limit_s: the episode's timeout (s).
+        goal_radius_m: success within this planar distance of the goal (m).
     """
 
     controller: str
@@ -40,11 +41,13 @@ class RolloutSpec:
     task: int
     seed: int
     time_limit_s: float
+    goal_radius_m: float
 
     @property
     def key(self) -> str:
         """Identifies the rollout within a results file."""
-        return f"{self.controller}|{self.checkpoint}|{self.environment}|{self.task}|{self.seed}|{self.time_limit_s:g}"
+        return (f"{self.controller}|{self.checkpoint}|{self.environment}|{self.task}|{self.seed}|"
+                f"{self.time_limit_s:g}|{self.goal_radius_m:g}")
 
 
 @dataclass
@@ -53,7 +56,7 @@ class RolloutRecord:
 
     Attributes:
         key: `RolloutSpec.key`.
-        controller, checkpoint, environment, task, seed, time_limit_s: the spec.
+        controller, checkpoint, environment, task, seed, time_limit_s, goal_radius_m: the spec.
         checkpoint_sha256: first 16 hex digits of the checkpoint file's hash ("" if none).
         status: reached_goal, rolled_over, timeout, stuck, or error.
         success: status == reached_goal.
@@ -76,6 +79,7 @@ class RolloutRecord:
     task: int
     seed: int
     time_limit_s: float
+    goal_radius_m: float
     checkpoint_sha256: str
     status: str
     success: bool
