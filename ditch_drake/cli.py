@@ -193,7 +193,11 @@ def cmd_replay(args) -> int:
     config = ReplayConfig(rollout=RolloutConfig(scene=scene, controller=_controller_config(args.controller,
                                                                                            args.checkpoint)),
                           seed=args.seed, out=args.out)
-    result = record_replay(config)
+    try:
+        result = record_replay(config)
+    except OSError as error:  # An unwritable output (ReplayOutputError) or no such checkpoint file.
+        print(f"ditch-drake: error: {error}", file=sys.stderr)
+        return 2
     outcome = result.outcome
     print(f"{args.controller} in {args.env} task {args.task} seed {args.seed}: {outcome.status} after "
           f"{outcome.time_s:.1f} s, {outcome.path_length_m:.1f} m; wrote {result.html_path} "
@@ -365,7 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
     info.set_defaults(run=cmd_dataset_info)
 
     replay = commands.add_parser("replay", help="record one rollout as a standalone HTML page (meshcat animation)")
-    replay.add_argument("--controller", default="learned", help="learned, dwa, expert, edge_angle or head_on")
+    replay.add_argument("--controller", default="expert", choices=["expert", "learned", "dwa", "edge_angle", "head_on"],
+                        help="the scripted expert (default: needs no checkpoint), the learned policy, the DWA baseline, "
+                             "or a scripted edge-angle / head-on driver")
     replay.add_argument("--checkpoint", default="wide", help="the learned policy: a shipped name or a .pt file")
     add_env(replay)
     replay.add_argument("--task", type=int, default=1)

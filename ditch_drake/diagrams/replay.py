@@ -19,16 +19,25 @@ from pydrake.common import RandomGenerator
 from pydrake.geometry import Meshcat, Rgba
 from pydrake.perception import BaseField, Fields, PointCloud
 from pydrake.systems.analysis import Simulator, SimulatorStatus
-from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.framework import Diagram, DiagramBuilder
 
-from ditch_drake.diagrams.ditch_scene import AddDitchScene
-from ditch_drake.diagrams.rollout import AddController, RolloutConfig
+from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene
+from ditch_drake.diagrams.rollout import AddController, ExpertConfig, RolloutConfig
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
-from ditch_drake.systems.lidar import AddLidar, LidarConfig
+from ditch_drake.systems.lidar import AddLidar, LidarConfig, LidarHandles
 
 _PREFIX = "/replay"
 _LIDAR_RGBA = Rgba(1.0, 0.35, 0.0, 1.0)
 _PATH_RGBA = Rgba(0.1, 0.3, 1.0, 1.0)
+
+
+class ReplayOutputError(OSError):
+    """The recording's HTML file cannot be written where asked."""
+
+
+def _default_rollout() -> RolloutConfig:
+    # The scripted expert needs no trained checkpoint, so a replay works on a fresh checkout.
+    return RolloutConfig(controller=ExpertConfig())
 
 
 @dataclass
@@ -36,7 +45,7 @@ class ReplayConfig:
     """What to record.
 
     Attributes:
-        rollout: the scene and the controller.
+        rollout: the scene and the controller (default: the scripted expert in the default scene).
         seed: the episode's seed.
         out: the HTML file.
         snapshot_period_s: simulated time between lidar snapshots (and path points).
@@ -46,7 +55,7 @@ class ReplayConfig:
         lidar: the pictured lidar (the controller's own sensors are separate).
     """
 
-    rollout: RolloutConfig = field(default_factory=RolloutConfig)
+    rollout: RolloutConfig = field(default_factory=_default_rollout)
     seed: int = 0
     out: str = "results/replay.html"
     snapshot_period_s: float = 0.5
@@ -74,13 +83,12 @@ def record_replay(config: ReplayConfig, meshcat: Meshcat | None = None) -> Repla
 
     Raises:
         ConfigError: an unknown environment or controller (from the builders).
-        OSError: the output folder cannot be created or written, naming the path.
+        ReplayOutputError: the output file cannot be written (checked before simulating).
     """
     if not (config.snapshot_period_s > 0 and config.max_points_per_snapshot > 0):
         raise ValueError(f"snapshot_period_s={config.snapshot_period_s} and max_points_per_snapshot="
                          f"{config.max_points_per_snapshot} must be positive")
     out = Path(config.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     meshcat = meshcat or Meshcat()
     meshcat.Delete()
     meshcat.DeleteRecording()
@@ -89,6 +97,39 @@ def record_replay(config: ReplayConfig, meshcat: Meshcat | None = None) -> Repla
     AddController(builder, scene, config.rollout.controller)
     lidar = AddLidar(builder, scene, config.lidar, name="replay_lidar")
     diagram = builder.Build()
+    # After the builders (which validate the environment and controller) and before minutes of
+    # simulation: an unwritable path fails fast, and a bad config leaves no file behind.
+    temporary = _open_output(out)
+    try:
+        outcome, snapshots = _record_episode(config, meshcat, diagram, scene, lidar)
+        temporary.write_text(meshcat.StaticHtml())
+        os.replace(temporary, out)
+    finally:
+        temporary.unlink(missing_ok=True)
+    return ReplayResult(outcome=outcome, html_path=out, html_bytes=out.stat().st_size, snapshots=snapshots)
+
+
+def _open_output(out: Path) -> Path:
+    """Creates `out`'s folder and an empty temporary file beside `out` (renamed over it at the end).
+
+    Raises:
+        ReplayOutputError: naming the path and the reason.
+    """
+    temporary = out.with_name(f".{out.name}.tmp")
+    try:
+        if out.is_dir():
+            raise IsADirectoryError(21, "is a directory")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        temporary.write_text("")
+    except OSError as error:
+        where = f"{error.filename}: " if error.filename else ""
+        raise ReplayOutputError(f"cannot write the recording to {out} ({where}{error.strerror or error})") from error
+    return temporary
+
+
+def _record_episode(config: ReplayConfig, meshcat: Meshcat, diagram: Diagram, scene: DitchScene,
+                    lidar: LidarHandles) -> tuple[EpisodeOutcome, int]:
+    """Runs the seeded episode while meshcat records; returns its outcome and the snapshot count."""
     _frame_the_task(meshcat, scene)
 
     simulator = Simulator(diagram)
@@ -116,15 +157,10 @@ def record_replay(config: ReplayConfig, meshcat: Meshcat | None = None) -> Repla
     meshcat.StopRecording()
     meshcat.SetLine(f"{_PREFIX}/path", np.asfortranarray(np.array(path_W).T), line_width=3.0, rgba=_PATH_RGBA)
     meshcat.PublishRecording()
-    html = meshcat.StaticHtml()
-    temporary = out.with_name(f".{out.name}.tmp")
-    temporary.write_text(html)
-    os.replace(temporary, out)
-    outcome = scene.monitor.outcome(scene.monitor.GetMyContextFromRoot(context))
-    return ReplayResult(outcome=outcome, html_path=out, html_bytes=out.stat().st_size, snapshots=snapshots)
+    return scene.monitor.outcome(scene.monitor.GetMyContextFromRoot(context)), snapshots
 
 
-def _frame_the_task(meshcat: Meshcat, scene) -> None:
+def _frame_the_task(meshcat: Meshcat, scene: DitchScene) -> None:
     """Points the camera at the task from above one side; hides meshcat's grid and axes."""
     start, goal = np.asarray(scene.task.start[:2], float), np.asarray(scene.task.goal[:2], float)
     target = np.append((start + goal) / 2, -1.0)
