@@ -369,9 +369,9 @@ def build_parser() -> argparse.ArgumentParser:
     info.set_defaults(run=cmd_dataset_info)
 
     replay = commands.add_parser("replay", help="record one rollout as a standalone HTML page (meshcat animation)")
-    replay.add_argument("--controller", default="expert", choices=["expert", "learned", "dwa", "edge_angle", "head_on"],
-                        help="the scripted expert (default: needs no checkpoint), the learned policy, the DWA baseline, "
-                             "or a scripted edge-angle / head-on driver")
+    replay.add_argument("--controller", default="learned", choices=["expert", "learned", "dwa", "edge_angle", "head_on"],
+                        help="the learned policy (default; --checkpoint picks it), the scripted expert, the DWA "
+                             "baseline, or a scripted edge-angle / head-on driver")
     replay.add_argument("--checkpoint", default="wide", help="the learned policy: a shipped name or a .pt file")
     add_env(replay)
     replay.add_argument("--task", type=int, default=1)
