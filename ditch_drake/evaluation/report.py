@@ -78,9 +78,15 @@ def _pct(value: float) -> str:
     return "n/a" if math.isnan(value) else f"{100 * value:.0f}%"
 
 
+def _error_bars(summaries) -> list[list[float]]:
+    """Matplotlib's yerr for the Wilson intervals (rounding can put a bound a hair past the rate)."""
+    return [[max(0.0, s.rate - s.low) if s else 0.0 for s in summaries],
+            [max(0.0, s.high - s.rate) if s else 0.0 for s in summaries]]
+
+
 def _bars(ax, labels, summaries, colour):
     rates = [s.rate for s in summaries]
-    errors = [[s.rate - s.low for s in summaries], [s.high - s.rate for s in summaries]]
+    errors = _error_bars(summaries)
     ax.bar(labels, rates, yerr=errors, capsize=3, color=colour)
     ax.set_ylim(0, 1.05)
 
@@ -90,8 +96,7 @@ def _figure_environment(env: str, scalability: dict, generalization: dict, path:
     points = sorted((model_demos(m), s) for (m, e), s in scalability.items() if e == env and model_demos(m))
     if points:
         demos = [n for n, _ in points]
-        left.errorbar(demos, [s.rate for _, s in points],
-                      yerr=[[s.rate - s.low for _, s in points], [s.high - s.rate for _, s in points]],
+        left.errorbar(demos, [s.rate for _, s in points], yerr=_error_bars([s for _, s in points]),
                       marker="o", capsize=3)
         left.set_xticks(demos)
     left.set(title=f"{env}: scalability", xlabel="demonstrations", ylabel="success rate", ylim=(0, 1.05))
@@ -139,6 +144,11 @@ def _findings(scalability: dict, generalization: dict, baseline: dict, amalgam: 
             beats.append((env, learned, dwa))
     if beats:
         ours = "; ".join(f"{env} {_pct(a)} vs {_pct(b)}" for env, a, b in beats)
+        around = sum(baseline[("dwa", env)].around for env, _, _ in beats)
+        if around:
+            successes = sum(baseline[("dwa", env)].successes for env, _, _ in beats)
+            ours += (f" (but {around} of the baseline's {successes} successes went around the ditch, never "
+                     "entering it: the environments let it bypass the obstacle)")
         rows.append(f"| every learned model beats move_base in its own environment | {ours} | "
                     f"{'yes' if all(a > b for _, a, b in beats) else 'no'} |")
     if generalization:
@@ -192,9 +202,7 @@ def write_report(results: list[str | os.PathLike], out: str | os.PathLike, figur
                                                                                       lambda e: "dwa"))):
             values = [summaries_of.get((model_of(e), e)) for e in envs]
             xs = [i + (offset - 0.5) * width for i in range(len(envs))]
-            ax.bar(xs, [v.rate if v else 0 for v in values], width, label=label,
-                   yerr=[[v.rate - v.low if v else 0 for v in values], [v.high - v.rate if v else 0 for v in values]],
-                   capsize=3)
+            ax.bar(xs, [v.rate if v else 0 for v in values], width, label=label, yerr=_error_bars(values), capsize=3)
         ax.set_xticks(range(len(envs)), envs)
         ax.set(ylim=(0, 1.05), ylabel="success rate", title="learned policy vs DWA baseline")
         ax.legend(fontsize=8)
