@@ -49,6 +49,26 @@ def _default_path() -> Path:
     return Path(str(resources.files("ditch_drake") / "data" / DEFAULT_ENVIRONMENTS_FILE))
 
 
+def load_typed_yaml(path: str | Path, schema: type, what: str):
+    """A YAML file read into the dataclass `schema` with Drake's `yaml_load_typed`.
+
+    Raises:
+        ConfigError: the file cannot be read, is not YAML, or has unknown keys or wrong
+            types (a typo'd key is an error, not ignored); the message names `what` and the file.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as error:
+        raise ConfigError(f"cannot read {what} {path}: {error}") from error
+    try:
+        return yaml_load_typed(schema=schema, data=text)
+    except yaml.YAMLError as error:
+        raise ConfigError(f"malformed YAML in {path}: {error}") from error
+    except (RuntimeError, ValueError, TypeError, AssertionError) as error:
+        raise ConfigError(f"invalid {what} {path}: {error}") from error
+
+
 def load_environments(path: str | Path | None = None) -> dict[str, Environment]:
     """Loads and validates an environments file (the packaged one by default).
 
@@ -57,16 +77,7 @@ def load_environments(path: str | Path | None = None) -> dict[str, Environment]:
             holds a value out of range; the message names the file and the value.
     """
     path = Path(path) if path is not None else _default_path()
-    try:
-        text = path.read_text()
-    except OSError as error:
-        raise ConfigError(f"cannot read environments file {path}: {error}") from error
-    try:
-        library = yaml_load_typed(schema=EnvironmentLibrary, data=text)
-    except yaml.YAMLError as error:
-        raise ConfigError(f"malformed YAML in {path}: {error}") from error
-    except (RuntimeError, ValueError, TypeError, AssertionError) as error:
-        raise ConfigError(f"invalid environments file {path}: {error}") from error
+    library = load_typed_yaml(path, EnvironmentLibrary, "environments file")
     if not library.environments:
         raise ConfigError(f"environments file {path} defines no environments")
     for name, environment in library.environments.items():

@@ -22,8 +22,8 @@ import sys
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field, replace
-from functools import lru_cache
+from dataclasses import asdict, dataclass, field, replace
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -126,7 +126,7 @@ def rollout_config(spec: RolloutSpec) -> RolloutConfig:
     return RolloutConfig(scene=scene, controller=controller)
 
 
-@lru_cache(maxsize=None)
+@cache
 def checkpoint_digest(checkpoint: str) -> str:
     """First 16 hex digits of the checkpoint file's SHA-256 ("" for no checkpoint)."""
     if not checkpoint:
@@ -161,15 +161,13 @@ def _rig(spec: RolloutSpec):
 
 def run_rollout(spec: RolloutSpec) -> RolloutRecord:
     """Runs one rollout; an exception becomes a record with status "error"."""
-    common = dict(key=spec.key, controller=spec.controller, checkpoint=spec.checkpoint,
-                  environment=spec.environment, task=spec.task, seed=spec.seed, time_limit_s=spec.time_limit_s,
-                  goal_radius_m=spec.goal_radius_m)
+    common = _spec_fields(spec)
     start = time.perf_counter()
     try:
         digest = checkpoint_digest(spec.checkpoint)
         diagram, scene, simulator = _rig(spec)
         outcome = RunEpisode(simulator, diagram, scene, spec.seed)
-    except Exception as error:  # noqa: BLE001 (recorded, the run goes on)
+    except Exception as error:
         return _error_record(spec, f"{type(error).__name__}: {error}", time.perf_counter() - start)
     region = "" if outcome.success else failure_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
     return RolloutRecord(
@@ -184,20 +182,22 @@ def _worker_init() -> None:
     # Ctrl-C is the parent's to handle: it stops handing out rollouts and keeps what ended.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # Each worker is one of `workers` processes sharing the cores: one thread each.
-    import torch  # noqa: PLC0415
+    import torch
 
     torch.set_num_threads(1)
 
 
+def _spec_fields(spec: RolloutSpec) -> dict:
+    """The record fields that repeat the spec."""
+    return {"key": spec.key, **asdict(spec)}
+
+
 def _error_record(spec: RolloutSpec, message: str, wall_s: float = float("nan")) -> RolloutRecord:
     nan = float("nan")
-    return RolloutRecord(key=spec.key, controller=spec.controller, checkpoint=spec.checkpoint,
-                         environment=spec.environment, task=spec.task, seed=spec.seed,
-                         time_limit_s=spec.time_limit_s, goal_radius_m=spec.goal_radius_m, checkpoint_sha256="",
-                         status="error", success=False,
-                         time_s=nan, path_length_m=nan, peak_abs_roll_deg=nan, peak_abs_pitch_deg=nan,
-                         peak_tilt_deg=nan, min_stability_margin_deg=nan, final_x_m=nan, final_y_m=nan,
-                         failure_region="", wall_s=wall_s, error=message)
+    return RolloutRecord(**_spec_fields(spec), checkpoint_sha256="", status="error", success=False, time_s=nan,
+                         path_length_m=nan, peak_abs_roll_deg=nan, peak_abs_pitch_deg=nan, peak_tilt_deg=nan,
+                         min_stability_margin_deg=nan, final_x_m=nan, final_y_m=nan, failure_region="",
+                         wall_s=wall_s, error=message)
 
 
 def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers: int | None = None,
@@ -244,7 +244,7 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
             if not pending:
                 pass
             elif backend == "ray":
-                from ditch_drake.evaluation.ray_backend import run_on_ray  # noqa: PLC0415 (optional extra)
+                from ditch_drake.evaluation.ray_backend import run_on_ray
 
                 run_on_ray(pending, address, workers, lambda record: keep(writer, record))
             elif local_workers == 0:

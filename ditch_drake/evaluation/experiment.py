@@ -25,10 +25,7 @@ import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import yaml
-from pydrake.common.yaml import yaml_load_typed
-
-from ditch_drake.environments import ConfigError, environment_names
+from ditch_drake.environments import ConfigError, environment_names, load_typed_yaml
 from ditch_drake.evaluation.results import RolloutSpec
 
 
@@ -137,16 +134,7 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
             environment, naming the file and the value.
     """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as error:
-        raise ConfigError(f"cannot read experiment file {path}: {error}") from error
-    try:
-        config = yaml_load_typed(schema=ExperimentConfig, data=text)
-    except yaml.YAMLError as error:
-        raise ConfigError(f"malformed YAML in {path}: {error}") from error
-    except (RuntimeError, ValueError, TypeError, AssertionError) as error:
-        raise ConfigError(f"invalid experiment file {path}: {error}") from error
+    config = load_typed_yaml(path, ExperimentConfig, "experiment file")
     known = set(environment_names())
     named = list(_study_environments(config))
     unknown = sorted({env for env in named if env not in known})
@@ -217,7 +205,7 @@ def model_path(config: ExperimentConfig, model: ModelSpec) -> Path:
 
 
 def evaluation_specs(config: ExperimentConfig, evaluation: Evaluation) -> list[RolloutSpec]:
-    from ditch_drake.evaluation.batch import make_specs  # noqa: PLC0415 (Drake import on demand)
+    from ditch_drake.evaluation.batch import make_specs
 
     checkpoint = str(model_path(config, evaluation.model)) if evaluation.model else ""
     return make_specs(evaluation.controller, checkpoint, evaluation.environment, config.tasks or None,
@@ -244,7 +232,7 @@ def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stag
         _evaluate(config, evaluations, progress)
         timings["evaluate_s"] = time.perf_counter() - start
     if "report" in stages:
-        from ditch_drake.evaluation.report import write_report  # noqa: PLC0415
+        from ditch_drake.evaluation.report import write_report
 
         start = time.perf_counter()
         write_report([config.results_dir], config.report, config.figures_dir, title=config.name)
@@ -253,7 +241,7 @@ def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stag
 
 
 def _collect(config: ExperimentConfig, models: list[ModelSpec], progress: bool) -> None:
-    from ditch_drake.demos.collect import CollectConfig, collect  # noqa: PLC0415
+    from ditch_drake.demos.collect import CollectConfig, collect
 
     needed: dict[str, int] = {}
     for model in models:
@@ -266,9 +254,9 @@ def _collect(config: ExperimentConfig, models: list[ModelSpec], progress: bool) 
 
 
 def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
-    from ditch_drake.demos.dataset import load_dataset, to_array_set  # noqa: PLC0415
-    from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint  # noqa: PLC0415
-    from ditch_drake.learning.train import TrainConfig, resume_path, train  # noqa: PLC0415
+    from ditch_drake.demos.dataset import load_dataset, to_array_set
+    from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
+    from ditch_drake.learning.train import TrainConfig, resume_path, train
 
     out = model_path(config, model)
     if out.exists() and not resume_path(out).exists():
@@ -293,7 +281,7 @@ def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
 
 
 def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool) -> None:
-    from ditch_drake.evaluation.batch import evaluate  # noqa: PLC0415
+    from ditch_drake.evaluation.batch import evaluate
 
     by_study: dict[str, list[RolloutSpec]] = {}
     for evaluation in evaluations:

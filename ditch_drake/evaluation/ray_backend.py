@@ -16,7 +16,7 @@ _MAX_RETRIES = 1
 
 def _ray():
     try:
-        import ray  # noqa: PLC0415
+        import ray
     except ImportError as error:
         raise ConfigError("backend 'ray' needs Ray: pip install -e '.[ray]'") from error
     return ray
@@ -32,7 +32,7 @@ def run_on_ray(specs: list[RolloutSpec], address: str | None, max_in_flight: int
         max_in_flight: at most this many tasks submitted at once (None or 0: all).
         keep: called with each `RolloutRecord`, in the order they finish.
     """
-    from ditch_drake.evaluation.batch import _error_record, run_rollout  # noqa: PLC0415 (avoids a cycle)
+    from ditch_drake.evaluation.batch import _error_record, run_rollout
 
     ray = _ray()
     started_here = not ray.is_initialized()

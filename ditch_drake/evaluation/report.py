@@ -25,10 +25,10 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
-from ditch_drake.evaluation.results import RolloutRecord, read_records  # noqa: E402
-from ditch_drake.evaluation.summary import GroupSummary, summarize  # noqa: E402
+from ditch_drake.evaluation.results import RolloutRecord, read_records
+from ditch_drake.evaluation.summary import GroupSummary, summarize
 
 STUDIES = ("scalability", "generalization", "baseline", "amalgam")
 
