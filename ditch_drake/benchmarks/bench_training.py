@@ -14,6 +14,7 @@ Run: `python benchmarks/bench_training.py [samples]`. Prints
 """
 
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -132,6 +133,10 @@ def measure_training_throughput(batches: int = 6, warmup: int = 2) -> dict:
     from ditch_drake.learning.train import TrainConfig
 
     config = TrainConfig()
+    # `ditch-drake train` runs on all cores; an earlier benchmark (the policy step) may have
+    # set torch's process-wide thread count to 1.
+    previous_threads = torch.get_num_threads()
+    torch.set_num_threads(os.cpu_count() or 1)
     generator = torch.Generator().manual_seed(0)
     model = FourInputClassifier(config.model)
     optimizer = torch.optim.Adam(parameter_groups(model, config.lr, config.scalar_lr_factor))
@@ -147,7 +152,9 @@ def measure_training_throughput(batches: int = 6, warmup: int = 2) -> dict:
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
-    return {"train_samples_per_s": batches * b / (time.perf_counter() - start), "train_threads": torch.get_num_threads()}
+    figures = {"train_samples_per_s": batches * b / (time.perf_counter() - start), "train_threads": torch.get_num_threads()}
+    torch.set_num_threads(previous_threads)
+    return figures
 
 
 def shipped_model_figures() -> dict:
