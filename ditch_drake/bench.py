@@ -100,7 +100,7 @@ def measure_rollouts_per_minute(rollouts: int = 4, environment: str = "wide") ->
     specs = make_specs("learned", environment, environment, tasks=[1], rollouts=rollouts)
     with tempfile.TemporaryDirectory() as folder:
         report = evaluate(specs, Path(folder) / "bench.jsonl", progress=False)
-    return {"evaluate_rollouts_per_minute": report.rollouts_per_minute}
+    return {"evaluate_rollouts_per_min": report.rollouts_per_minute}
 
 
 def run_bench(environments: list[str] | None = None, training: bool = False) -> dict:

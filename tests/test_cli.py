@@ -24,11 +24,16 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     monkeypatch.setattr(bench.measure_plant_rtf, "__defaults__", (0, 0.5))
     monkeypatch.setattr(bench.measure_closed_loop, "__defaults__", (0, 0.5))
     monkeypatch.setattr(bench, "measure_blocks", lambda: {"lidar_render_and_cloud_ms": 1.0})
+    monkeypatch.setattr(bench, "measure_rollouts_per_minute", lambda: {"evaluate_rollouts_per_min": 1.0})
+    from ditch_drake.benchmarks import bench_training
+
+    monkeypatch.setattr(bench_training, "measure_training_throughput", lambda: {"train_samples_per_s": 1.0})
     assert main(["bench", "--json", "--env", "narrow"]) == 0
     figures = json.loads(capsys.readouterr().out)
     assert set(figures) >= {"plant_narrow_rtf", "scene_build_narrow_s", "plant_min_rtf", "peak_rss_mib",
                             "closed_loop_narrow_rtf", "observation_update_narrow_ms", "closed_loop_min_rtf"}
-    assert all(key.rsplit("_", 1)[-1] in {"rtf", "s", "mib", "ms"} for key in figures)
+    assert all(key.rsplit("_", 1)[-1] in {"rtf", "s", "mib", "ms", "min"} for key in figures)
+    assert {"train_samples_per_s", "evaluate_rollouts_per_min", "train_wide_40_demos_s"} <= set(figures)
     assert figures["plant_narrow_rtf"] > 0
 
 
