@@ -1,5 +1,6 @@
 """Collecting demonstrations with the scripted expert, resumably and in parallel."""
 
+import multiprocessing
 import os
 import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -231,7 +232,8 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     missing = [index for index in range(config.demos) if not _existing_demo(demo_path(config.out, index), set_aside)]
     workers = config.workers or os.cpu_count() or 1
     results = []
-    with ProcessPoolExecutor(max_workers=workers) as pool:
+    # Spawned, not forked: a fork of a process whose torch/OpenMP threads are running can deadlock.
+    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
         futures = [pool.submit(_collect_slot, config, index) for index in missing]
         bar = tqdm(as_completed(futures), total=len(futures), desc=f"collect {config.environment}",
                    disable=not progress)

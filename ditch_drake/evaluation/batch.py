@@ -16,6 +16,7 @@ depends only on its spec, not on what the worker ran before.
 """
 
 import hashlib
+import multiprocessing
 import os
 import signal
 import sys
@@ -284,7 +285,10 @@ def _run_in_pools(pending: list[RolloutSpec], workers: int, keep) -> None:
 
 def _run_pool(specs: list[RolloutSpec], workers: int, keep) -> list[RolloutSpec]:
     """Runs `specs` in one pool, passing each record to `keep`; returns the specs a dead worker took down."""
-    pool = ProcessPoolExecutor(max_workers=min(workers, len(specs)), initializer=_worker_init)
+    # Spawned, not forked: a fork of a process whose torch/OpenMP threads are running can
+    # deadlock in the child (seen in the test suite).
+    pool = ProcessPoolExecutor(max_workers=min(workers, len(specs)), initializer=_worker_init,
+                               mp_context=multiprocessing.get_context("spawn"))
     died = []
     try:
         futures = {pool.submit(run_rollout, spec): spec for spec in specs}
