@@ -305,6 +305,12 @@ def cmd_figure(args) -> int:
 
         print(screenshot(args.html, Path(args.out) / f"{Path(args.html).stem}.png"))
         return 0
+    if args.kind == "dwa":
+        from ditch_drake.baseline import dwa_figure
+
+        for name in environment_names() if not args.env or "all" in args.env else args.env:
+            print(dwa_figure(name, args.out, task=0, seed=args.seed))
+        return 0
     for name in args.env or environment_names():
         print(normal_image_figure(name, args.out, args.seed))
     return 0
@@ -435,8 +441,9 @@ def build_parser() -> argparse.ArgumentParser:
     training.add_argument("--resume", action="store_true", help="continue an interrupted run")
     training.set_defaults(run=cmd_train)
 
-    figure = commands.add_parser("figure", help="figures for docs/: surface-normal images per environment, the diagram")
-    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot"])
+    figure = commands.add_parser("figure", help="figures for docs/: surface-normal images per environment, the diagram, "
+                                 "the DWA baseline at the ditch")
+    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot", "dwa"])
     figure.add_argument("--html", default="results/demo.html", help="screenshot: the recording to open in Chromium")
     add_env(figure, many=True)
     figure.add_argument("--out", default="docs/img")

@@ -8,15 +8,19 @@ import math
 
 import numpy as np
 import pytest
+from pydrake.common import RandomGenerator
 from pydrake.common.value import Value
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.perception import BaseField, Fields, PointCloud
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from ditch_drake import robot
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig, chassis_pose
-from ditch_drake.diagrams.rollout import RunEpisode
+from ditch_drake.diagrams.rollout import DwaBaselineConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
+from ditch_drake.perception.normal_image import estimate_normals_pca
 from ditch_drake.planning import global_planner
 from ditch_drake.planning.costmap import (
     FREE_SPACE,
@@ -25,10 +29,11 @@ from ditch_drake.planning.costmap import (
     NO_INFORMATION,
     CostmapConfig,
     SlopeCostmap,
+    pca_normals,
     slope_cost,
 )
-from ditch_drake.planning.dwa import DwaPlannerConfig, find_best_trajectory, footprint_outline
-from ditch_drake.systems.dwa import DwaConfig, DwaController
+from ditch_drake.planning.dwa import DwaPlannerConfig, find_best_trajectory, footprint_costs, footprint_outline
+from ditch_drake.systems.dwa import DwaConfig, DwaController, DwaMode
 from ditch_drake.terrain import DitchTerrain
 
 X_BL = RigidTransform(robot.LIDAR_MOUNT_XYZ_M)
@@ -333,6 +338,111 @@ def test_dwa_controller_reads_rays_without_a_return_from_an_organized_cloud():
         Simulator(controller, context).AdvanceTo(0.15)
 
 
+@pytest.mark.parametrize("cloud_kind", ["empty", "all_nan", "empty_organized", "all_nan_organized"])
+def test_dwa_controller_stops_with_a_status_on_a_cloud_without_returns(cloud_kind):
+    rays_L = np.array([[math.cos(e), 0.0, math.sin(e)] for e in np.radians(np.linspace(-35.0, -15.0, 21))])
+    organized = cloud_kind.endswith("organized")
+    cloud = cloud_from_points(np.zeros((0, 3)) if cloud_kind.startswith("empty") else np.full((21, 3), np.nan))
+    controller = DwaController([10.0, 0.0], CHASSIS, X_BL, ray_directions_L=rays_L if organized else None)
+    context = controller.CreateDefaultContext()
+    controller.GetInputPort("point_cloud").FixValue(context, cloud)
+    controller.GetInputPort("body_poses").FixValue(context, [RigidTransform(), RigidTransform([0.0, 0.0, 0.2])])
+    simulator = Simulator(controller, context)
+    simulator.AdvanceTo(0.45)  # Updates at 0, 0.1, ..., 0.4.
+    np.testing.assert_array_equal(controller.GetOutputPort("command").Eval(context), [0.0, 0.0])
+    mode, halts, plans, plan_failures, recoveries, no_data = controller.GetOutputPort("status").Eval(context)
+    assert mode == DwaMode.NO_DATA and no_data == 5 and halts == plans == plan_failures == recoveries == 0
+    # Once returns arrive (flat ground ahead) it drives, and the status says so.
+    x, y = grid_points((0.8, 3.5), (-1.5, 1.5))
+    p_LP = (RigidTransform([0.0, 0.0, 0.2]) @ X_BL).inverse().multiply(np.c_[x, y, np.zeros_like(x)].T).T
+    controller.GetInputPort("point_cloud").FixValue(context, cloud_from_points(p_LP))
+    if organized:  # Keep the organized cloud's size: the rays stay NaN, the returns come as extra points.
+        controller = DwaController([10.0, 0.0], CHASSIS, X_BL)
+        context = controller.CreateDefaultContext()
+        controller.GetInputPort("point_cloud").FixValue(context, cloud_from_points(p_LP))
+        controller.GetInputPort("body_poses").FixValue(context, [RigidTransform(), RigidTransform([0.0, 0.0, 0.2])])
+        simulator = Simulator(controller, context)
+    simulator.AdvanceTo(simulator.get_context().get_time() + 0.1)
+    assert controller.GetOutputPort("command").Eval(context)[0] > 0.0
+    assert controller.GetOutputPort("status").Eval(context)[0] == DwaMode.DRIVING
+    assert controller.planner_status(context)["mode"] == DwaMode.DRIVING
+
+
+# ----- the speed-ups keep the reference behaviour -----------------------------------------
+def test_closed_form_pca_normals_match_the_lapack_reference():
+    rng = np.random.default_rng(3)
+    rotation = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    clouds = {
+        "tilted plane": (rng.normal(size=(400, 3)) * [1.0, 1.0, 0.01]) @ rotation.T,
+        "wall": np.c_[rng.uniform(0, 1, 300), np.zeros(300), rng.uniform(0, 1, 300)],
+        "noise": rng.normal(size=(300, 3)),
+        "voxel centroids of a 55 deg wall": np.c_[np.repeat(np.arange(0, 2, 0.1), 20), np.tile(np.arange(0, 2, 0.1), 20),
+                                                  np.tan(math.radians(55)) * np.repeat(np.arange(0, 2, 0.1), 20)],
+    }
+    for name, points in clouds.items():
+        fast, reference = pca_normals(points, 12), estimate_normals_pca(points, 12)
+        assert np.array_equal(np.isnan(fast), np.isnan(reference)), name
+        defined = ~np.isnan(fast[:, 0])
+        # The same line (a vertical wall's normal may point either way), oriented up.
+        np.testing.assert_allclose(np.abs(np.sum(fast * reference, axis=1))[defined], 1.0, atol=1e-9, err_msg=name)
+        assert np.all(fast[defined, 2] >= 0.0), name
+    line = np.c_[np.linspace(0, 1, 20), np.linspace(0, 2, 20), np.zeros(20)]
+    assert np.isnan(pca_normals(line, 12)).all() and np.isnan(pca_normals(np.zeros((5, 3)), 4)).all()
+    assert np.isnan(pca_normals(np.zeros((2, 3)), 12)).all()
+
+
+def test_grid_graph_gives_the_distances_of_a_plain_undirected_construction():
+    rng = np.random.default_rng(4)
+    weights = rng.uniform(1.0, 5.0, (23, 31))
+    weights[rng.random(weights.shape) < 0.25] = np.inf
+    index = np.arange(weights.size).reshape(weights.shape)
+    rows, cols, data = [], [], []
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = index[:23 - dy, max(-dx, 0):31 - max(dx, 0)].ravel()
+        b = index[dy:, max(dx, 0):31 + min(dx, 0)].ravel()
+        w = np.hypot(dx, dy) * 0.1 * 0.5 * (weights.ravel()[a] + weights.ravel()[b])
+        keep = np.isfinite(w)
+        rows += [a[keep]]
+        cols += [b[keep]]
+        data += [w[keep]]
+    reference = csr_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))),
+                           shape=(weights.size, weights.size))
+    sources = [0, 100, 400]
+    np.testing.assert_allclose(dijkstra(global_planner.grid_graph(weights, 0.1), directed=True, indices=sources),
+                               dijkstra(reference, directed=False, indices=sources))
+
+
+def test_raytracing_skips_only_rays_that_cannot_clear_an_unknown_cell():
+    # Flat ground 1 to 3.5 m ahead over a fan of bearings, seen from 0.6 m up; a patchy layer of
+    # unknown cells. Screening the rays by the unknown cells they may pass over changes nothing.
+    costmap = SlopeCostmap(CostmapConfig())
+    origin = costmap.window_origin([0.0, 0.0])
+    rng = np.random.default_rng(5)
+    bearing, distance = rng.uniform(-1.0, 1.0, 600), rng.uniform(1.0, 3.5, 600)
+    points = np.c_[distance * np.cos(bearing), distance * np.sin(bearing), rng.normal(0.0, 0.02, 600)]
+    p_WS, ground = np.array([0.0, 0.0, 0.6]), (np.zeros(3), np.array([0.0, 0.0, 1.0]))
+    unknown = rng.random(costmap.size) < 0.05
+    hit = np.ones(len(points), dtype=bool)
+    screened, _ = costmap._raytrace(origin, points, hit, p_WS, ground, clearable=unknown)
+    everything, _ = costmap._raytrace(origin, points, hit, p_WS, ground)
+    assert (everything & unknown).sum() > 20
+    np.testing.assert_array_equal(screened & unknown, everything & unknown)
+
+
+def test_footprint_stencil_finds_a_wall_under_the_outline_at_any_heading():
+    costs, origin, r = free_map()
+    costs[:, 60:] = LETHAL_OBSTACLE  # A wall from x = 1.0 m on.
+    outline = footprint_outline(SlopeCostmap().footprint, r)
+    rng = np.random.default_rng(6)
+    yaw = rng.uniform(-math.pi, math.pi, 400)
+    # The outline's reach along +x at each heading: the wall is touched when x + reach > 1.0.
+    reach = np.max(np.cos(yaw)[:, None] * outline[:, 0] - np.sin(yaw)[:, None] * outline[:, 1], axis=1)
+    gap = rng.choice([-1.0, 1.0], 400) * rng.uniform(0.06, 0.5, 400)  # Clear of the wall (+) or into it (-).
+    poses = np.c_[1.0 - reach - gap, rng.uniform(-1.0, 1.0, 400), yaw]
+    lethal = footprint_costs(costs, origin, r, poses, outline) == LETHAL_OBSTACLE
+    np.testing.assert_array_equal(lethal, gap < 0.0)
+
+
 # ----- closed loop ---------------------------------------------------------------------
 ENVIRONMENTS_YAML = """
 environments:
@@ -361,6 +471,40 @@ def make_closed_loop(tmp_path, task: int, goal_xy=None, config: DwaConfig | None
     builder.Connect(controller.GetOutputPort("command"), scene.drive.GetInputPort("command"))
     diagram = builder.Build()
     return diagram, scene, controller
+
+
+def test_rollout_diagram_with_the_dwa_baseline_drives_toward_the_goal_in_a_ditch_environment():
+    # The rollout builder's wiring: the rendered lidar's organized cloud and its rays feed the block.
+    diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="narrow", task=0),
+                                                      controller=DwaBaselineConfig()))
+    controller = diagram.GetSubsystemByName("dwa")
+    simulator = Simulator(diagram)
+    context = simulator.get_mutable_context()
+    diagram.SetRandomContext(context, RandomGenerator(0))
+    simulator.Initialize()
+    goal = np.asarray(scene.task.goal)
+    start = np.linalg.norm(chassis_pose(diagram, scene, context).translation()[:2] - goal)
+    speeds = []
+    for step in range(1, 31):
+        simulator.AdvanceTo(0.1 * step)
+        speeds.append(controller.GetOutputPort("command").Eval(controller.GetMyContextFromRoot(context))[0])
+    assert max(speeds) > 0.5  # It commands motion, accelerating toward 1 m/s.
+    progress = start - np.linalg.norm(chassis_pose(diagram, scene, context).translation()[:2] - goal)
+    assert progress > 1.0  # In 3 s it closed in on the goal (the ditch's edge is 4.6 m ahead).
+    status = controller.planner_status(controller.GetMyContextFromRoot(context))
+    assert status["mode"] == DwaMode.DRIVING and status["no_data"] == 0 and status["halts"] == 0
+
+
+def test_dwa_benchmark_reports_the_update_and_the_global_plan_apart():
+    from ditch_drake.benchmarks.bench_dwa import measure_dwa_ms, record_lidar_drive
+
+    drive = record_lidar_drive("narrow", duration_s=1.5)
+    assert drive.clouds.shape[:2] == (15, len(drive.ray_directions_L))
+    figures = measure_dwa_ms(drive, repeats=1)
+    for key in ("dwa_update_ms", "dwa_update_cpu_ms", "dwa_update_p90_ms", "dwa_global_plan_ms",
+                "dwa_global_plan_cpu_ms", "dwa_step_ms"):
+        assert 0.0 < figures[key] < 1000.0, key
+    assert figures["dwa_points"] > 1000
 
 
 @pytest.mark.slow

@@ -54,7 +54,8 @@ Unknown space (`track_unknown_space`). True: cells never observed hold NO_INFORM
 False (costmap_2d's default): they hold FREE_SPACE, so unseen ground is free.
 
 Normals come from principal component analysis of each point's k nearest neighbours
-(`ditch_drake.perception.normal_image.estimate_normals_pca`) in the world frame, after the
+(`pca_normals`, the estimate of `ditch_drake.perception.normal_image.estimate_normals_pca`
+in closed form) in the world frame, after the
 cloud is reduced to one point per `downsample_voxel_size` voxel (so a dense near field
 does not dominate the cost, and each normal fits a patch of about three voxels).
 """
@@ -64,9 +65,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage
+from scipy.spatial import cKDTree
 
 from ditch_drake import robot
-from ditch_drake.perception.normal_image import estimate_normals_pca
 
 FREE_SPACE = 0
 MAX_NON_OBSTACLE = 252
@@ -169,9 +170,169 @@ def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
     return sums / counts[:, None]
 
 
+def pca_normals(points: np.ndarray, k: int) -> np.ndarray:
+    """Unit normals (N, 3), oriented +z, of finite points (N, 3) by PCA of their k nearest neighbours.
+
+    The same estimate as `ditch_drake.perception.normal_image.estimate_normals_pca` (NaN where
+    the neighbourhood is collinear or coincident; fewer than 3 points: all NaN), at about a
+    third of its cost: the 3 x 3 covariances' smallest eigenvectors are found in closed form
+    (the eigenvalue by the trigonometric solution of the characteristic cubic, the vector as
+    the longest cross product of two rows of A - lambda I) instead of by one LAPACK call each;
+    the few nearly collinear neighbourhoods, where that is ill-conditioned, go to LAPACK.
+    """
+    points = np.asarray(points, dtype=float).reshape(-1, 3)
+    normals = np.full_like(points, np.nan)
+    if len(points) < 3:
+        return normals
+    _, index = cKDTree(points).query(points, k=min(k, len(points)))
+    # (3, k, N): sums over the k neighbours add whole rows (numpy reduces a short last axis slowly).
+    neighbours = points.T[:, index.T]
+    x, y, z = neighbours - neighbours.mean(axis=1, keepdims=True)
+    a, b, c = (x * x).sum(axis=0), (x * y).sum(axis=0), (x * z).sum(axis=0)
+    d, e, f = (y * y).sum(axis=0), (y * z).sum(axis=0), (z * z).sum(axis=0)
+    # Eigenvalues of [[a, b, c], [b, d, e], [c, e, f]]: q + 2 p cos(phi + 2 pi j / 3).
+    q = (a + d + f) / 3.0
+    p = np.sqrt(((a - q) ** 2 + (d - q) ** 2 + (f - q) ** 2 + 2.0 * (b * b + c * c + e * e)) / 6.0)
+    safe_p = np.where(p > 0.0, p, 1.0)
+    ba, bd, bf = (a - q) / safe_p, (d - q) / safe_p, (f - q) / safe_p
+    bb, bc, be = b / safe_p, c / safe_p, e / safe_p
+    half_det = 0.5 * (ba * (bd * bf - be * be) - bb * (bb * bf - be * bc) + bc * (bb * be - bd * bc))
+    phi = np.arccos(np.clip(half_det, -1.0, 1.0)) / 3.0
+    largest = q + 2.0 * p * np.cos(phi)
+    smallest = q + 2.0 * p * np.cos(phi + 2.0 * np.pi / 3.0)
+    middle = 3.0 * q - largest - smallest
+    # Cross products of the rows of A - smallest I, which span the plane normal to the answer.
+    a_, d_, f_ = a - smallest, d - smallest, f - smallest
+    crosses = ((b * e - c * d_, c * b - a_ * e, a_ * d_ - b * b),  # row 0 x row 1
+               (b * f_ - c * e, c * c - a_ * f_, a_ * e - b * c),  # row 0 x row 2
+               (d_ * f_ - e * e, e * c - b * f_, b * e - d_ * c))  # row 1 x row 2
+    squared = [u * u + v * v + w * w for u, v, w in crosses]
+    use_1 = squared[1] > squared[0]
+    best = [np.where(use_1, crosses[1][i], crosses[0][i]) for i in range(3)]
+    best_squared = np.maximum(squared[0], squared[1])
+    use_2 = squared[2] > best_squared
+    best = np.stack([np.where(use_2, crosses[2][i], best[i]) for i in range(3)], axis=1)
+    norm = np.sqrt(np.maximum(best_squared, squared[2]))
+    degenerate = (p <= 0.0) | (norm <= 0.0) | (middle <= 1e-12 * np.maximum(largest, np.finfo(float).tiny))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        normals = best / norm[:, None]
+    # Nearly collinear neighbourhoods (the two small eigenvalues close) leave the cross products
+    # ill-conditioned: solve those few as the reference does.
+    close = ~degenerate & (middle - smallest <= 1e-6 * largest)
+    if close.any():
+        covariance = np.stack([np.stack([a, b, c]), np.stack([b, d, e]), np.stack([c, e, f])])[:, :, close]
+        normals[close] = np.linalg.eigh(covariance.transpose(2, 0, 1))[1][:, :, 0]
+    normals *= np.where(normals[:, 2:3] < 0.0, -1.0, 1.0)
+    normals[degenerate] = np.nan
+    return normals
+
+
 def _pad_polygon(polygon: np.ndarray, padding: float) -> np.ndarray:
     """Moves each vertex of a convex polygon outward from its centroid by `padding` along both axes."""
     return polygon + padding * np.sign(polygon - polygon.mean(axis=0))
+
+
+def _height_interval(height_0: float, rise: np.ndarray, threshold: float, above: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The interval [lo, hi] of u in [0, 1] where height_0 + u rise >= threshold (`above`) or
+    < threshold (not `above`), per ray; lo > hi where there is none."""
+    rise = np.asarray(rise, dtype=float)
+    gap = threshold - height_0  # The condition is u rise >= gap (above) or u rise < gap.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        root = gap / rise
+    lower_bound = (rise > 0.0) == above  # The root bounds u from below, else from above.
+    holds_flat = (0.0 >= gap) if above else (0.0 < gap)  # Where rise is 0, for every u or none.
+    lo = np.where(rise == 0.0, 0.0 if holds_flat else 2.0, np.where(lower_bound, root, 0.0))
+    hi = np.where(rise == 0.0, 1.0, np.where(lower_bound, 1.0, root))
+    return np.clip(lo, 0.0, 2.0), np.clip(hi, -1.0, 1.0)
+
+
+@dataclass
+class _RaySet:
+    """Planar rays from one sensor over the window, sampled every half cell.
+
+    Attributes:
+        start: the sensor's planar position relative to the window's corner, in cells.
+        span_x: (N,) x extent of each ray from the sensor to its end, in cells.
+        span_y: (N,) y extent, in cells.
+        counts: (N,) samples along each ray.
+        height_0: the sensor's height above the ground plane (m).
+        rise: (N,) height change from the sensor to each end (m).
+        shape: the window's (ny, nx).
+    """
+
+    start: np.ndarray
+    span_x: np.ndarray
+    span_y: np.ndarray
+    counts: np.ndarray
+    height_0: float
+    rise: np.ndarray
+    shape: tuple[int, int]
+
+    def sample(self, rays: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+        """The samples of `rays` whose u lies in [lo, hi] (a sample of margin each side).
+
+        Returns:
+            (flat cell index, inside the window, u, height, ray) per sample.
+        """
+        counts = self.counts[rays]
+        first = np.clip(np.floor(lo * counts - 0.5), 0, counts).astype(np.int64)
+        stop = np.clip(np.floor(hi * counts - 0.5) + 2, 0, counts).astype(np.int64)
+        taken = np.maximum(stop - first, 0)
+        keep = taken > 0
+        rays, counts, first, taken = rays[keep], counts[keep], first[keep], taken[keep]
+        # Per-ray values repeated over their samples (contiguous, cheaper than 2D gathers).
+        j = np.arange(int(taken.sum()), dtype=float) - np.repeat((np.cumsum(taken) - taken - first).astype(float), taken)
+        u = (j + 0.5) * np.repeat(1.0 / counts, taken)
+        gx = self.start[0] + u * np.repeat(self.span_x[rays], taken)
+        gy = self.start[1] + u * np.repeat(self.span_y[rays], taken)
+        ny, nx = self.shape
+        inside = (gx >= 0.0) & (gx < nx) & (gy >= 0.0) & (gy < ny)
+        # Truncation floors the samples inside; those outside are masked.
+        index = gy.astype(np.int64) * nx + gx.astype(np.int64)
+        return index, inside, u, self.height_0 + u * np.repeat(self.rise[rays], taken), np.repeat(rays, taken)
+
+
+def _rays_passing_over(cells: np.ndarray, start: np.ndarray, span_x: np.ndarray, span_y: np.ndarray,
+                       reach: np.ndarray, bins: int = 720) -> np.ndarray:
+    """A mask of the planar rays that may pass over any of the marked cells (a superset).
+
+    Cell units throughout. A ray from `start` in direction (span_x, span_y) reaching `reach`
+    can only have a sample in a cell whose centre lies within half a diagonal of its line,
+    so the ray's bearing is within asin(diagonal / 2 / d) of the cell centre's bearing (d its
+    distance), and only if d - diagonal / 2 <= reach. Each marked cell writes its nearest
+    distance into the bearing bins its cone covers; a ray is kept when its bin holds a cell
+    within its reach.
+
+    Args:
+        cells: (ny, nx) boolean grid of the cells of interest.
+        start: the rays' common origin (x, y).
+        span_x: (N,) x component of each ray's direction (any length).
+        span_y: (N,) y component.
+        reach: (N,) how far each ray's samples go.
+        bins: bearing bins over the circle.
+    """
+    half_diagonal = math.sqrt(0.5)
+    limit = float(np.max(reach, initial=0.0)) + 1.0
+    x0, y0 = max(int(start[0] - limit), 0), max(int(start[1] - limit), 0)
+    iy, ix = np.nonzero(cells[y0:max(int(start[1] + limit) + 1, 0), x0:max(int(start[0] + limit) + 1, 0)])
+    dx, dy = ix + (x0 + 0.5 - start[0]), iy + (y0 + 0.5 - start[1])
+    near = np.sqrt(dx * dx + dy * dy) - half_diagonal
+    dx, dy, near = dx[near <= limit], dy[near <= limit], near[near <= limit]
+    if len(near) == 0:
+        return np.zeros(len(reach), dtype=bool)
+    width = 2.0 * math.pi / bins
+    with np.errstate(divide="ignore"):
+        cone = np.arcsin(np.minimum(1.0, half_diagonal / np.maximum(near + half_diagonal, 0.0)))
+    cone = np.where(near <= 0.0, math.pi, cone) + 1e-9  # The sensor's own cell: every bearing.
+    bearing = np.arctan2(dy, dx)
+    first = np.floor((bearing - cone) / width).astype(np.int64)
+    count = np.minimum(np.floor((bearing + cone) / width).astype(np.int64) - first + 1, bins)
+    owner = np.repeat(np.arange(len(near)), count)
+    covered = (np.repeat(first, count) + np.arange(int(count.sum())) - np.repeat(np.cumsum(count) - count, count)) % bins
+    nearest = np.full(bins, np.inf)
+    np.minimum.at(nearest, covered, near[owner])
+    ray_bin = np.floor(np.arctan2(span_y, span_x) / width).astype(np.int64) % bins
+    return nearest[ray_bin] <= reach
 
 
 class SlopeCostmap:
@@ -241,7 +402,11 @@ class SlopeCostmap:
 
     def estimate_normals(self, points_W: np.ndarray) -> np.ndarray:
         """Unit normals (N, 3), oriented +z, of world points (N, 3); NaN where undefined."""
-        return estimate_normals_pca(points_W, self.config.normal_neighbours)
+        points_W = np.asarray(points_W, dtype=float).reshape(-1, 3)
+        normals = np.full_like(points_W, np.nan)
+        finite = np.isfinite(points_W).all(axis=1)
+        normals[finite] = pca_normals(points_W[finite], self.config.normal_neighbours)
+        return normals
 
     def mark(self, layer: np.ndarray, origin: np.ndarray, points_W: np.ndarray, p_WS: np.ndarray,
              normals_W: np.ndarray | None = None, ground_W: tuple[np.ndarray, np.ndarray] | None = None,
@@ -264,9 +429,10 @@ class SlopeCostmap:
         """
         points_W = np.asarray(points_W, dtype=float).reshape(-1, 3)
         p_WS = np.asarray(p_WS, dtype=float)
+        offset = points_W - p_WS
         with np.errstate(invalid="ignore"):
-            keep = np.isfinite(points_W).all(axis=1)
-            keep &= np.sum((points_W - p_WS) ** 2, axis=1) <= self.config.obstacle_range ** 2
+            # A non-finite coordinate makes the squared range NaN or inf, which fails the test.
+            keep = offset[:, 0] ** 2 + offset[:, 1] ** 2 + offset[:, 2] ** 2 <= self.config.obstacle_range ** 2
         points_W = points_W[keep]
         layer = layer.copy()
         if normals_W is None:
@@ -285,38 +451,60 @@ class SlopeCostmap:
             directions = np.zeros((0, 3)) if no_return_W is None else np.asarray(no_return_W, float).reshape(-1, 3)
             ends = np.concatenate([points_W, p_WS + self.config.obstacle_range * directions])
             hit = np.arange(len(ends)) < len(points_W)
-            cleared, dropped = self._raytrace(origin, ends, hit, p_WS, ground_W)
-            flat[cleared & ~dropped & (flat == NO_INFORMATION)] = FREE_SPACE
+            unknown = flat == NO_INFORMATION
+            cleared, dropped = self._raytrace(origin, ends, hit, p_WS, ground_W, clearable=unknown)
+            flat[cleared & ~dropped & unknown] = FREE_SPACE
             flat[dropped] = LETHAL_OBSTACLE
         seen = observed >= 0.0
         flat[seen] = observed[seen]
         return layer
 
     def _raytrace(self, origin: np.ndarray, ends_W: np.ndarray, hit: np.ndarray, p_WS: np.ndarray,
-                  ground_W: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+                  ground_W: tuple[np.ndarray, np.ndarray],
+                  clearable: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Flat masks of the cells that rays from p_WS to `ends_W` clear (only rays that `hit`
-        something) and that they prove to be hidden drops."""
+        something) and that they prove to be hidden drops. `clearable`: a flat mask of the only
+        cells whose clearing matters (the caller ignores the rest); None: all.
+
+        Each ray is sampled every half cell (sample j of n at u = (j + 0.5) / n of its planar
+        span), but only over the stretches where its height can satisfy a rule: clearing
+        where it is above `-ground_tolerance`, drop marking where it is below
+        `-negative_obstacle_depth`. Heights are linear in u, so each stretch is one interval,
+        found in closed form (with a sample of margin each side; the rules are then applied
+        exactly to the samples). Most rays without a return point at the sky or stay above
+        the drop depth within range and cost nothing.
+        """
         config, step = self.config, 0.5 * self.resolution
         cleared = np.zeros(self.size, dtype=bool)
         dropped = np.zeros(self.size, dtype=bool)
         if len(ends_W) == 0:
             return cleared, dropped
         p_WG, n_W = (np.asarray(v, dtype=float) for v in ground_W)
-        height_S, height_P = float((p_WS - p_WG) @ n_W), (ends_W - p_WG) @ n_W
+        height_S = float((p_WS - p_WG) @ n_W)
+        rise = (ends_W - p_WG) @ n_W - height_S  # Height change from sensor to end.
         span = ends_W[:, :2] - p_WS[:2]
-        length = np.linalg.norm(span, axis=1)
-        counts = np.ceil(length / step).astype(int)
-        owner = np.repeat(np.arange(len(ends_W)), counts)
-        u = (np.arange(counts.sum()) - (np.cumsum(counts) - counts)[owner] + 0.5) / np.maximum(counts[owner], 1)
-        height = height_S + u * (height_P[owner] - height_S)
-        ny, nx = self.shape
-        ix = np.floor((p_WS[0] - origin[0] * self.resolution + u * span[owner, 0]) / self.resolution)
-        iy = np.floor((p_WS[1] - origin[1] * self.resolution + u * span[owner, 1]) / self.resolution)
-        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
-        index = (iy * nx + ix).astype(np.int64)
+        length = np.sqrt(span[:, 0] ** 2 + span[:, 1] ** 2)
+        counts = np.ceil(length / step).astype(np.int64)
+        rays = _RaySet((p_WS[:2] - self.origin_m(origin)) / self.resolution, span[:, 0] / self.resolution,
+                       span[:, 1] / self.resolution, counts, height_S, rise, self.shape)
         if config.raytrace_clearing:
-            cleared[index[inside & hit[owner] & (height >= -config.ground_tolerance)]] = True
+            hits = np.nonzero(hit)[0]
+            lo, hi = _height_interval(height_S, rise[hits], -config.ground_tolerance, above=True)
+            if clearable is not None:
+                # Clearing changes only `clearable` cells: after the first scans most rays pass
+                # over none of them and are not traced (reach: the last sample, see `sample`).
+                reach = (hi * counts[hits] + 2.0) / np.maximum(counts[hits], 1) * length[hits] / self.resolution
+                over = _rays_passing_over(clearable.reshape(self.shape), rays.start, rays.span_x[hits],
+                                          rays.span_y[hits], reach)
+                hits, lo, hi = hits[over], lo[over], hi[over]
+            index, inside, _, height, _ = rays.sample(hits, lo, hi)
+            cleared[index[inside & (height >= -config.ground_tolerance)]] = True
         if config.negative_obstacle_depth > 0.0:
+            lo, hi = _height_interval(height_S, rise, -config.negative_obstacle_depth, above=False)
+            # On a ray to a return, the last 2 cells before it are its own surface, not a drop.
+            with np.errstate(divide="ignore", invalid="ignore"):
+                hi = np.where(hit, np.minimum(hi, 1.0 - 2.0 * self.resolution / length), hi)
+            index, inside, u, height, owner = rays.sample(np.arange(len(ends_W)), lo, hi)
             short_of_hit = ~hit[owner] | ((1.0 - u) * length[owner] > 2.0 * self.resolution)
             dropped[index[inside & (height < -config.negative_obstacle_depth) & short_of_hit]] = True
         return cleared, dropped
@@ -386,12 +574,19 @@ class SlopeCostmap:
         becomes INSCRIBED when it lies within the inscribed radius (inflate_unknown: false).
         """
         lethal = layer == LETHAL_OBSTACLE
-        if not lethal.any():
-            return layer.copy()
-        distance = ndimage.distance_transform_edt(~lethal, sampling=self.resolution)
+        master = layer.copy()
+        rows, cols = np.nonzero(lethal.any(axis=1))[0], np.nonzero(lethal.any(axis=0))[0]
+        if len(rows) == 0:
+            return master
+        # Only cells within inflation_radius of a lethal one change: transform that box alone
+        # (the lethal cells are usually a few metres of ditch edge in a 20 m window).
+        reach = math.ceil(self.config.inflation_radius / self.resolution) + 1
+        box = (slice(max(rows[0] - reach, 0), rows[-1] + reach + 1), slice(max(cols[0] - reach, 0), cols[-1] + reach + 1))
+        distance = ndimage.distance_transform_edt(~lethal[box], sampling=self.resolution)
         inflated = self.inflation_cost(distance)
-        master = np.maximum(layer, inflated)
-        unknown = layer == NO_INFORMATION
-        master[unknown & (inflated >= INSCRIBED_INFLATED_OBSTACLE)] = inflated[
-            unknown & (inflated >= INSCRIBED_INFLATED_OBSTACLE)]
+        window = master[box]
+        unknown = window == NO_INFORMATION
+        np.maximum(window, inflated, out=window)
+        promoted = unknown & (inflated >= INSCRIBED_INFLATED_OBSTACLE)
+        window[promoted] = inflated[promoted]
         return master

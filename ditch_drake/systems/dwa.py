@@ -1,5 +1,6 @@
 """The move_base baseline (paper 4.2): slope costmap, Dijkstra global planner, DWA local planner."""
 
+import enum
 import math
 from dataclasses import dataclass, field
 
@@ -7,7 +8,7 @@ import numpy as np
 from pydrake.common.value import Value
 from pydrake.math import RigidTransform
 from pydrake.perception import PointCloud
-from pydrake.systems.framework import LeafSystem
+from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ditch_drake import robot
 from ditch_drake.planar import planar_yaw, wrap_to_pi
@@ -58,13 +59,25 @@ class DwaConfig:
     local_planner: DwaPlannerConfig = field(default_factory=DwaPlannerConfig)
 
 
+class DwaMode(enum.IntEnum):
+    """What the last update did (the `status` output's first value)."""
+
+    DRIVING = 0  # A trajectory was chosen.
+    GOAL_REACHED = 1  # Within xy_goal_tolerance: stopped for good.
+    HALTED = 2  # No admissible trajectory: stopped to replan (move_base).
+    NO_PLAN = 3  # The global planner found no path and none was kept: stopped.
+    NO_DATA = 4  # The cloud held no return at all: stopped, as move_base does when its sensor is not current.
+
+
 # Layout of the bookkeeping state: window origin (cells), odometry, planner and DWA flags, counters.
 (_WX, _WY, _WINDOW_VALID, _ODOM_X, _ODOM_Y, _ODOM_YAW, _ODOM_T, _ODOM_VALID, _LAST_PLAN_T, _REPLAN,
  _PLAN_FAIL_SINCE, _CONTROL_FAIL_SINCE, _OSC0, _OSC1, _OSC2, _OSC3, _STATIONARY_X, _STATIONARY_Y,
- _GOAL_REACHED, _HALTS, _PLANS, _PLAN_FAILURES, _RECOVERIES) = range(23)
-_STATUS_SIZE = 23
+ _GOAL_REACHED, _HALTS, _PLANS, _PLAN_FAILURES, _RECOVERIES, _MODE, _NO_DATA) = range(25)
+_STATUS_SIZE = 25
 _COUNTERS = {"halts": _HALTS, "plans": _PLANS, "plan_failures": _PLAN_FAILURES, "recoveries": _RECOVERIES,
-             "goal_reached": _GOAL_REACHED}
+             "goal_reached": _GOAL_REACHED, "no_data": _NO_DATA, "mode": _MODE}
+# The `status` output: the mode, then the counters.
+_STATUS_OUTPUT = (_MODE, _HALTS, _PLANS, _PLAN_FAILURES, _RECOVERIES, _NO_DATA)
 
 
 def _open_rays_B(rays_L: np.ndarray, X_BL: RigidTransform, margin_m: float = 0.01) -> np.ndarray:
@@ -92,7 +105,9 @@ class DwaController(LeafSystem):
     admissible it commands zero and replans at the next step, as move_base stops to
     replan; after `controller_patience` of that it also forgets the costmap beyond
     `conservative_reset_dist` (move_base's first recovery). Within `xy_goal_tolerance` of
-    the goal it stops for good. The observation layer, the costmap, the plan, odometry and
+    the goal it stops for good. A cloud without a single return (empty or all NaN) stops it
+    too, keeping its map, as move_base stops while its sensor is not current; the `status`
+    output says which of these it is doing. The observation layer, the costmap, the plan, odometry and
     all flags live in the discrete state; the outputs read it. Points above or below the
     footprint (the robot itself) are dropped.
 
@@ -106,6 +121,7 @@ class DwaController(LeafSystem):
         - command
         - costmap
         - path_W
+        - status
 
     Ports:
         point_cloud: a `pydrake.perception.PointCloud` in the lidar frame L (points without
@@ -116,6 +132,8 @@ class DwaController(LeafSystem):
             (costmap_2d values, 255 unknown) of `costmap_shape` (ny, nx) row-major, row iy at
             y = origin_y + (iy + 0.5) resolution; see `unpack_costmap`.
         path_W: [count, x_0, y_0, x_1, y_1, ...]: the global plan in W; see `unpack_path`.
+        status: [mode (`DwaMode` of the last update), halts, plans, plan_failures, recoveries,
+            no_data (updates stopped for a cloud without a single return)].
     """
 
     def __init__(self, goal_xy, chassis_body_index, X_BL: RigidTransform, config: DwaConfig | None = None,
@@ -155,16 +173,29 @@ class DwaController(LeafSystem):
         self._path_index = self.DeclareDiscreteState(1 + 2 * self._config.max_path_points)
         status = np.zeros(_STATUS_SIZE)
         status[[_LAST_PLAN_T, _PLAN_FAIL_SINCE, _CONTROL_FAIL_SINCE, _STATIONARY_X, _STATIONARY_Y]] = np.nan
+        status[_MODE] = DwaMode.NO_DATA  # Nothing seen before the first update.
         self._status_index = self.DeclareDiscreteState(status)
         self.DeclareStateOutputPort("command", self._command_index)
         self.DeclareStateOutputPort("costmap", self._costmap_index)
         self.DeclareStateOutputPort("path_W", self._path_index)
+        self.DeclareVectorOutputPort("status", BasicVector(len(_STATUS_OUTPUT)), self._calc_status,
+                                     prerequisites_of_calc={self.discrete_state_ticket(self._status_index)})
         self.DeclarePeriodicDiscreteUpdateEvent(self._period_s, offset_s, self._update)
 
     @property
     def costmap_shape(self) -> tuple[int, int]:
         """(ny, nx) of the costmap; its cell side is `config.costmap.resolution`."""
         return self._costmap.shape
+
+    @property
+    def costmap_resolution(self) -> float:
+        """The costmap's cell side (m)."""
+        return self._costmap.resolution
+
+    @property
+    def X_BL(self) -> RigidTransform:
+        """The lidar frame L's pose in the chassis frame B."""
+        return self._X_BL
 
     def unpack_costmap(self, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(origin xy (m), costs (ny, nx)) from a `costmap` output value."""
@@ -179,23 +210,33 @@ class DwaController(LeafSystem):
 
     def planner_status(self, context) -> dict[str, int]:
         """Counters of this system's `context`: halts (steps stopped for lack of an admissible
-        trajectory), plans, plan_failures, recoveries, and goal_reached (0/1)."""
+        trajectory), plans, plan_failures, recoveries, goal_reached (0/1), no_data (steps stopped
+        for a cloud without a return) and mode (the last update's `DwaMode`)."""
         status = context.get_discrete_state(self._status_index).get_value()
         return {name: int(status[index]) for name, index in _COUNTERS.items()}
 
-    def _cloud_in_world(self, cloud: PointCloud, X_WB: RigidTransform) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The cloud's points (N, 3) in W, less those above or below the footprint; p_WL; and the
-        directions (M, 3) in W of the rays without a return (none unless `ray_directions_L`)."""
+    def _calc_status(self, context, output) -> None:
+        output.SetFromVector(context.get_discrete_state(self._status_index).get_value()[list(_STATUS_OUTPUT)])
+
+    def _cloud_in_world(self, cloud: PointCloud,
+                        X_WB: RigidTransform) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+        """The cloud's points (N, 3) in W, less those above or below the footprint; p_WL; the
+        directions (M, 3) in W of the rays without a return (none unless `ray_directions_L`);
+        and the number of returns (finite points) in the cloud."""
         xyzs = cloud.xyzs() if cloud.size() else np.zeros((3, 0))
+        returned = np.isfinite(xyzs).all(axis=0)
         no_return_B = np.zeros((0, 3))
-        if self._rays_B is not None:
+        if self._rays_B is not None and cloud.size() > 0:  # Empty: no data, handled by the caller.
             if cloud.size() != len(self._rays_B):
                 raise ValueError(f"point_cloud has {cloud.size()} points; ray_directions_L has {len(self._rays_B)}")
-            no_return_B = self._rays_B[~np.isfinite(xyzs).all(axis=0) & np.isfinite(self._rays_B[:, 0])]
-        p_BP = self._X_BL.multiply(xyzs)
+            no_return_B = self._rays_B[~returned & np.isfinite(self._rays_B[:, 0])]
+        # Only the returns go on (an organized cloud is about half NaN); plain matrix products
+        # cost less than RigidTransform.multiply's shape-matching wrapper.
+        p_BP = self._X_BL.rotation().matrix() @ xyzs[:, returned] + self._X_BL.translation()[:, None]
         p_BP = p_BP[:, ~self._costmap.inside_footprint(p_BP[:2].T)]
-        R_WB = X_WB.rotation().matrix()
-        return X_WB.multiply(p_BP).T, X_WB.multiply(self._X_BL.translation()), no_return_B @ R_WB.T
+        R_WB, p_WB = X_WB.rotation().matrix(), X_WB.translation()
+        p_WP = (R_WB @ p_BP).T + p_WB
+        return p_WP, X_WB.multiply(self._X_BL.translation()), no_return_B @ R_WB.T, int(returned.sum())
 
     def _update(self, context, discrete_state) -> None:
         config, costmap, t = self._config, self._costmap, context.get_time()
@@ -217,20 +258,31 @@ class DwaController(LeafSystem):
         else:
             layer = costmap.clear_unknown_around(costmap.empty_layer(), origin, pose[:2], config.start_clearing_radius)
         status[_WX:_WINDOW_VALID + 1] = [*origin, 1.0]
-        points_W, p_WL, no_return_W = self._cloud_in_world(self._cloud_port.Eval(context), X_WB)
-        # For raytracing: the level plane through the ground under the wheels (a tilting chassis
-        # would tilt its own plane into the ground far ahead).
-        ground_W = (X_WB.translation() - robot.WHEEL_RADIUS_M * X_WB.rotation().matrix()[:, 2], np.array([0, 0, 1.0]))
-        layer = costmap.clear_footprint(costmap.mark(layer, origin, points_W, p_WL, ground_W=ground_W,
-                                                   no_return_W=no_return_W), origin, pose)
+        points_W, p_WL, no_return_W, returns = self._cloud_in_world(self._cloud_port.Eval(context), X_WB)
+        # move_base stops the base while its sensor is not current. A cloud without a single return
+        # (empty, or no ray came back) is taken as that: the map keeps what it had and the robot
+        # stops. On these terrains the 120 deg view always holds some ground within range, except
+        # facing straight into a drop from its very edge, where stopping is right too.
+        no_data = returns == 0
+        if not no_data:
+            # For raytracing: the level plane through the ground under the wheels (a tilting
+            # chassis would tilt its own plane into the ground far ahead).
+            ground_W = (X_WB.translation() - robot.WHEEL_RADIUS_M * X_WB.rotation().matrix()[:, 2],
+                        np.array([0, 0, 1.0]))
+            layer = costmap.mark(layer, origin, points_W, p_WL, ground_W=ground_W, no_return_W=no_return_W)
+        layer = costmap.clear_footprint(layer, origin, pose)
         master = costmap.inflate(layer)
         origin_m = costmap.origin_m(origin)
         path = self.unpack_path(context.get_discrete_state(self._path_index).get_value())
         command = np.zeros(2)
         recover = False
         if status[_GOAL_REACHED] or np.linalg.norm(self._goal_xy - pose[:2]) <= config.local_planner.xy_goal_tolerance:
-            status[_GOAL_REACHED] = 1.0
+            status[_GOAL_REACHED], status[_MODE] = 1.0, DwaMode.GOAL_REACHED
+        elif no_data:
+            status[_NO_DATA] += 1
+            status[_MODE] = DwaMode.NO_DATA
         else:
+            status[_MODE] = DwaMode.NO_PLAN  # Until the local planner says otherwise.
             # The global planner: at planner_frequency, when there is no plan, or after a failure.
             due = config.planner_frequency > 0 and not t - status[_LAST_PLAN_T] < 1.0 / config.planner_frequency - 1e-9
             if len(path) == 0 or status[_REPLAN] or due:
@@ -252,6 +304,7 @@ class DwaController(LeafSystem):
                     self._period_s, config.local_planner, status[_OSC0:_OSC3 + 1])
                 if result.admissible:
                     command[:] = [result.v, result.w]
+                    status[_MODE] = DwaMode.DRIVING
                     status[_CONTROL_FAIL_SINCE] = np.nan
                     status[_OSC0:_OSC3 + 1], status[_STATIONARY_X:_STATIONARY_Y + 1] = update_oscillation_flags(
                         status[_OSC0:_OSC3 + 1], status[_STATIONARY_X:_STATIONARY_Y + 1], pose, result.v, result.w,
@@ -259,6 +312,7 @@ class DwaController(LeafSystem):
                 else:
                     # move_base: publish zero velocity and go back to planning.
                     status[_HALTS] += 1
+                    status[_MODE] = DwaMode.HALTED
                     status[_REPLAN] = 1.0
                     status[_CONTROL_FAIL_SINCE] = np.nan_to_num(status[_CONTROL_FAIL_SINCE], nan=t)
                     if t - status[_CONTROL_FAIL_SINCE] >= config.controller_patience:
