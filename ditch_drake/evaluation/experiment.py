@@ -217,26 +217,24 @@ def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stag
         "collect", "train", "evaluate", "report"), progress: bool = True) -> dict:
     """Runs the stages of the experiment (see the module docstring); returns each stage's wall time (s)."""
     models, evaluations = plan(config, only)
-    timings: dict[str, float] = {}
-    if "collect" in stages:
-        start = time.perf_counter()
-        _collect(config, models, progress)
-        timings["collect_s"] = time.perf_counter() - start
-    if "train" in stages:
-        start = time.perf_counter()
-        for model in models:
-            _train(config, model, progress)
-        timings["train_s"] = time.perf_counter() - start
-    if "evaluate" in stages:
-        start = time.perf_counter()
-        _evaluate(config, evaluations, progress)
-        timings["evaluate_s"] = time.perf_counter() - start
-    if "report" in stages:
+
+    def report() -> None:
         from ditch_drake.evaluation.report import write_report
 
-        start = time.perf_counter()
         write_report([config.results_dir], config.report, config.figures_dir, title=config.name)
-        timings["report_s"] = time.perf_counter() - start
+
+    runners = {
+        "collect": lambda: _collect(config, models, progress),
+        "train": lambda: [_train(config, model, progress) for model in models],
+        "evaluate": lambda: _evaluate(config, evaluations, progress),
+        "report": report,
+    }
+    timings: dict[str, float] = {}
+    for stage, run in runners.items():  # In pipeline order, whatever order `stages` names them in.
+        if stage in stages:
+            start = time.perf_counter()
+            run()
+            timings[f"{stage}_s"] = time.perf_counter() - start
     return timings
 
 
