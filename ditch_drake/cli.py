@@ -2,6 +2,7 @@
 
 import argparse
 import json
+import shlex
 import sys
 import time
 from dataclasses import replace
@@ -105,10 +106,12 @@ def cmd_bench(args) -> int:
 
 
 def cmd_collect(args) -> int:
-    from ditch_drake.demos.collect import CollectConfig, collect
+    from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect
 
-    report = collect(CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out,
-                                   workers=args.workers))
+    config = CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out, workers=args.workers)
+    if args.learner is not None:
+        config = replace(config, learner=args.learner, variation=LABELLER_VARIATION)
+    report = collect(config)
     print(json.dumps(report, indent=2))
     return 0 if not report["unfilled_slots"] else 1
 
@@ -161,13 +164,23 @@ def cmd_train(args) -> int:
         epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
         max_batches_per_epoch=args.batches_per_epoch,
         smote=replace(defaults.smote, max_synthetic_fraction=args.synthetic_fraction),
-        num_threads=args.threads)
+        num_threads=args.threads, device=_training_device(args.device))
     result = train(to_array_set(demonstrations), config, output_path=args.out, resume=args.resume)
     best = next((record for record in result.history if record["epoch"] == result.best_epoch), {})
     print(json.dumps({"out": str(result.output_path), "best_epoch": result.best_epoch,
                       "stopped_early": result.stopped_early, "interrupted": result.interrupted,
                       "best": best}, default=float))
     return 130 if result.interrupted else 0
+
+
+def _training_device(requested: str) -> str:
+    import torch
+
+    if requested == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if requested == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda: torch sees no CUDA device; use --device cpu or auto")
+    return requested
 
 
 def _controller_config(name: str, checkpoint: str):
@@ -224,6 +237,7 @@ def cmd_checkpoint_info(args) -> int:
             f"val_ordinal_pm{metrics.get('ordinal_tolerance', 1)}": f"{best.get('val_ordinal_accuracy', float('nan')):.3f}",
             "val_exact": f"{best.get('val_exact_accuracy', float('nan')):.3f}",
             "training_s": f"{metrics.get('training_seconds', float('nan')):.0f}",
+            "device": training.get("train_config", {}).get("device", "?"),
         })
     _print_table(rows, list(rows[0]))
     if args.confusion:
@@ -288,6 +302,8 @@ def cmd_report(args) -> int:
     from ditch_drake.evaluation.report import write_report
 
     command = "ditch-drake report " + " ".join(args.results) + f" --out {args.out} --figures {args.figures}"
+    if args.title != "Results":
+        command += f" --title {shlex.quote(args.title)}"
     print(write_report(args.results, args.out, args.figures, title=args.title, command=command))
     return 0
 
@@ -359,6 +375,9 @@ def build_parser() -> argparse.ArgumentParser:
     collect.add_argument("--seed", type=int, default=0)
     collect.add_argument("--out", required=True, help="directory of demo_NNN.npz files")
     collect.add_argument("--workers", type=int, default=0, help="processes (0: one per core)")
+    collect.add_argument("--learner", default=None, metavar="CHECKPOINT",
+                         help="DAgger: this policy drives, the expert labels; every rollout is kept "
+                              "(--demos rollouts, one per seed)")
     collect.set_defaults(run=cmd_collect)
 
     teleop = commands.add_parser("teleop", help="record your own demonstration: steer in meshcat")
@@ -438,6 +457,9 @@ def build_parser() -> argparse.ArgumentParser:
     training.add_argument("--synthetic-fraction", type=float, default=defaults.smote.max_synthetic_fraction,
                           help="at most this many SMOTE samples per real training sample")
     training.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    training.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                          help="auto: CUDA when torch sees a GPU, else the CPU (a CUDA run is not bitwise "
+                               "reproducible on the CPU)")
     training.add_argument("--resume", action="store_true", help="continue an interrupted run")
     training.set_defaults(run=cmd_train)
 

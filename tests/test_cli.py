@@ -37,6 +37,16 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     assert figures["plant_narrow_rtf"] > 0
 
 
+def test_every_shipped_model_loads_and_says_where_it_was_trained(capsys):
+    from ditch_drake.learning.checkpoint import SHIPPED_MODELS
+
+    assert main(["checkpoint-info", *SHIPPED_MODELS]) == 0
+    header, *rows = capsys.readouterr().out.splitlines()
+    assert header.split()[-1] == "device" and len(rows) == len(SHIPPED_MODELS)
+    # The paper-method models were trained on this project's reference CPU (their time is a bench figure).
+    assert all(row.split()[-1] == "cpu" for row in rows if row.split()[0].endswith("_bc40"))
+
+
 @pytest.mark.slow
 def test_calibration_passes_in_every_environment():
     """The full calibration benchmark (10 seeded trials each): the physics shows the paper's phenomenon."""

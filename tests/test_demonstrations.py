@@ -180,3 +180,52 @@ def test_a_person_drives_through_meshcat_and_is_recorded():
     assert len(log) == 11
     # No key pressed: straight ahead at the paper's speed.
     assert all(step.label == actions.STRAIGHT_LABEL for step in log.steps)
+
+
+def test_in_a_dagger_round_the_learner_drives_and_the_expert_labels():
+    from ditch_drake.demos.collect import LABELLER_VARIATION
+
+    rig = MakeDemonstrationDiagram(SceneConfig(environment="wide", task=1), 0, variation=LABELLER_VARIATION,
+                                   learner="wide")
+    simulator = Simulator(rig.diagram)
+    context = simulator.get_mutable_context()
+    rig.diagram.SetRandomContext(context, RandomGenerator(0))
+    simulator.AdvanceTo(2.05)
+    policy = rig.diagram.GetSubsystemByName("learned_policy")
+    driven = rig.scene.drive.GetInputPort("command").Eval(rig.scene.drive.GetMyContextFromRoot(context))
+    policy_command = policy.GetOutputPort("command").Eval(policy.GetMyContextFromRoot(context))
+    assert np.array_equal(driven, policy_command)
+    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(context))
+    assert len(log) == 21
+    # The labels are the expert's quantized answers, not the commands that were driven.
+    assert all(step.label == actions.quantize(step.raw_command) for step in log.steps)
+
+
+def test_a_rollover_loses_its_last_second_and_a_success_nothing():
+    from ditch_drake.demos.collect import trim_rollover
+
+    steps = 30
+    arrays = {"label": np.arange(steps) % actions.NUM_LABELS, "time_s": np.arange(steps) * 0.1}
+    rolled = Demonstration(arrays, {"outcome": {"status": "rolled_over"}})
+    trimmed = trim_rollover(rolled)
+    assert len(trimmed) == 20 and trimmed.metadata["trimmed_steps"] == 10
+    assert np.array_equal(trimmed.arrays["time_s"], arrays["time_s"][:20])
+    reached = Demonstration(arrays, {"outcome": {"status": "reached_goal"}})
+    assert trim_rollover(reached) is reached
+
+
+def test_a_dagger_collection_keeps_every_rollout_with_expert_labels(tmp_path):
+    from ditch_drake.demos.collect import LABELLER_VARIATION
+
+    with pytest.raises(FileNotFoundError, match="no_such_model"):
+        collect(CollectConfig(environment="narrow", out=str(tmp_path / "bad"), learner="no_such_model.pt"))
+    assert not (tmp_path / "bad").exists()
+    config = CollectConfig(environment="narrow", demos=1, seed=3, out=str(tmp_path), workers=1, learner="narrow",
+                           variation=LABELLER_VARIATION)
+    report = collect(config, progress=False)
+    assert report["recorded"] == 1 and sum(report["recorded_by_status"].values()) == 1
+    (demonstration,) = load_dataset(tmp_path)
+    assert demonstration.metadata["learner"] == "narrow" and demonstration.metadata["seed"] == 3
+    assert demonstration.metadata["outcome"]["status"] in report["recorded_by_status"]
+    assert np.array_equal(demonstration.arrays["label"],
+                          [actions.quantize(command) for command in demonstration.arrays["raw_command"]])

@@ -98,8 +98,12 @@ def test_the_report_renders_from_a_small_fixture(tmp_path):
     (results / "scalability.jsonl").write_text("".join(json.dumps(r) + "\n" for r in scal))
     (results / "baseline.jsonl").write_text(
         "".join(json.dumps(r) + "\n" for r in rows("dwa", "", "wide", [rolled, rolled])))
+    (results / "dagger_round1.jsonl").write_text(
+        "".join(json.dumps(r) + "\n" for r in rows("learned", "m/wide_dagger.pt", "wide", [ok, ok])))
     page = write_report([results], tmp_path / "results.md", tmp_path / "img", command="ditch-drake report results")
     text = page.read_text()
+    # A file that is none of the paper's studies gets its own table, under its name.
+    assert "## dagger_round1" in text and "| wide_dagger | wide | 2/2 | 100% |" in text
     assert "| wide_10 | wide | 1/2 | 50% | 9%-91% | 0 |" in text
     assert "rolled_over@up_wall 2" in text
     assert "| every learned model beats move_base in its own environment | wide 100% vs 0% | yes |" in text

@@ -1,5 +1,7 @@
 """The learning package (network, data, SMOTE, metrics, training, checkpoints) and LearnedPolicy."""
 
+import os
+
 import numpy as np
 import pytest
 import torch
@@ -236,6 +238,9 @@ def test_checkpoint_round_trip(tmp_path):
     checkpoint = _checkpoint()
     path = save_checkpoint(checkpoint, tmp_path / "sub" / "policy.pt")
     assert [p.name for p in path.parent.iterdir()] == ["policy.pt"]  # No temporary file left.
+    umask = os.umask(0)
+    os.umask(umask)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask  # Readable as any other file, not 0600.
     loaded = load_checkpoint(path)
     assert loaded.model_config == checkpoint.model_config and loaded.path == path
     assert _same_weights(loaded.state_dict, checkpoint.state_dict)

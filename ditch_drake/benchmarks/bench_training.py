@@ -158,16 +158,17 @@ def measure_training_throughput(batches: int = 6, warmup: int = 2) -> dict:
 
 
 def shipped_model_figures() -> dict:
-    """What the shipped checkpoints recorded when `ditch-drake train` made them: wall time of
-    training (SMOTE and every epoch, s) and validation accuracies."""
-    from ditch_drake.learning.checkpoint import SHIPPED_MODELS, SHIPPED_MODELS_DIR, load_checkpoint
+    """What the shipped 40-demonstration checkpoints (`<env>_bc40`, trained on this machine's
+    CPU) recorded when `ditch-drake train` made them: wall time of training (SMOTE and every
+    epoch, s)."""
+    from ditch_drake.learning.checkpoint import ENVIRONMENT_MODELS, SHIPPED_MODELS_DIR, load_checkpoint
 
     figures = {}
-    for name in SHIPPED_MODELS:
-        path = SHIPPED_MODELS_DIR / f"{name}.pt"
+    for env in ENVIRONMENT_MODELS:
+        path = SHIPPED_MODELS_DIR / f"{env}_bc40.pt"
         if path.exists():
             metrics = load_checkpoint(path).metrics
-            figures[f"train_{name}_40_demos_s"] = float(metrics.get("training_seconds", float("nan")))
+            figures[f"train_{env}_40_demos_s"] = float(metrics.get("training_seconds", float("nan")))
     return figures
 
 

@@ -24,13 +24,24 @@ from ditch_drake.demos.dataset import (
 )
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
+from ditch_drake.diagrams.rollout import AddLearnedPolicy
 from ditch_drake.environments import ConfigError, get_environment
+from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
 from ditch_drake.systems.demo_recorder import DemoRecorder
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
 from ditch_drake.systems.teleop import ActionQuantizer
 
 ATTEMPTS_PER_DEMO = 5
+
+LABELLER_VARIATION = ExpertVariation(wall_angle_deg=(20.0, 20.0), climb_angle_deg=(35.0, 35.0),
+                                     approach_margin_m=(2.5, 2.5), reaction_delay_steps=0, steering_noise_radps=0.0)
+"""The expert as a DAgger labeller: the middle of the demonstrators' style, with no delay
+and no noise, so that a label is the expert's answer to exactly the recorded observation."""
+
+ROLLOVER_TRIM_S = 1.0
+"""Dropped from the end of a learner's rollout that rolled over: by then the chassis is
+past saving, and no command is the right answer to those observations."""
 
 
 @dataclass
@@ -47,6 +58,11 @@ class CollectConfig:
         workers: processes (0: one per core).
         observation: perception settings.
         variation: the expert's per-demonstration variation.
+        learner: None records the expert's demonstrations (successes only). A checkpoint
+            (a shipped model's name or a path) makes this a DAgger round: the learned
+            policy drives, the expert only labels what it sees (use `LABELLER_VARIATION`),
+            and every rollout is kept, one per seed, whatever its outcome (a rollover's
+            last `ROLLOVER_TRIM_S` dropped).
     """
 
     environment: str = "wide"
@@ -56,6 +72,7 @@ class CollectConfig:
     workers: int = 0
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     variation: ExpertVariation = field(default_factory=ExpertVariation)
+    learner: str | None = None
 
 
 @dataclass
@@ -72,9 +89,14 @@ class DemonstrationRig:
 def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
                              observation_config: ObservationConfig | None = None,
                              variation: ExpertVariation | None = None, meshcat: Meshcat | None = None,
-                             person_drives: bool = False) -> DemonstrationRig:
+                             person_drives: bool = False, learner: str | None = None) -> DemonstrationRig:
     """The expert (or, with `person_drives`, a person through `meshcat`) drives through
-    `ActionQuantizer`, whose label the recorder stores."""
+    `ActionQuantizer`, whose label the recorder stores.
+
+    With `learner` (a checkpoint name or path) the learned policy drives instead, on the
+    same observation blocks the recorder reads, and the expert's quantized command is only
+    recorded: the labels of a DAgger round.
+    """
     if person_drives and meshcat is None:
         raise ConfigError("a person drives through meshcat: pass a Meshcat")
     builder = DiagramBuilder()
@@ -89,7 +111,11 @@ def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
         builder.Connect(scene.plant.get_body_poses_output_port(), source.GetInputPort("body_poses"))
     quantizer = builder.AddNamedSystem("action_quantizer", ActionQuantizer())
     builder.Connect(source.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
-    builder.Connect(quantizer.GetOutputPort("command"), scene.drive.GetInputPort("command"))
+    if learner is None:
+        builder.Connect(quantizer.GetOutputPort("command"), scene.drive.GetInputPort("command"))
+    else:
+        policy = AddLearnedPolicy(builder, observation, learner)
+        builder.Connect(policy.GetOutputPort("command"), scene.drive.GetInputPort("command"))
     recorder = builder.AddNamedSystem("demo_recorder", DemoRecorder(chassis.index()))
     ConnectObservation(builder, observation, recorder)
     builder.Connect(quantizer.GetOutputPort("label"), recorder.GetInputPort("label"))
@@ -126,16 +152,18 @@ def _run_and_record(rig: DemonstrationRig, environment: str, task: int, seed: in
 def record_demonstration(environment: str, task: int, seed: int,
                          observation_config: ObservationConfig | None = None,
                          variation: ExpertVariation | None = None,
-                         rig: DemonstrationRig | None = None) -> Demonstration:
+                         rig: DemonstrationRig | None = None, learner: str | None = None) -> Demonstration:
     """Runs one expert episode; returns the demonstration, successful or not (see metadata).
 
     `rig` reuses a diagram built for this environment and task (its expert's reaction
-    delay must match the seed's style); None builds one.
+    delay must match the seed's style, its learner `learner`); None builds one. With
+    `learner` the learned policy drives and the expert labels (`MakeDemonstrationDiagram`).
     """
     if rig is None:
         rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task), seed,
-                                       observation_config, variation)
-    return _run_and_record(rig, environment, task, seed, expert_style=draw_expert_style(seed, variation))
+                                       observation_config, variation, learner=learner)
+    driver = {} if learner is None else {"driver": "learner (DAgger; the expert labels)", "learner": learner}
+    return _run_and_record(rig, environment, task, seed, expert_style=draw_expert_style(seed, variation), **driver)
 
 
 def record_person_demonstration(environment: str, task: int, meshcat: Meshcat, seed: int = 0,
@@ -166,18 +194,37 @@ _WORKER_RIGS: dict[tuple, DemonstrationRig] = {}
 
 
 def _worker_rig(config: CollectConfig, task: int, reaction_delay_steps: int) -> DemonstrationRig:
-    key = (config.environment, task, reaction_delay_steps, repr(config.observation), repr(config.variation))
+    key = (config.environment, task, reaction_delay_steps, repr(config.observation), repr(config.variation),
+           config.learner)
     if key not in _WORKER_RIGS:
         # Any seed with this delay builds the same diagram; each demonstration sets its own style.
         style_seed = next(seed for seed in range(10_000)
                           if draw_expert_style(seed, config.variation).reaction_delay_steps == reaction_delay_steps)
         _WORKER_RIGS[key] = MakeDemonstrationDiagram(SceneConfig(environment=config.environment, task=task),
-                                                     style_seed, config.observation, config.variation)
+                                                     style_seed, config.observation, config.variation,
+                                                     learner=config.learner)
     return _WORKER_RIGS[key]
+
+
+def trim_rollover(demonstration: Demonstration) -> Demonstration:
+    """The demonstration without its last `ROLLOVER_TRIM_S` if it ended in a rollover."""
+    if demonstration.metadata["outcome"]["status"] != "rolled_over":
+        return demonstration
+    keep = max(1, len(demonstration) - round(ROLLOVER_TRIM_S / robot.CONTROL_PERIOD_S))
+    arrays = {name: values[:keep] for name, values in demonstration.arrays.items()}
+    return Demonstration(arrays, {**demonstration.metadata, "trimmed_steps": len(demonstration) - keep})
 
 
 def _collect_slot(config: CollectConfig, index: int) -> dict:
     tasks = len(get_environment(config.environment).tasks)
+    if config.learner is not None:
+        seed = config.seed + index
+        rig = _worker_rig(config, index % tasks, draw_expert_style(seed, config.variation).reaction_delay_steps)
+        demonstration = trim_rollover(record_demonstration(config.environment, index % tasks, seed, config.observation,
+                                                           config.variation, rig, config.learner))
+        save_demonstration(demo_path(config.out, index), demonstration)
+        return {"index": index, "seed": seed, "steps": len(demonstration), "failures": [],
+                "status": demonstration.metadata["outcome"]["status"]}
     failures = []
     for attempt in range(ATTEMPTS_PER_DEMO):
         seed = config.seed + index + 1000 * attempt
@@ -187,9 +234,10 @@ def _collect_slot(config: CollectConfig, index: int) -> dict:
         status = demonstration.metadata["outcome"]["status"]
         if status == "reached_goal":
             save_demonstration(demo_path(config.out, index), demonstration)
-            return {"index": index, "seed": seed, "steps": len(demonstration), "failures": failures}
+            return {"index": index, "seed": seed, "steps": len(demonstration), "failures": failures,
+                    "status": status}
         failures.append({"seed": seed, "status": status})
-    return {"index": index, "seed": None, "steps": 0, "failures": failures}
+    return {"index": index, "seed": None, "steps": 0, "failures": failures, "status": None}
 
 
 def _existing_demo(path: Path, set_aside: list[str]) -> bool:
@@ -226,6 +274,8 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     out = Path(config.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output path {out} is a file; expected a directory of demonstrations")
+    if config.learner is not None:
+        load_checkpoint(resolve_checkpoint_path(config.learner))  # A bad checkpoint fails here, not in a worker.
     out.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
     set_aside: list[str] = []
@@ -239,7 +289,10 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
                    disable=not progress)
         for future in bar:
             results.append(future.result())
-            bar.set_postfix(failed=sum(len(r["failures"]) for r in results))
+            if config.learner is None:
+                bar.set_postfix(failed=sum(len(r["failures"]) for r in results))
+            else:
+                bar.set_postfix(learner_reached_goal=sum(r["status"] == "reached_goal" for r in results))
     failures = [failure for result in results for failure in result["failures"]]
     wall_s = time.perf_counter() - start
     recorded = sum(result["seed"] is not None for result in results)
@@ -254,6 +307,8 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
         "discarded_by_status": {status: sum(f["status"] == status for f in failures)
                                 for status in sorted({f["status"] for f in failures})},
         "steps_recorded": sum(result["steps"] for result in results),
+        "recorded_by_status": {status: sum(r["status"] == status for r in results)
+                               for status in sorted({r["status"] for r in results if r["status"]})},
         "wall_s": wall_s,
         "demos_per_minute": 60.0 * recorded / wall_s if recorded else 0.0,
     }

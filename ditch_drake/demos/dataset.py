@@ -25,12 +25,15 @@ import tempfile
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ditch_drake import __version__, actions
 from ditch_drake.observation_spec import IMAGE_SHAPE, STACK_DEPTH
-from ditch_drake.systems.demo_recorder import DemoLog
+
+if TYPE_CHECKING:  # Reading and training need no Drake: a GPU box without pydrake can train.
+    from ditch_drake.systems.demo_recorder import DemoLog
 
 SCHEMA_VERSION = 1
 FILE_PATTERN = "demo_*.npz"
@@ -62,7 +65,7 @@ class Demonstration:
         return len(self.arrays["label"])
 
 
-def log_to_arrays(log: DemoLog) -> dict[str, np.ndarray]:
+def log_to_arrays(log: "DemoLog") -> dict[str, np.ndarray]:
     """A recorder's log as the file's arrays."""
     steps = log.steps
     if not steps:

@@ -12,7 +12,7 @@ from pydrake.systems.primitives import ConstantVectorSource
 
 from ditch_drake import schedule
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
-from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, ObservationConfig
+from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
 from ditch_drake.environments import ConfigError
 from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint_path
 from ditch_drake.systems.dwa import DwaConfig, DwaController
@@ -104,17 +104,7 @@ def AddController(builder: DiagramBuilder, scene: DitchScene, config: Controller
         builder.Connect(controller.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
         command = quantizer.GetOutputPort("command")
     elif isinstance(config, LearnedPolicyConfig):
-        checkpoint = load_checkpoint(resolve_checkpoint_path(config.checkpoint))
-        observation = AddObservation(builder, scene, config.observation)
-        controller = builder.AddNamedSystem(
-            "learned_policy", LearnedPolicy(checkpoint, offset_s=schedule.CONTROLLER_OFFSET_S))
-        for name, port in observation.ports.items():
-            expected = controller.GetInputPort(name).size()
-            if port.size() != expected:
-                raise CheckpointError(
-                    f"checkpoint {config.checkpoint!r} expects {name} of {expected} values; the observation "
-                    f"blocks give {port.size()} (a model trained on another input shape)")
-        ConnectObservation(builder, observation, controller)
+        controller = AddLearnedPolicy(builder, AddObservation(builder, scene, config.observation), config.checkpoint)
         command = controller.GetOutputPort("command")
     elif isinstance(config, DwaBaselineConfig):
         chassis = scene.plant.GetBodyByName("chassis", scene.husky)
@@ -130,6 +120,25 @@ def AddController(builder: DiagramBuilder, scene: DitchScene, config: Controller
                           f"{[kind.__name__ for kind in typing.get_args(ControllerConfig)]}")
     builder.Connect(command, scene.drive.GetInputPort("command"))
     return controller
+
+
+def AddLearnedPolicy(builder: DiagramBuilder, observation: Observation, checkpoint: str) -> LearnedPolicy:
+    """Adds the behavioural clone of `checkpoint` (a shipped name or a path) fed by `observation`.
+
+    Raises:
+        CheckpointError: the checkpoint expects other input sizes than the blocks give.
+    """
+    policy = builder.AddNamedSystem(
+        "learned_policy", LearnedPolicy(load_checkpoint(resolve_checkpoint_path(checkpoint)),
+                                        offset_s=schedule.CONTROLLER_OFFSET_S))
+    for name, port in observation.ports.items():
+        expected = policy.GetInputPort(name).size()
+        if port.size() != expected:
+            raise CheckpointError(
+                f"checkpoint {checkpoint!r} expects {name} of {expected} values; the observation "
+                f"blocks give {port.size()} (a model trained on another input shape)")
+    ConnectObservation(builder, observation, policy)
+    return policy
 
 
 def MakeRolloutDiagram(config: RolloutConfig, meshcat: Meshcat | None = None) -> tuple[Diagram, DitchScene]:

@@ -13,8 +13,9 @@
 - the paper's stated findings (SPEC "Experiments") beside ours, each marked as agreeing or
   not by a rule computed from the numbers, never by hand.
 
-A study is recognized from a results file's name (`scalability.jsonl`, ...); records of
-other files are reported as "other" in the tables only.
+A study is recognized from a results file's name (`scalability.jsonl`, ...); any other
+file gets a table of its own, under its name, and no figure. The findings table is
+written when at least one of the paper's studies is present.
 """
 
 import math
@@ -49,13 +50,12 @@ def model_environments(label: str) -> list[str]:
 
 
 def load_by_study(results: list[str | os.PathLike]) -> dict[str, list[RolloutRecord]]:
-    """Records per study (by file name), from result files or folders of them."""
+    """Records per results file name (a study's, or any other), from files or folders of them."""
     by_study: dict[str, list[RolloutRecord]] = defaultdict(list)
     for entry in results:
         entry = Path(entry)
         for file in sorted(entry.glob("*.jsonl")) if entry.is_dir() else [entry]:
-            study = file.stem if file.stem in STUDIES else "other"
-            by_study[study] += read_records(file)[0]
+            by_study[file.stem] += read_records(file)[0]
     return dict(by_study)
 
 
@@ -181,9 +181,7 @@ def write_report(results: list[str | os.PathLike], out: str | os.PathLike, figur
     if command:
         lines += ["Made by", "", f"    {command}", ""]
     summaries: dict[str, dict] = {}
-    for study in (*STUDIES, "other"):
-        if study not in by_study:
-            continue
+    for study in [*(study for study in STUDIES if study in by_study), *sorted(set(by_study) - set(STUDIES))]:
         table, summaries[study] = _table(by_study[study])
         lines += [f"## {study}", "", *table, ""]
     scalability, generalization = summaries.get("scalability", {}), summaries.get("generalization", {})
@@ -224,7 +222,9 @@ def write_report(results: list[str | os.PathLike], out: str | os.PathLike, figur
         figures.append(path)
     if figures:
         lines += ["## Figures", ""] + [f"![{p.stem}]({os.path.relpath(p, out.parent)})" for p in figures] + [""]
-    lines += ["## The paper's findings and ours", "", *_findings(scalability, generalization, baseline, amalgam), ""]
+    if any(study in by_study for study in STUDIES):
+        lines += ["## The paper's findings and ours", "",
+                  *_findings(scalability, generalization, baseline, amalgam), ""]
     out.parent.mkdir(parents=True, exist_ok=True)
     temporary = out.with_name(f".{out.name}.tmp")
     temporary.write_text("\n".join(lines))
