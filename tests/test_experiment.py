@@ -104,6 +104,8 @@ def test_the_report_renders_from_a_small_fixture(tmp_path):
     text = page.read_text()
     # A file that is none of the paper's studies gets its own table, under its name.
     assert "## dagger_round1" in text and "| wide_dagger | wide | 2/2 | 100% |" in text
+    # The models table says where each checkpoint came from, or that the file is no longer there.
+    assert "| wide_10 | m/wide_10.pt |  | (file gone or changed since) |" in text
     assert "| wide_10 | wide | 1/2 | 50% | 9%-91% | 0 |" in text
     assert "rolled_over@up_wall 2" in text
     assert "| every learned model beats move_base in its own environment | wide 100% vs 0% | yes |" in text

@@ -74,6 +74,31 @@ def _table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str, str
     return lines, summaries
 
 
+def _models_table(records: list[RolloutRecord]) -> list[str]:
+    """Where each evaluated checkpoint came from, read from the file when it is still there
+    (and still the file the rollouts used: same hash prefix)."""
+    from ditch_drake.evaluation.batch import checkpoint_digest
+    from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint_path
+
+    lines = ["| model | checkpoint | sha256 | demonstrations (train/val) | epochs (best) | device | training_s |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    used = sorted({(model_label(r), r.checkpoint, r.checkpoint_sha256) for r in records if r.checkpoint})
+    for label, path, digest in used:
+        row = ["(file gone or changed since)"] + [""] * 3
+        try:
+            if checkpoint_digest(path) == digest:
+                checkpoint = load_checkpoint(resolve_checkpoint_path(path))
+                training, metrics = checkpoint.training, checkpoint.metrics
+                row = [f"{len(training.get('train_demo_ids', []))}/{len(training.get('val_demo_ids', []))}",
+                       f"{metrics.get('epochs_run')} ({metrics.get('best_epoch')})",
+                       training.get("train_config", {}).get("device", "?"),
+                       f"{metrics.get('training_seconds', float('nan')):.0f}"]
+        except (CheckpointError, OSError):
+            pass
+        lines.append(f"| {label} | {path} | {digest} | " + " | ".join(row) + " |")
+    return lines if used else []
+
+
 def _pct(value: float) -> str:
     return "n/a" if math.isnan(value) else f"{100 * value:.0f}%"
 
@@ -220,6 +245,10 @@ def write_report(results: list[str | os.PathLike], out: str | os.PathLike, figur
         path = figures_dir / "fig5_amalgam.png"
         _save(fig, path)
         figures.append(path)
+    models = _models_table([record for records in by_study.values() for record in records])
+    if models:
+        lines += ["## Models", "", "What each evaluated checkpoint was trained on, and where (read from the file).", "",
+                  *models, ""]
     if figures:
         lines += ["## Figures", ""] + [f"![{p.stem}]({os.path.relpath(p, out.parent)})" for p in figures] + [""]
     if any(study in by_study for study in STUDIES):
