@@ -156,6 +156,7 @@ def cmd_train(args) -> int:
     from ditch_drake.demos.dataset import load_dataset, to_array_set
     from ditch_drake.learning.train import TrainConfig, train
 
+    device = _training_device(args.device)  # Before minutes of loading: a bad device fails at once.
     demonstrations = []
     for directory in args.data:  # Several directories train the amalgam model.
         demonstrations += load_dataset(directory, max_demos=args.max_demos)
@@ -164,7 +165,7 @@ def cmd_train(args) -> int:
         epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
         max_batches_per_epoch=args.batches_per_epoch,
         smote=replace(defaults.smote, max_synthetic_fraction=args.synthetic_fraction),
-        num_threads=args.threads, device=_training_device(args.device))
+        num_threads=args.threads, device=device)
     result = train(to_array_set(demonstrations), config, output_path=args.out, resume=args.resume)
     best = next((record for record in result.history if record["epoch"] == result.best_epoch), {})
     print(json.dumps({"out": str(result.output_path), "best_epoch": result.best_epoch,
@@ -176,8 +177,10 @@ def cmd_train(args) -> int:
 def _training_device(requested: str) -> str:
     import torch
 
+    from ditch_drake.learning.train import available_device
+
     if requested == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
+        return available_device()
     if requested == "cuda" and not torch.cuda.is_available():
         raise ConfigError("--device cuda: torch sees no CUDA device; use --device cpu or auto")
     return requested
@@ -347,7 +350,9 @@ def build_parser() -> argparse.ArgumentParser:
                                              "through a ditch; outcome table and an HTML recording")
     add_env(demo)
     demo.add_argument("--task", type=int, default=1)
-    demo.add_argument("--seed", type=int, default=0)
+    # Seed 0 of this task is the one evaluation rollout (of 30) in which the shipped Wide policy
+    # rolls over (docs/learning.md); the main job shows a typical crossing, and says so in the README.
+    demo.add_argument("--seed", type=int, default=1)
     demo.add_argument("--checkpoint", default=None, help="the learned policy (default: the environment's shipped model)")
     demo.add_argument("--html", default="results/demo.html", help="where the recording goes")
     demo.set_defaults(run=cmd_demo)

@@ -37,6 +37,16 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     assert figures["plant_narrow_rtf"] > 0
 
 
+def test_training_on_cuda_without_a_gpu_is_a_clear_error(capsys, tmp_path):
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("this machine has CUDA")
+    assert main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "m.pt"), "--device", "cuda"]) == 2
+    assert "torch sees no CUDA device" in capsys.readouterr().err
+    assert not (tmp_path / "m.pt").exists()
+
+
 def test_every_shipped_model_loads_and_says_where_it_was_trained(capsys):
     from ditch_drake.learning.checkpoint import SHIPPED_MODELS
 

@@ -254,7 +254,7 @@ def _collect(config: ExperimentConfig, models: list[ModelSpec], progress: bool) 
 def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
     from ditch_drake.demos.dataset import load_dataset, to_array_set
     from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
-    from ditch_drake.learning.train import TrainConfig, resume_path, train
+    from ditch_drake.learning.train import TrainConfig, available_device, resume_path, train
 
     out = model_path(config, model)
     if out.exists() and not resume_path(out).exists():
@@ -271,6 +271,7 @@ def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
     settings = config.training
     defaults = TrainConfig()
     train_config = TrainConfig(epochs=settings.epochs, patience=settings.patience, seed=config.seed,
+                               device=available_device(),
                                max_batches_per_epoch=settings.batches_per_epoch,
                                smote=replace(defaults.smote, max_synthetic_fraction=settings.synthetic_fraction))
     out.parent.mkdir(parents=True, exist_ok=True)

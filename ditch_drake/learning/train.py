@@ -336,6 +336,11 @@ def train(
         torch.use_deterministic_algorithms(previous_deterministic, warn_only=previous_warn_only)
 
 
+def available_device() -> str:
+    """"cuda" when torch sees a GPU, else "cpu": what `ditch-drake train` and experiments use by default."""
+    return "cuda" if torch.cuda.is_available() else "cpu"
+
+
 def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples, summary) -> TrainResult:
     torch.manual_seed(_torch_seed(config.seed, 0))
     model = FourInputClassifier(config.model)
