@@ -225,27 +225,12 @@ def cmd_checkpoint_info(args) -> int:
     """What each checkpoint was trained on and how it validated."""
     from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
 
-    rows = []
-    for name in args.checkpoints:
-        checkpoint = load_checkpoint(resolve_checkpoint_path(name))
-        training, metrics = checkpoint.training, checkpoint.metrics
-        best = metrics.get("best", {})
-        rows.append({
-            "checkpoint": name,
-            "demos_train/val": f"{len(training.get('train_demo_ids', []))}/{len(training.get('val_demo_ids', []))}",
-            "samples_real/smote/val": f"{training.get('num_train_samples')}/{training.get('num_synthetic_samples')}/"
-                                      f"{training.get('num_val_samples')}",
-            "epochs": metrics.get("epochs_run"),
-            "best_epoch": metrics.get("best_epoch"),
-            f"val_ordinal_pm{metrics.get('ordinal_tolerance', 1)}": f"{best.get('val_ordinal_accuracy', float('nan')):.3f}",
-            "val_exact": f"{best.get('val_exact_accuracy', float('nan')):.3f}",
-            "training_s": f"{metrics.get('training_seconds', float('nan')):.0f}",
-            "device": training.get("train_config", {}).get("device", "?"),
-        })
+    checkpoints = {name: load_checkpoint(resolve_checkpoint_path(name)) for name in args.checkpoints}
+    rows = [{"checkpoint": name, **checkpoint.summary()} for name, checkpoint in checkpoints.items()]
     _print_table(rows, list(rows[0]))
     if args.confusion:
-        for name in args.checkpoints:
-            matrix = load_checkpoint(resolve_checkpoint_path(name)).metrics.get("val_confusion_matrix") or []
+        for name, checkpoint in checkpoints.items():
+            matrix = checkpoint.metrics.get("val_confusion_matrix") or []
             print(f"\n{name}: validation confusion matrix (row: demonstrated label, column: predicted)")
             _print_table([{"label": str(label), **{str(j): str(v) for j, v in enumerate(row)}}
                           for label, row in enumerate(matrix)], ["label", *map(str, range(len(matrix)))])

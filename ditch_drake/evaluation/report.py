@@ -87,12 +87,9 @@ def _models_table(records: list[RolloutRecord]) -> list[str]:
         row = ["(file gone or changed since)"] + [""] * 3
         try:
             if checkpoint_digest(path) == digest:
-                checkpoint = load_checkpoint(resolve_checkpoint_path(path))
-                training, metrics = checkpoint.training, checkpoint.metrics
-                row = [f"{len(training.get('train_demo_ids', []))}/{len(training.get('val_demo_ids', []))}",
-                       f"{metrics.get('epochs_run')} ({metrics.get('best_epoch')})",
-                       training.get("train_config", {}).get("device", "?"),
-                       f"{metrics.get('training_seconds', float('nan')):.0f}"]
+                summary = load_checkpoint(resolve_checkpoint_path(path)).summary()
+                row = [summary["demos_train/val"], f"{summary['epochs']} ({summary['best_epoch']})",
+                       summary["device"], summary["training_s"]]
         except (CheckpointError, OSError):
             pass
         lines.append(f"| {label} | {path} | {digest} | " + " | ".join(row) + " |")

@@ -72,6 +72,23 @@ class PolicyCheckpoint:
     code_version: str = ditch_drake.__version__
     path: Path | None = None
 
+    def summary(self) -> dict[str, str]:
+        """What it was trained on and how it validated, as printable columns (`checkpoint-info`,
+        the results page's Models table)."""
+        training, metrics = self.training, self.metrics
+        best = metrics.get("best", {})
+        return {
+            "demos_train/val": f"{len(training.get('train_demo_ids', []))}/{len(training.get('val_demo_ids', []))}",
+            "samples_real/smote/val": f"{training.get('num_train_samples')}/{training.get('num_synthetic_samples')}/"
+                                      f"{training.get('num_val_samples')}",
+            "epochs": str(metrics.get("epochs_run")),
+            "best_epoch": str(metrics.get("best_epoch")),
+            f"val_ordinal_pm{metrics.get('ordinal_tolerance', 1)}": f"{best.get('val_ordinal_accuracy', float('nan')):.3f}",
+            "val_exact": f"{best.get('val_exact_accuracy', float('nan')):.3f}",
+            "training_s": f"{metrics.get('training_seconds', float('nan')):.0f}",
+            "device": training.get("train_config", {}).get("device", "?"),
+        }
+
     def build_model(self) -> FourInputClassifier:
         """A fresh network with these weights and input stats, in eval mode, on the CPU."""
         model = FourInputClassifier(self.model_config)
