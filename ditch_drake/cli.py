@@ -154,9 +154,10 @@ def cmd_dataset_info(args) -> int:
 
 def cmd_train(args) -> int:
     from ditch_drake.demos.dataset import load_dataset, to_array_set
-    from ditch_drake.learning.train import TrainConfig, train
+    from ditch_drake.learning.train import TrainConfig, available_precision, train
 
     device = _training_device(args.device)  # Before minutes of loading: a bad device fails at once.
+    precision = available_precision(device) if args.precision == "auto" else args.precision
     demonstrations = []
     for directory in args.data:  # Several directories train the amalgam model.
         demonstrations += load_dataset(directory, max_demos=args.max_demos)
@@ -165,7 +166,7 @@ def cmd_train(args) -> int:
         epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
         max_batches_per_epoch=args.batches_per_epoch,
         smote=replace(defaults.smote, max_synthetic_fraction=args.synthetic_fraction),
-        num_threads=args.threads, device=device)
+        num_threads=args.threads, device=device, precision=precision)
     result = train(to_array_set(demonstrations), config, output_path=args.out, resume=args.resume)
     best = next((record for record in result.history if record["epoch"] == result.best_epoch), {})
     print(json.dumps({"out": str(result.output_path), "best_epoch": result.best_epoch,
@@ -450,6 +451,9 @@ def build_parser() -> argparse.ArgumentParser:
     training.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                           help="auto: CUDA when torch sees a GPU, else the CPU (a CUDA run is not bitwise "
                                "reproducible on the CPU)")
+    training.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto",
+                          help="bf16: training steps under bfloat16 autocast; auto: bf16 on a CPU with native "
+                               "bf16 (AVX512-BF16 or AMX), else fp32")
     training.add_argument("--resume", action="store_true", help="continue an interrupted run")
     training.set_defaults(run=cmd_train)
 

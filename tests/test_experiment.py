@@ -67,6 +67,10 @@ def test_experiment_files_with_a_typo_or_an_unknown_environment_are_refused(tmp_
         load_experiment(unknown)
     with pytest.raises(ConfigError, match="cannot read"):
         load_experiment(tmp_path / "missing.yaml")
+    fp16 = tmp_path / "fp16.yaml"
+    fp16.write_text(tiny_experiment.read_text().replace("synthetic_fraction: 0.5}", "synthetic_fraction: 0.5, precision: fp16}"))
+    with pytest.raises(ConfigError, match="training.precision='fp16'"):
+        load_experiment(fp16)
 
 
 def test_the_paper_protocol_plans_13_models_and_29_evaluations():

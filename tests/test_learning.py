@@ -24,7 +24,7 @@ from ditch_drake.learning.data import (
 )
 from ditch_drake.learning.metrics import confusion_matrix, exact_accuracy, ordinal_accuracy
 from ditch_drake.learning.model import FourInputClassifier, ModelConfig, parameter_count, parameter_groups
-from ditch_drake.learning.train import TrainConfig, resume_path, train
+from ditch_drake.learning.train import TrainConfig, available_precision, resume_path, train
 from ditch_drake.observation_spec import IMAGE_STACK_SHAPE, IMAGE_STACK_SIZE
 
 
@@ -204,6 +204,28 @@ def test_tiny_training_is_deterministic_and_resumable(tmp_path):
     assert _metrics(resumed) == _metrics(first)
     assert _same_weights(_weights(resumed), _weights(first))
     assert _same_weights(load_checkpoint(output).state_dict, _weights(first))
+
+
+def test_bf16_training_is_deterministic_recorded_and_differs_from_fp32():
+    arrays = make_arrays(skewed_labels(60), demos=6, seed=1)
+    bf16 = TrainConfig(**{**vars(TINY), "precision": "bf16"})
+    first, second = train(arrays, bf16, progress=False), train(arrays, bf16, progress=False)
+    assert _same_weights(_weights(first), _weights(second))
+    assert all(value.dtype != torch.bfloat16 for value in _weights(first).values())  # Weights stay fp32.
+    fp32 = train(arrays, TINY, progress=False)
+    assert not _same_weights(_weights(first), _weights(fp32))  # The autocast took effect.
+    assert first.checkpoint.summary()["device"] == "cpu bf16" and fp32.checkpoint.summary()["device"] == "cpu"
+
+
+def test_precision_choice_and_bad_value(monkeypatch):
+    with pytest.raises(ValueError, match="precision='fp16'"):
+        TrainConfig(precision="fp16")
+    assert available_precision("cuda") == "fp32"
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False, raising=False)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False, raising=False)
+    assert available_precision("cpu") == "fp32"
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True, raising=False)
+    assert available_precision("cpu") == "bf16"
 
 
 def test_training_interrupted_keeps_best_checkpoint(tmp_path, monkeypatch):

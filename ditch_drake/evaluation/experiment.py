@@ -31,12 +31,17 @@ from ditch_drake.evaluation.results import RolloutSpec
 
 @dataclass
 class TrainingSettings:
-    """`ditch-drake train` settings shared by every model of the experiment (see `TrainConfig`)."""
+    """`ditch-drake train` settings shared by every model of the experiment (see `TrainConfig`).
+
+    `precision`: "auto" (`available_precision`: bf16 on a CPU that runs it natively), "fp32"
+    or "bf16".
+    """
 
     epochs: int = 8
     patience: int = 4
     batches_per_epoch: int = 96
     synthetic_fraction: float = 0.5
+    precision: str = "auto"
 
 
 @dataclass
@@ -143,6 +148,9 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
     if config.rollouts < 1 or not config.time_limit_s > 0:
         raise ConfigError(f"experiment file {path}: rollouts={config.rollouts} must be >= 1 and "
                           f"time_limit_s={config.time_limit_s} positive")
+    if config.training.precision not in ("auto", "fp32", "bf16"):
+        raise ConfigError(f"experiment file {path}: training.precision={config.training.precision!r} must be "
+                          "'auto', 'fp32' or 'bf16'")
     return config
 
 
@@ -254,7 +262,7 @@ def _collect(config: ExperimentConfig, models: list[ModelSpec], progress: bool) 
 def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
     from ditch_drake.demos.dataset import load_dataset, to_array_set
     from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
-    from ditch_drake.learning.train import TrainConfig, available_device, resume_path, train
+    from ditch_drake.learning.train import TrainConfig, available_device, available_precision, resume_path, train
 
     out = model_path(config, model)
     if out.exists() and not resume_path(out).exists():
@@ -270,8 +278,10 @@ def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
         demonstrations += load_dataset(Path(config.demos_dir) / env, max_demos=model.demos)
     settings = config.training
     defaults = TrainConfig()
+    device = available_device()
+    precision = available_precision(device) if settings.precision == "auto" else settings.precision
     train_config = TrainConfig(epochs=settings.epochs, patience=settings.patience, seed=config.seed,
-                               device=available_device(),
+                               device=device, precision=precision,
                                max_batches_per_epoch=settings.batches_per_epoch,
                                smote=replace(defaults.smote, max_synthetic_fraction=settings.synthetic_fraction))
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -77,6 +77,9 @@ class PolicyCheckpoint:
         the results page's Models table)."""
         training, metrics = self.training, self.metrics
         best = metrics.get("best", {})
+        train_config = training.get("train_config", {})
+        # Checkpoints from before `TrainConfig.precision` were all trained in fp32.
+        bf16 = " bf16" if train_config.get("precision") == "bf16" else ""
         return {
             "demos_train/val": f"{len(training.get('train_demo_ids', []))}/{len(training.get('val_demo_ids', []))}",
             "samples_real/smote/val": f"{training.get('num_train_samples')}/{training.get('num_synthetic_samples')}/"
@@ -86,7 +89,7 @@ class PolicyCheckpoint:
             f"val_ordinal_pm{metrics.get('ordinal_tolerance', 1)}": f"{best.get('val_ordinal_accuracy', float('nan')):.3f}",
             "val_exact": f"{best.get('val_exact_accuracy', float('nan')):.3f}",
             "training_s": f"{metrics.get('training_seconds', float('nan')):.0f}",
-            "device": training.get("train_config", {}).get("device", "?"),
+            "device": train_config.get("device", "?") + bf16,
         }
 
     def build_model(self) -> FourInputClassifier:
