@@ -1,6 +1,9 @@
 """The lidar (`ditch_drake.systems.lidar`): rendered depth -> point cloud in the lidar frame L."""
 
 import math
+import os
+import subprocess
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -206,11 +209,50 @@ def test_noise_is_repeatable_per_seed():
         ("dropout_probability", 1.0),
         ("noise_std_m", -0.1),
         ("min_range_m", 5.0),
+        ("rasterizer_threads", -1),
     ],
 )
 def test_bad_config_names_the_value(field, value):
     with pytest.raises(ValueError, match=rf"{field}={value!r}"):
         DepthImagesToLidarCloud(LidarConfig(**{field: value}))
+
+
+def test_rasterizer_threads_are_set_for_the_process_unless_already_set(monkeypatch):
+    monkeypatch.delenv("LP_NUM_THREADS", raising=False)
+    _build("crater", LidarConfig(rasterizer_threads=None))
+    assert "LP_NUM_THREADS" not in os.environ
+    _build("crater")
+    assert os.environ["LP_NUM_THREADS"] == "0"
+    monkeypatch.setenv("LP_NUM_THREADS", "2")
+    _build("crater", LidarConfig(rasterizer_threads=0))
+    assert os.environ["LP_NUM_THREADS"] == "2"
+
+
+_RENDER_ONE_CLOUD = """
+import sys, numpy as np
+from pydrake.systems.framework import DiagramBuilder
+from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig
+from ditch_drake.systems.lidar import AddLidar
+builder = DiagramBuilder()
+lidar = AddLidar(builder, AddDitchScene(builder, SceneConfig(environment="sine", task=1)))
+diagram = builder.Build()
+context = diagram.CreateDefaultContext()
+converter_context = lidar.converter.GetMyMutableContextFromRoot(context)
+lidar.converter.ExecuteForcedEvents(converter_context)
+np.save(sys.argv[1], lidar.converter.GetOutputPort("organized_points").Eval(converter_context).xyzs())
+"""
+
+
+def test_rasterizer_threads_do_not_change_the_cloud(tmp_path):
+    # Mesa reads LP_NUM_THREADS once per process, so each setting renders in a process of its own.
+    clouds = []
+    for threads in ("0", "2"):
+        path = tmp_path / f"cloud_{threads}.npy"
+        subprocess.run([sys.executable, "-c", _RENDER_ONE_CLOUD, str(path)], check=True,
+                       env={**os.environ, "LP_NUM_THREADS": threads}, timeout=120)
+        clouds.append(np.load(path))
+    assert np.isfinite(clouds[0]).any()
+    np.testing.assert_array_equal(clouds[0], clouds[1])
 
 
 def _output_cache_entry(system, port_name: str):
