@@ -1,5 +1,6 @@
 """Expert, recorder and the dataset format."""
 
+import hashlib
 import json
 import os
 
@@ -22,6 +23,7 @@ from ditch_drake.demos.dataset import (
     standard_metadata,
 )
 from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.learning.checkpoint import resolve_checkpoint_path
 from ditch_drake.systems.expert import draw_expert_style
 
 
@@ -226,6 +228,8 @@ def test_a_dagger_collection_keeps_every_rollout_with_expert_labels(tmp_path):
     assert report["recorded"] == 1 and sum(report["recorded_by_status"].values()) == 1
     (demonstration,) = load_dataset(tmp_path)
     assert demonstration.metadata["learner"] == "narrow" and demonstration.metadata["seed"] == 3
+    shipped = resolve_checkpoint_path("narrow").read_bytes()
+    assert demonstration.metadata["learner_sha256"] == hashlib.sha256(shipped).hexdigest()[:16]
     assert demonstration.metadata["outcome"]["status"] in report["recorded_by_status"]
     assert np.array_equal(demonstration.arrays["label"],
                           [actions.quantize(command) for command in demonstration.arrays["raw_command"]])

@@ -26,7 +26,7 @@ from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneCon
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
 from ditch_drake.diagrams.rollout import AddLearnedPolicy
 from ditch_drake.environments import ConfigError, get_environment
-from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
+from ditch_drake.learning.checkpoint import checkpoint_digest, load_checkpoint, resolve_checkpoint_path
 from ditch_drake.systems.demo_recorder import DemoRecorder
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
@@ -162,7 +162,8 @@ def record_demonstration(environment: str, task: int, seed: int,
     if rig is None:
         rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task), seed,
                                        observation_config, variation, learner=learner)
-    driver = {} if learner is None else {"driver": "learner (DAgger; the expert labels)", "learner": learner}
+    driver = {} if learner is None else {"driver": "learner (DAgger; the expert labels)", "learner": learner,
+                                         "learner_sha256": checkpoint_digest(learner)}
     return _run_and_record(rig, environment, task, seed, expert_style=draw_expert_style(seed, variation), **driver)
 
 

@@ -15,7 +15,6 @@ rollouts. Every rollout starts from a fresh random Context (`RunEpisode`), so it
 depends only on its spec, not on what the worker ran before.
 """
 
-import hashlib
 import multiprocessing
 import os
 import signal
@@ -24,7 +23,6 @@ import time
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field, replace
-from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +40,7 @@ from ditch_drake.diagrams.rollout import (
 )
 from ditch_drake.environments import ConfigError, get_environment
 from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, read_records
-from ditch_drake.learning.checkpoint import resolve_checkpoint_path
+from ditch_drake.learning.checkpoint import checkpoint_digest, resolve_checkpoint_path
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 
@@ -125,14 +123,6 @@ def rollout_config(spec: RolloutSpec) -> RolloutConfig:
                         episode=replace(EpisodeConfig(), time_limit_s=spec.time_limit_s,
                                                 goal_radius_m=spec.goal_radius_m))
     return RolloutConfig(scene=scene, controller=controller)
-
-
-@cache
-def checkpoint_digest(checkpoint: str) -> str:
-    """First 16 hex digits of the checkpoint file's SHA-256 ("" for no checkpoint)."""
-    if not checkpoint:
-        return ""
-    return hashlib.sha256(resolve_checkpoint_path(checkpoint).read_bytes()).hexdigest()[:16]
 
 
 def failure_region(terrain, start_xy, final_xy) -> str:

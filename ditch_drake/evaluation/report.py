@@ -77,8 +77,12 @@ def _table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str, str
 def _models_table(records: list[RolloutRecord]) -> list[str]:
     """Where each evaluated checkpoint came from, read from the file when it is still there
     (and still the file the rollouts used: same hash prefix)."""
-    from ditch_drake.evaluation.batch import checkpoint_digest
-    from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint_path
+    from ditch_drake.learning.checkpoint import (
+        CheckpointError,
+        checkpoint_digest,
+        load_checkpoint,
+        resolve_checkpoint_path,
+    )
 
     lines = ["| model | checkpoint | sha256 | demonstrations (train/val) | epochs (best) | device | training_s |",
              "| --- | --- | --- | --- | --- | --- | --- |"]

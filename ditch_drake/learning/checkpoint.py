@@ -20,9 +20,11 @@ a reader never sees half a file; a corrupt, truncated or foreign file raises
 `CheckpointError` naming the file and what was expected.
 """
 
+import hashlib
 import os
 import tempfile
 from dataclasses import dataclass, field
+from functools import cache
 from pathlib import Path
 
 import numpy as np
@@ -262,6 +264,16 @@ def resolve_checkpoint_path(name_or_path: str | os.PathLike) -> Path:
             f"checkpoint {text!r}: no such file, and not a shipped model (expected one of {list(SHIPPED_MODELS)} "
             "or the path of a .pt file written by `ditch-drake train`)")
     return path
+
+
+@cache
+def checkpoint_digest(checkpoint: str) -> str:
+    """First 16 hex digits of the SHA-256 of a checkpoint file, by shipped name or path ("" for
+    none). Cached per process: evaluation records and DAgger demonstrations name the file
+    they used by it."""
+    if not checkpoint:
+        return ""
+    return hashlib.sha256(resolve_checkpoint_path(checkpoint).read_bytes()).hexdigest()[:16]
 
 
 def load_checkpoint(path: str | os.PathLike, allow_other_action_table: bool = False) -> PolicyCheckpoint:
