@@ -278,7 +278,9 @@ def cmd_experiment(args) -> int:
     config = load_experiment(args.file)
     stages = tuple(args.stage) if args.stage else ("collect", "train", "evaluate", "report")
     try:
-        timings = run_experiment(config, only=args.only, stages=stages)
+        command = " ".join(["ditch-drake experiment", str(args.file)] + [f"--only {env}" for env in args.only or []]
+                           + [f"--stage {stage}" for stage in args.stage or []])
+        timings = run_experiment(config, only=args.only, stages=stages, command=command)
     except KeyboardInterrupt:
         print("interrupted; finished work is kept, run the same command again to continue", file=sys.stderr)
         return 130

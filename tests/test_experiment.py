@@ -5,7 +5,7 @@ import json
 import pytest
 
 from ditch_drake.environments import ConfigError
-from ditch_drake.evaluation.experiment import load_experiment, plan, run_experiment
+from ditch_drake.evaluation.experiment import load_experiment, plan, read_runs, run_experiment
 from ditch_drake.evaluation.report import write_report
 from ditch_drake.evaluation.results import read_records
 
@@ -37,8 +37,10 @@ def tiny_experiment(tmp_path):
 
 def test_a_tiny_experiment_runs_end_to_end_and_a_rerun_redoes_nothing(tmp_path, tiny_experiment):
     config = load_experiment(tiny_experiment)
-    timings = run_experiment(config, progress=False)
+    timings = run_experiment(config, progress=False, command="ditch-drake experiment tiny.yaml")
     assert set(timings) == {"collect_s", "train_s", "evaluate_s", "report_s"}
+    (run,) = read_runs(tmp_path / "results")
+    assert {key: run[key] for key in timings} == timings and run["command"] == "ditch-drake experiment tiny.yaml"
     assert len(list((tmp_path / "demos" / "wide").glob("demo_*.npz"))) == 2
     assert (tmp_path / "models" / "wide_2.pt").exists()
     records = {study: read_records(tmp_path / "results" / f"{study}.jsonl")[0] for study in ("scalability", "baseline")}
@@ -47,6 +49,9 @@ def test_a_tiny_experiment_runs_end_to_end_and_a_rerun_redoes_nothing(tmp_path, 
     assert all(r.status != "error" for rs in records.values() for r in rs), records
     page = (tmp_path / "docs" / "results.md").read_text()
     assert "| wide_2 | wide | 0/1 |" in page and "| dwa | wide |" in page
+    # The page was written during the report stage: this run's other stages are timed, the report is not.
+    (row,) = [line for line in page.splitlines() if "`ditch-drake experiment tiny.yaml`" in line]
+    assert row.rstrip(" |").split(" | ")[-2] == "-" and f"| {timings['collect_s']:.0f} |" in row
     assert (tmp_path / "docs" / "img" / "fig5_wide.png").stat().st_size > 1000
     assert (tmp_path / "docs" / "img" / "fig5_baseline.png").stat().st_size > 1000
 
@@ -54,6 +59,11 @@ def test_a_tiny_experiment_runs_end_to_end_and_a_rerun_redoes_nothing(tmp_path, 
     run_experiment(config, stages=("collect", "train", "evaluate"), progress=False)
     assert (tmp_path / "models" / "wide_2.pt").stat().st_mtime_ns == model_time
     assert len(read_records(tmp_path / "results" / "scalability.jsonl")[0]) == 1
+    assert len(read_runs(tmp_path / "results")) == 2 and "report_s" not in read_runs(tmp_path / "results")[1]
+
+    (tmp_path / "results" / "experiment_runs.json").write_text("{not json")
+    with pytest.raises(ConfigError, match="experiment_runs.json: not JSON"):
+        read_runs(tmp_path / "results")
 
 
 def test_experiment_files_with_a_typo_or_an_unknown_environment_are_refused(tmp_path, tiny_experiment):

@@ -15,11 +15,14 @@ environments, evaluated in another). `run_experiment` turns it into work:
 
 `only` restricts every stage to the models and evaluations that involve the named
 environments, so the protocol can also be completed in parts. Each stage's wall time is
-returned and printed.
+returned, printed, and recorded in `<results_dir>/experiment_runs.json`, which the report
+shows.
 """
 
+import datetime
 import json
 import os
+import platform
 import sys
 import time
 from dataclasses import dataclass, field, replace
@@ -221,15 +224,56 @@ def evaluation_specs(config: ExperimentConfig, evaluation: Evaluation) -> list[R
                       config.time_limit_s) if evaluation.controller != "learned" or Path(checkpoint).exists() else []
 
 
+RUNS_FILE = "experiment_runs.json"
+"""In the results folder: one entry per `run_experiment` call, its stages' wall times (s)."""
+
+
+def record_run(results_dir: str | os.PathLike, run: dict) -> Path:
+    """Adds or updates `run` (matched by its "started_utc") in the results folder's RUNS_FILE, atomically."""
+    path = Path(results_dir) / RUNS_FILE
+    runs = read_runs(results_dir)
+    runs = [entry for entry in runs if entry.get("started_utc") != run.get("started_utc")] + [run]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    temporary = path.with_name(f".{path.name}.tmp")
+    temporary.write_text(json.dumps(runs, indent=1) + "\n")
+    os.replace(temporary, path)
+    return path
+
+
+def read_runs(results_dir: str | os.PathLike) -> list[dict]:
+    """The runs recorded in the results folder's RUNS_FILE ([] if none).
+
+    Raises:
+        ConfigError: the file is not a JSON list of objects.
+    """
+    path = Path(results_dir) / RUNS_FILE
+    if not path.exists():
+        return []
+    try:
+        runs = json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ConfigError(f"{path}: not JSON ({error}); expected a list of experiment runs") from error
+    if not isinstance(runs, list) or not all(isinstance(run, dict) for run in runs):
+        raise ConfigError(f"{path}: expected a JSON list of experiment runs (objects)")
+    return runs
+
+
 def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stages: tuple[str, ...] = (
-        "collect", "train", "evaluate", "report"), progress: bool = True) -> dict:
-    """Runs the stages of the experiment (see the module docstring); returns each stage's wall time (s)."""
+        "collect", "train", "evaluate", "report"), progress: bool = True, command: str = "") -> dict:
+    """Runs the stages of the experiment (see the module docstring); returns each stage's wall time (s).
+
+    Each finished stage's time goes into the results folder's RUNS_FILE at once (with
+    `command`, `only` and the CPU), so an interrupted run keeps the times of what it
+    finished and the results page can say how long the protocol took.
+    """
     models, evaluations = plan(config, only)
+    run = {"started_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+           "command": command, "only": list(only or []), "cpu": cpu_name()}
 
     def report() -> None:
         from ditch_drake.evaluation.report import write_report
 
-        write_report([config.results_dir], config.report, config.figures_dir, title=config.name)
+        write_report([config.results_dir], config.report, config.figures_dir, title=config.name, command=command)
 
     runners = {
         "collect": lambda: _collect(config, models, progress),
@@ -238,12 +282,26 @@ def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stag
         "report": report,
     }
     timings: dict[str, float] = {}
-    for stage, run in runners.items():  # In pipeline order, whatever order `stages` names them in.
+    for stage, run_stage in runners.items():  # In pipeline order, whatever order `stages` names them in.
         if stage in stages:
             start = time.perf_counter()
-            run()
+            if stage == "report":
+                record_run(config.results_dir, {**run, **timings})  # The page shows this run's times so far.
+            run_stage()
             timings[f"{stage}_s"] = time.perf_counter() - start
+            record_run(config.results_dir, {**run, **timings})
     return timings
+
+
+def cpu_name() -> str:
+    """The CPU's model name (Linux's /proc/cpuinfo; else `platform.processor()`) and core count."""
+    name = platform.processor()
+    try:
+        name = next(line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                    if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return f"{name or 'unknown CPU'}, {os.cpu_count()} cores"
 
 
 def _collect(config: ExperimentConfig, models: list[ModelSpec], progress: bool) -> None:

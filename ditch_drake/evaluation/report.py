@@ -74,6 +74,30 @@ def _table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str, str
     return lines, summaries
 
 
+def _runs_section(results: list[str | os.PathLike]) -> list[str]:
+    """A table of the `ditch-drake experiment` runs recorded in the results folders (see
+    `experiment.record_run`): each stage's wall time; empty if none is recorded."""
+    from ditch_drake.evaluation.experiment import RUNS_FILE, read_runs
+
+    runs = [(Path(entry), run) for entry in map(Path, results) if entry.is_dir() for run in read_runs(entry)]
+    if not runs:
+        return []
+    stages = ("collect", "train", "evaluate", "report")
+    lines = ["## Wall time", "",
+             (f"Each stage's wall time (s) in the `ditch-drake experiment` runs that made these results "
+              f"(`{RUNS_FILE}` in the results folder; a stage that found its work done takes seconds; "
+              "'-': not run, or still running when this page was written)."), "",
+             "| started (UTC) | command | CPU | " + " | ".join(f"{stage}_s" for stage in stages) + " | total_s |",
+             "| --- | --- | --- | " + " | ".join("---:" for _ in stages) + " | ---: |"]
+    for _, run in sorted(runs, key=lambda item: str(item[1].get("started_utc", ""))):
+        times = [run.get(f"{stage}_s") for stage in stages]
+        cells = ["-" if t is None else f"{float(t):.0f}" for t in times]
+        total = sum(float(t) for t in times if t is not None)
+        lines.append(f"| {run.get('started_utc', '?')} | `{run.get('command', '') or '?'}` | {run.get('cpu', '?')} | "
+                     + " | ".join(cells) + f" | {total:.0f} |")
+    return [*lines, ""]
+
+
 def _models_table(records: list[RolloutRecord]) -> list[str]:
     """Where each evaluated checkpoint came from, read from the file when it is still there
     (and still the file the rollouts used: same hash prefix)."""
@@ -206,6 +230,7 @@ def write_report(results: list[str | os.PathLike], out: str | os.PathLike, figur
     lines = [f"# {title}", ""]
     if command:
         lines += ["Made by", "", f"    {command}", ""]
+    lines += _runs_section(results)
     summaries: dict[str, dict] = {}
     for study in [*(study for study in STUDIES if study in by_study), *sorted(set(by_study) - set(STUDIES))]:
         table, summaries[study] = _table(by_study[study])
