@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from ditch_drake.environments import ConfigError
+from ditch_drake.evaluation import batch
 from ditch_drake.evaluation.batch import evaluate, make_specs, run_rollout
 from ditch_drake.evaluation.results import RecordWriter, ResultsError, RolloutSpec, read_records
 from ditch_drake.evaluation.summary import group_by, summarize, wilson_interval
@@ -122,6 +123,22 @@ def test_summaries_count_successes_failures_and_errors(tmp_path):
     with RecordWriter(tmp_path / "r.jsonl") as writer:
         writer.append(errored)
     assert read_records(tmp_path / "r.jsonl")[0][0].error == "boom"
+
+
+def test_a_worker_keeps_only_its_most_recently_used_rigs(monkeypatch):
+    built = []
+    monkeypatch.setattr(batch, "MakeRolloutDiagram", lambda config: built.append(config) or (object(), object()))
+    monkeypatch.setattr(batch, "Simulator", lambda diagram: object())
+    monkeypatch.setattr(batch, "_WORKER_RIGS", type(batch._WORKER_RIGS)())
+    specs = [RolloutSpec("edge_angle", "", env, task, 0, 120.0, 1.5) for env in ("wide", "sine") for task in (0, 1, 2)]
+    first = batch._rig(specs[0])
+    assert batch._rig(dataclasses.replace(specs[0], seed=9)) is first and len(built) == 1  # Reused across seeds.
+    for spec in specs[1:]:
+        batch._rig(spec)
+    assert len(batch._WORKER_RIGS) == batch.MAX_WORKER_RIGS < len(specs)
+    assert batch._rig(specs[-1]) is batch._WORKER_RIGS[next(reversed(batch._WORKER_RIGS))]
+    batch._rig(specs[0])  # Evicted long ago: built again.
+    assert len(built) == len(specs) + 1
 
 
 def test_spec_keys_identify_rollouts():

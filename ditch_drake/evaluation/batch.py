@@ -11,10 +11,14 @@ rollouts with it: they are retried once in a fresh pool, then recorded as errors
 
 Each worker builds a diagram once per (controller, checkpoint, environment, task, time
 limit) and reuses it for every seed: building the sine ditch costs seconds, more than some
-rollouts. Every rollout starts from a fresh random Context (`RunEpisode`), so its record
-depends only on its spec, not on what the worker ran before.
+rollouts. It keeps the `MAX_WORKER_RIGS` most recently used: each holds a scene, a
+renderer and a network (about 100 MB), and a study of 12 models x 3 environments x 3 tasks
+kept them all until the out-of-memory killer stopped the run (7 GB per worker). Every
+rollout starts from a fresh random Context (`RunEpisode`), so its record depends only on
+its spec, not on what the worker ran before.
 """
 
+import collections
 import multiprocessing
 import os
 import signal
@@ -136,15 +140,22 @@ def failure_region(terrain, start_xy, final_xy) -> str:
     return "approach" if same_side else "beyond"
 
 
-# A worker's built rollout diagrams, by everything they are built from; see the module docstring.
-_WORKER_RIGS: dict[tuple, tuple] = {}
+# A worker process's built rollout diagrams, most recently used last, by everything they are
+# built from; see the module docstring. Specs are handed out in order, so a worker meets
+# the same rig for the seeds of one task in a row.
+MAX_WORKER_RIGS = 4
+_WORKER_RIGS: collections.OrderedDict[tuple, tuple] = collections.OrderedDict()
 
 
 def _rig(spec: RolloutSpec):
     # The expert's style (drawn from the seed) is part of its diagram's structure.
     seed = spec.seed if spec.controller == "expert" else None
     key = (spec.controller, spec.checkpoint, spec.environment, spec.task, spec.time_limit_s, spec.goal_radius_m, seed)
-    if key not in _WORKER_RIGS:
+    if key in _WORKER_RIGS:
+        _WORKER_RIGS.move_to_end(key)
+    else:
+        while len(_WORKER_RIGS) >= MAX_WORKER_RIGS:
+            _WORKER_RIGS.popitem(last=False)
         diagram, scene = MakeRolloutDiagram(rollout_config(spec))
         _WORKER_RIGS[key] = (diagram, scene, Simulator(diagram))
     return _WORKER_RIGS[key]
