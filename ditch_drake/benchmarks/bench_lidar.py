@@ -1,12 +1,13 @@
 """Times the lidar (`ditch_drake.systems.lidar`): one control step's render and point cloud.
 
-Run: `python benchmarks/bench_lidar.py [environment] [repeats]`. Prints the median wall and
-CPU times (ms, one process) of the lidar's update (both cameras' depth renders through
-`RenderEngineVtk` plus the conversion to the clouds), the robot moving a little between
-steps so that every step renders afresh. `RenderEngineVtk` renders on the CPU here (Mesa's
-llvmpipe through EGL); llvmpipe may spread a render over threads, so the CPU time can exceed
-the wall time. `LP_NUM_THREADS=0` in the environment before the process starts keeps the
-render on the calling thread (one core).
+Run: `python -m ditch_drake.benchmarks.bench_lidar [environment] [repeats]`. Prints the
+median wall and CPU times (ms, one process) of the lidar's update (both cameras' depth
+renders through `RenderEngineVtk` plus the conversion to the clouds), the robot moving a
+little between steps so that every step renders afresh. `RenderEngineVtk` renders on the
+CPU here (Mesa's llvmpipe through EGL). `AddLidar` keeps the render on the calling thread
+(`LidarConfig.rasterizer_threads`, `LP_NUM_THREADS=0`); `LP_NUM_THREADS=2` in the
+environment before the process starts measures llvmpipe's threaded default instead, whose
+CPU time can exceed its wall time.
 """
 
 import sys
