@@ -64,11 +64,14 @@ def test_evaluate_records_every_rollout_once_and_resumes_after_an_interruption(t
     assert {record.key: outcome_fields(record) for record in records} == complete
 
 
-def test_worker_processes_give_the_same_records_as_one_process(tmp_path):
+def test_worker_processes_give_the_same_records_as_one_process(tmp_path, monkeypatch):
     evaluate(SPECS, tmp_path / "pool.jsonl", workers=2, progress=False)
     evaluate(SPECS, tmp_path / "here.jsonl", workers=0, progress=False)
-    by_key = [{r.key: outcome_fields(r) for r in read_records(tmp_path / name)[0]} for name in ("pool.jsonl", "here.jsonl")]
-    assert by_key[0] == by_key[1]
+    monkeypatch.setattr(batch, "ROLLOUTS_PER_WORKER", 1)  # A fresh worker process for every rollout.
+    evaluate(SPECS, tmp_path / "recycled.jsonl", workers=1, progress=False)
+    by_key = [{r.key: outcome_fields(r) for r in read_records(tmp_path / name)[0]}
+              for name in ("pool.jsonl", "here.jsonl", "recycled.jsonl")]
+    assert by_key[0] == by_key[1] == by_key[2] and len(by_key[0]) == len(SPECS)
 
 
 def test_a_rollout_that_raises_is_recorded_as_an_error_and_the_run_goes_on(tmp_path):
