@@ -148,7 +148,7 @@ def failure_region(terrain, start_xy, final_xy) -> str:
 # the same rig for the seeds of one task in a row.
 MAX_WORKER_RIGS = 4
 # Rollouts a worker process runs before a fresh one replaces it (see the module docstring).
-ROLLOUTS_PER_WORKER = 40
+ROLLOUTS_PER_WORKER = 100
 _WORKER_RIGS: collections.OrderedDict[tuple, tuple] = collections.OrderedDict()
 
 
