@@ -79,7 +79,7 @@ def _runs_section(results: list[str | os.PathLike]) -> list[str]:
     `experiment.record_run`): each stage's wall time; empty if none is recorded."""
     from ditch_drake.evaluation.experiment import RUNS_FILE, read_runs
 
-    runs = [(Path(entry), run) for entry in map(Path, results) if entry.is_dir() for run in read_runs(entry)]
+    runs = [run for entry in map(Path, results) if entry.is_dir() for run in read_runs(entry)]
     if not runs:
         return []
     stages = ("collect", "train", "evaluate", "report")
@@ -89,7 +89,7 @@ def _runs_section(results: list[str | os.PathLike]) -> list[str]:
               "'-': not run, or still running when this page was written)."), "",
              "| started (UTC) | command | CPU | " + " | ".join(f"{stage}_s" for stage in stages) + " | total_s |",
              "| --- | --- | --- | " + " | ".join("---:" for _ in stages) + " | ---: |"]
-    for _, run in sorted(runs, key=lambda item: str(item[1].get("started_utc", ""))):
+    for run in sorted(runs, key=lambda run: str(run.get("started_utc", ""))):
         times = [run.get(f"{stage}_s") for stage in stages]
         cells = ["-" if t is None else f"{float(t):.0f}" for t in times]
         total = sum(float(t) for t in times if t is not None)

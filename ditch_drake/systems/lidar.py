@@ -114,9 +114,10 @@ class LidarConfig:
             headless EGL (its `LP_NUM_THREADS`; 0: rasterize in the rendering thread).
             `AddLidar` sets it for the process unless `LP_NUM_THREADS` is already set;
             it takes effect only before the process's first render. For these small
-            images the threads cost more than they save: 0 rendered the default lidar in
-            about half the wall time of llvmpipe's default (one thread per core) on a
-            2-core machine, and keeps a rollout on one core. None leaves Mesa's default.
+            images the threads cost more than they save: with 0 the default lidar's update
+            took about a quarter less wall time than with llvmpipe's default (one thread
+            per core) on a quiet 2-core machine, and half with both cores busy, and a
+            rollout stays on one core. None leaves Mesa's default.
     """
 
     width: int = 64
