@@ -5,7 +5,7 @@ import json
 import pytest
 
 from ditch_drake.environments import ConfigError
-from ditch_drake.evaluation.experiment import load_experiment, plan, read_runs, run_experiment
+from ditch_drake.evaluation.experiment import code_revision, load_experiment, plan, read_runs, run_experiment
 from ditch_drake.evaluation.report import write_report
 from ditch_drake.evaluation.results import read_records
 
@@ -35,12 +35,28 @@ def tiny_experiment(tmp_path):
     return path
 
 
+def page_row(tmp_path) -> str:
+    (row,) = [line for line in (tmp_path / "docs" / "results.md").read_text().splitlines()
+              if "`ditch-drake experiment tiny.yaml`" in line]
+    return row
+
+
+def test_code_revision_names_a_commit_or_the_version():
+    import re
+
+    import ditch_drake
+
+    assert re.fullmatch(r"[0-9a-f]{12}(\+changes)?", code_revision()) or code_revision() == (
+        f"ditch_drake {ditch_drake.__version__}")
+
+
 def test_a_tiny_experiment_runs_end_to_end_and_a_rerun_redoes_nothing(tmp_path, tiny_experiment):
     config = load_experiment(tiny_experiment)
     timings = run_experiment(config, progress=False, command="ditch-drake experiment tiny.yaml")
     assert set(timings) == {"collect_s", "train_s", "evaluate_s", "report_s"}
     (run,) = read_runs(tmp_path / "results")
     assert {key: run[key] for key in timings} == timings and run["command"] == "ditch-drake experiment tiny.yaml"
+    assert run["code"] == code_revision() and run["code"] in page_row(tmp_path)
     assert len(list((tmp_path / "demos" / "wide").glob("demo_*.npz"))) == 2
     assert (tmp_path / "models" / "wide_2.pt").exists()
     records = {study: read_records(tmp_path / "results" / f"{study}.jsonl")[0] for study in ("scalability", "baseline")}

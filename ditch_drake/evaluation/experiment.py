@@ -268,7 +268,7 @@ def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stag
     """
     models, evaluations = plan(config, only)
     run = {"started_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-           "command": command, "only": list(only or []), "cpu": cpu_name()}
+           "command": command, "only": list(only or []), "cpu": cpu_name(), "code": code_revision()}
 
     def report() -> None:
         from ditch_drake.evaluation.report import write_report
@@ -302,6 +302,24 @@ def cpu_name() -> str:
     except (OSError, StopIteration):
         pass
     return f"{name or 'unknown CPU'}, {os.cpu_count()} cores"
+
+
+def code_revision() -> str:
+    """The package's git commit ("+changes" when its checkout has uncommitted edits to
+    tracked files), or its version when it is not a git checkout."""
+    import subprocess
+
+    import ditch_drake
+
+    folder = Path(ditch_drake.__file__).resolve().parent
+    try:
+        commit = subprocess.run(["git", "-C", str(folder), "rev-parse", "--short=12", "HEAD"],
+                                capture_output=True, text=True, check=True, timeout=10).stdout.strip()
+        changes = subprocess.run(["git", "-C", str(folder), "status", "--porcelain", "--untracked-files=no"],
+                                 capture_output=True, text=True, check=True, timeout=10).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return f"ditch_drake {ditch_drake.__version__}"
+    return commit + ("+changes" if changes else "")
 
 
 def _collect(config: ExperimentConfig, models: list[ModelSpec], progress: bool) -> None:

@@ -87,13 +87,13 @@ def _runs_section(results: list[str | os.PathLike]) -> list[str]:
              (f"Each stage's wall time (s) in the `ditch-drake experiment` runs that made these results "
               f"(`{RUNS_FILE}` in the results folder; a stage that found its work done takes seconds; "
               "'-': not run, or still running when this page was written)."), "",
-             "| started (UTC) | command | CPU | " + " | ".join(f"{stage}_s" for stage in stages) + " | total_s |",
-             "| --- | --- | --- | " + " | ".join("---:" for _ in stages) + " | ---: |"]
+             "| started (UTC) | command | code | CPU | " + " | ".join(f"{stage}_s" for stage in stages) + " | total_s |",
+             "| --- | --- | --- | --- | " + " | ".join("---:" for _ in stages) + " | ---: |"]
     for run in sorted(runs, key=lambda run: str(run.get("started_utc", ""))):
         times = [run.get(f"{stage}_s") for stage in stages]
         cells = ["-" if t is None else f"{float(t):.0f}" for t in times]
         total = sum(float(t) for t in times if t is not None)
-        lines.append(f"| {run.get('started_utc', '?')} | `{run.get('command', '') or '?'}` | {run.get('cpu', '?')} | "
+        lines.append(f"| {run.get('started_utc', '?')} | `{run.get('command', '') or '?'}` | {run.get('code', '?')} | {run.get('cpu', '?')} | "
                      + " | ".join(cells) + f" | {total:.0f} |")
     return [*lines, ""]
 
