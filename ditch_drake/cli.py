@@ -2,6 +2,7 @@
 
 import argparse
 import json
+import os
 import shlex
 import sys
 import time
@@ -110,7 +111,10 @@ def cmd_collect(args) -> int:
 
     config = CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out, workers=args.workers)
     if args.learner is not None:
-        config = replace(config, learner=args.learner, variation=LABELLER_VARIATION)
+        config = replace(config, learner=args.learner, variation=replace(
+            LABELLER_VARIATION, replan_each_step=args.labeller == "replanning"))
+    elif args.labeller != "latched":
+        raise ConfigError(f"--labeller {args.labeller}: a labeller needs --learner (a DAgger round)")
     report = collect(config)
     print(json.dumps(report, indent=2))
     return 0 if not report["unfilled_slots"] else 1
@@ -143,6 +147,8 @@ def cmd_dataset_info(args) -> int:
         return 0
     print(f"{args.path}: {summary['demonstrations']} demonstrations, {summary['steps']} steps")
     print("per task: " + ", ".join(f"{name} {count}" for name, count in summary["per_task"].items()))
+    print("outcomes: " + ", ".join(f"{name} {count}" for name, count in sorted(summary["per_outcome"].items())))
+    print("driven by: " + ", ".join(f"{name} {count}" for name, count in summary["per_driver"].items()))
     rows = [{"label": label, "w_radps": f"{rate:+.2f}", "steps": count,
              "share": f"{count / max(1, summary['steps']):.1%}"}
             for label, (rate, count) in enumerate(zip(ANGULAR_RATES_RADPS, summary["per_label"]))]
@@ -371,6 +377,9 @@ def build_parser() -> argparse.ArgumentParser:
     collect.add_argument("--learner", default=None, metavar="CHECKPOINT",
                          help="DAgger: this policy drives, the expert labels; every rollout is kept "
                               "(--demos rollouts, one per seed)")
+    collect.add_argument("--labeller", choices=["latched", "replanning"], default="latched",
+                         help="with --learner: the expert keeps the plan it chose before the wall (latched) "
+                              "or decides it afresh from the current pose every step (replanning)")
     collect.set_defaults(run=cmd_collect)
 
     teleop = commands.add_parser("teleop", help="record your own demonstration: steer in meshcat")
@@ -484,6 +493,11 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, TerrainError, DatasetError, CheckpointError, ResultsError) as error:
         print(f"ditch-drake: error: {error}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        # The reader went away (`ditch-drake dataset-info ... | head`): stop quietly, and keep
+        # Python's exit-time flush of stdout from raising again.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 0
 
 
 if __name__ == "__main__":

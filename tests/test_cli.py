@@ -84,3 +84,17 @@ def test_ci_runs_exactly_the_readme_test_command():
     ci_lines = [line.strip() for line in (root / ".ci" / "run").read_text().splitlines()
                 if line.strip() and not line.lstrip().startswith("#")]
     assert ci_lines[-1] == readme_commands[1]
+
+
+def test_collect_labeller_choice_reaches_the_dagger_labeller(capsys, monkeypatch, tmp_path):
+    from ditch_drake.demos import collect as collect_module
+
+    seen = []
+    monkeypatch.setattr(collect_module, "collect", lambda config: seen.append(config) or {"unfilled_slots": 0})
+    out = str(tmp_path / "dagger")
+    assert main(["collect", "--env", "narrow", "--out", out, "--learner", "narrow", "--labeller", "replanning"]) == 0
+    assert main(["collect", "--env", "narrow", "--out", out, "--learner", "narrow"]) == 0
+    assert [config.variation.replan_each_step for config in seen] == [True, False]
+    assert all(config.variation.steering_noise_radps == 0.0 for config in seen)
+    assert main(["collect", "--env", "narrow", "--out", out, "--labeller", "replanning"]) == 2
+    assert "--labeller replanning: a labeller needs --learner" in capsys.readouterr().err

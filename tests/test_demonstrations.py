@@ -115,6 +115,7 @@ def test_summary_counts_labels_and_tasks(tmp_path):
     assert summary["per_label"][8] == 4 and summary["per_label"][10] == 2
     assert summary["straight_fraction"] == pytest.approx(4 / 6)
     assert summary["majority_to_minority_ratio"] == pytest.approx(2.0)
+    assert summary["per_driver"] == {"expert": 2} and sum(summary["per_outcome"].values()) == 2
 
 
 def test_restack_puts_newest_first_with_zeros_before_the_start():

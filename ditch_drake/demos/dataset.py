@@ -178,19 +178,28 @@ def load_dataset(directory: str | Path, max_demos: int | None = None) -> list[De
 
 
 def dataset_summary(demonstrations: list[Demonstration]) -> dict:
-    """Counts per label and per task, and the class imbalance."""
+    """Counts per label, per task, per outcome and per driver (the expert, or a DAgger
+    round's learner), and the class imbalance."""
     labels = np.concatenate([demo.arrays["label"] for demo in demonstrations])
     per_label = np.bincount(labels, minlength=actions.NUM_LABELS)
     per_task: dict[str, int] = {}
+    per_outcome: dict[str, int] = {}
+    per_driver: dict[str, int] = {}
     for demo in demonstrations:
         name = demo.metadata.get("task", {}).get("name", "?")
         per_task[name] = per_task.get(name, 0) + 1
+        status = demo.metadata.get("outcome", {}).get("status", "?")
+        per_outcome[status] = per_outcome.get(status, 0) + 1
+        driver = demo.metadata.get("learner") or "expert"
+        per_driver[driver] = per_driver.get(driver, 0) + 1
     nonzero = per_label[per_label > 0]
     return {
         "demonstrations": len(demonstrations),
         "steps": len(labels),
         "per_label": per_label.tolist(),
         "per_task": per_task,
+        "per_outcome": per_outcome,
+        "per_driver": per_driver,
         "straight_fraction": float(per_label[actions.STRAIGHT_LABEL] / max(1, len(labels))),
         "majority_to_minority_ratio": float(nonzero.max() / nonzero.min()) if len(nonzero) else 0.0,
     }

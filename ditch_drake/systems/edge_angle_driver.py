@@ -36,6 +36,16 @@ class EdgeAngleDriverConfig:
             gives no reason would teach a behavioural clone two opposite answers to the
             same observation, whose average (straight on, head-on down the wall) is the
             one thing it must not do.
+        replan_each_step: False latches the plan (the side along the edge, chosen
+            before the wall, and the phase: descend, climb, exited) as a driver who
+            committed to it would. True decides both afresh from the current pose at
+            every step: the side along the edge is the one the robot already faces
+            once it is on a wall, and the phase follows from which side of the ditch's
+            course the robot and the goal are on (a robot facing the edge within
+            `straight_across_deg` of square on takes the approach convention's side).
+            For labelling a learner's states (DAgger): a learner off the latched plan's
+            line gets the answer to where it is, not a U-turn back to the plan on a
+            steep wall.
     """
 
     wall_angle_deg: float = 20.0
@@ -46,6 +56,7 @@ class EdgeAngleDriverConfig:
     heading_gain: float = 1.5
     speed_mps: float = robot.MAX_SPEED_MPS
     straight_across_deg: float = 15.0
+    replan_each_step: bool = False
 
 
 DESCEND, CLIMB, EXITED = 0, 1, 2
@@ -87,8 +98,8 @@ class EdgeAngleDriver(LeafSystem):
         self._command_index = self.DeclareDiscreteState(2)
         # [along-edge direction sign (0 until chosen), phase (DESCEND, CLIMB, EXITED)].
         self._plan_index = self.DeclareDiscreteState(2)
-        # The angles and margin are numeric parameters, so one built diagram can drive
-        # each demonstration in its own style (`set_style`).
+        # The angles, margin and replanning are numeric parameters, so one built diagram
+        # can drive each demonstration in its own style (`set_style`).
         self._style_index = self.DeclareNumericParameter(BasicVector(self._style_vector(self._config)))
         self.DeclareStateOutputPort("command", self._command_index)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._update)
@@ -96,10 +107,11 @@ class EdgeAngleDriver(LeafSystem):
     @staticmethod
     def _style_vector(config: EdgeAngleDriverConfig) -> np.ndarray:
         climb = np.nan if config.climb_angle_deg is None else config.climb_angle_deg
-        return np.array([config.wall_angle_deg, climb, config.approach_margin_m])
+        return np.array([config.wall_angle_deg, climb, config.approach_margin_m, float(config.replan_each_step)])
 
     def set_style(self, context, config: EdgeAngleDriverConfig) -> None:
-        """Sets the wall and climb angles and the approach margin in this system's `context`."""
+        """Sets the wall and climb angles, the approach margin and `replan_each_step` in
+        this system's `context`."""
         context.get_mutable_numeric_parameter(self._style_index).SetFromVector(self._style_vector(config))
 
     def _path_is_clear(self, xy: np.ndarray) -> bool:
@@ -115,11 +127,12 @@ class EdgeAngleDriver(LeafSystem):
         return 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
 
     def desired_heading(self, xy: np.ndarray, along_sign: float, phase: int,
-                        style: np.ndarray | None = None) -> tuple[float, float, int]:
+                        style: np.ndarray | None = None, heading: float = 0.0) -> tuple[float, float, int]:
         """Desired heading (rad) at xy, and the along-edge sign and phase to keep.
 
         `style` is [wall angle deg, climb angle deg (NaN: the wall angle), approach
-        margin m]; None uses the constructor's config.
+        margin m, replan each step (0 or 1)]; None uses the constructor's config.
+        `heading` (rad), the robot's current yaw, is read only when replanning.
 
         Phases: DESCEND until the robot reaches the bottom, then CLIMB, then EXITED
         once it is back on the flat. Holding the phase keeps a curved edge from
@@ -128,7 +141,7 @@ class EdgeAngleDriver(LeafSystem):
         the rim).
         """
         config, terrain = self._config, self._terrain
-        wall_angle_deg, climb_angle_deg, approach_margin_m = (
+        wall_angle_deg, climb_angle_deg, approach_margin_m, replan = (
             self._style_vector(config) if style is None else np.asarray(style, dtype=float))
         to_goal = self._goal_xy - xy
         goal_heading = math.atan2(to_goal[1], to_goal[0])
@@ -136,6 +149,18 @@ class EdgeAngleDriver(LeafSystem):
         distance = float(distance)
         toward = -away
         tangent = np.array([-away[1], away[0]])
+        if replan:
+            # The goal lies across the course from the robot, or on its own side.
+            goal_beyond = float(terrain.distance_and_away(self._goal_xy)[1] @ away) < 0.0
+            phase = DESCEND if goal_beyond and distance > terrain.toe_distance_m else (
+                CLIMB if distance <= terrain.hinge_distance_m else EXITED)
+            # On a wall, keep to the side the robot already faces, unless it faces the edge
+            # nearly square on: then the approach convention, so that one observation
+            # never gets both sides as labels (see `straight_across_deg`).
+            facing_along = math.cos(heading) * tangent[0] + math.sin(heading) * tangent[1]
+            decisive = abs(facing_along) > math.sin(math.radians(config.straight_across_deg))
+            along_sign = (1.0 if facing_along >= 0.0 else -1.0) if (
+                distance <= terrain.hinge_distance_m and decisive) else 0.0
         if phase == CLIMB and distance > terrain.hinge_distance_m:
             phase = EXITED
         if phase == EXITED:
@@ -170,7 +195,8 @@ class EdgeAngleDriver(LeafSystem):
         heading = planar_yaw(X_WB)
         along_sign, phase = context.get_discrete_state(self._plan_index).get_value()
         style = context.get_numeric_parameter(self._style_index).get_value()
-        desired, along_sign, phase = self.desired_heading(X_WB.translation()[:2], float(along_sign), int(phase), style)
+        desired, along_sign, phase = self.desired_heading(X_WB.translation()[:2], float(along_sign), int(phase), style,
+                                                          heading)
         w = np.clip(self._config.heading_gain * wrap_to_pi(desired - heading),
                     -robot.MAX_ANGULAR_RATE_RADPS, robot.MAX_ANGULAR_RATE_RADPS)
         discrete_state.set_value(self._command_index, [self._config.speed_mps, w])

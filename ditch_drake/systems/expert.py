@@ -23,6 +23,8 @@ class ExpertVariation:
         reaction_delay_steps: the delay is drawn uniformly from 0..this many control steps.
         steering_noise_radps: standard deviation of the Gaussian noise added to the
             steering command every control step.
+        replan_each_step: see `EdgeAngleDriverConfig` (True for a DAgger labeller
+            that answers from the current pose).
     """
 
     wall_angle_deg: tuple[float, float] = (17.0, 23.0)
@@ -30,6 +32,7 @@ class ExpertVariation:
     approach_margin_m: tuple[float, float] = (2.0, 3.0)
     reaction_delay_steps: int = 1
     steering_noise_radps: float = 0.05
+    replan_each_step: bool = False
 
 
 @dataclass
@@ -49,6 +52,7 @@ def draw_expert_style(seed: int, variation: ExpertVariation | None = None) -> Ex
         wall_angle_deg=float(rng.uniform(*variation.wall_angle_deg)),
         climb_angle_deg=float(rng.uniform(*variation.climb_angle_deg)),
         approach_margin_m=float(rng.uniform(*variation.approach_margin_m)),
+        replan_each_step=variation.replan_each_step,
     )
     delay = int(rng.integers(0, variation.reaction_delay_steps + 1))
     return ExpertStyle(driver, delay, variation.steering_noise_radps)
