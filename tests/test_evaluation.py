@@ -67,11 +67,27 @@ def test_evaluate_records_every_rollout_once_and_resumes_after_an_interruption(t
 def test_worker_processes_give_the_same_records_as_one_process(tmp_path, monkeypatch):
     evaluate(SPECS, tmp_path / "pool.jsonl", workers=2, progress=False)
     evaluate(SPECS, tmp_path / "here.jsonl", workers=0, progress=False)
-    monkeypatch.setattr(batch, "ROLLOUTS_PER_WORKER", 1)  # A fresh worker process for every rollout.
+    monkeypatch.setattr(batch, "ROLLOUTS_PER_WORKER", 1)  # A fresh pool (and worker) for every rollout.
     evaluate(SPECS, tmp_path / "recycled.jsonl", workers=1, progress=False)
     by_key = [{r.key: outcome_fields(r) for r in read_records(tmp_path / name)[0]}
               for name in ("pool.jsonl", "here.jsonl", "recycled.jsonl")]
     assert by_key[0] == by_key[1] == by_key[2] and len(by_key[0]) == len(SPECS)
+
+
+def test_pending_rollouts_run_in_fresh_pools_of_workers_times_rollouts_per_worker(tmp_path, monkeypatch):
+    pools = []
+
+    def fake_pool(specs, workers, keep):
+        pools.append((len(specs), workers))
+        for spec in specs:
+            keep(batch._error_record(spec, "not run", 0.0))
+        return []
+
+    monkeypatch.setattr(batch, "_run_pool", fake_pool)
+    monkeypatch.setattr(batch, "ROLLOUTS_PER_WORKER", 2)
+    specs = make_specs("edge_angle", "", "wide", tasks=[0, 1], rollouts=3, time_limit_s=1.0)
+    report = evaluate(specs, tmp_path / "results.jsonl", workers=2, progress=False)
+    assert pools == [(4, 2), (2, 2)] and report.recorded == 6
 
 
 def test_a_rollout_that_raises_is_recorded_as_an_error_and_the_run_goes_on(tmp_path):

@@ -17,8 +17,11 @@ kept them all until the out-of-memory killer stopped the run (7 GB per worker). 
 rollout starts from a fresh random Context (`RunEpisode`), so its record depends only on
 its spec, not on what the worker ran before. Even so a worker's memory grows by tens of MB
 per diagram it has built and dropped (about 5 GB after 210 rollouts of the generalization
-study with 4 kept), so each worker process is replaced after `ROLLOUTS_PER_WORKER`
-rollouts, which bounds it whatever leaks.
+study with 4 kept), so a pool's worker processes are replaced after about
+`ROLLOUTS_PER_WORKER` rollouts each, which bounds them whatever leaks: the pending rollouts
+run in chunks of workers x `ROLLOUTS_PER_WORKER`, each chunk in a fresh pool. (Not with the
+executor's own `max_tasks_per_child`: on Python 3.11 a pool whose two workers reached that
+limit together stopped starting new ones, and the run hung with no process left working.)
 """
 
 import collections
@@ -147,7 +150,7 @@ def failure_region(terrain, start_xy, final_xy) -> str:
 # built from; see the module docstring. Specs are handed out in order, so a worker meets
 # the same rig for the seeds of one task in a row.
 MAX_WORKER_RIGS = 4
-# Rollouts a worker process runs before a fresh one replaces it (see the module docstring).
+# About how many rollouts a worker process runs before a fresh pool replaces it (see the module docstring).
 ROLLOUTS_PER_WORKER = 100
 _WORKER_RIGS: collections.OrderedDict[tuple, tuple] = collections.OrderedDict()
 
@@ -278,7 +281,9 @@ def _run_in_pools(pending: list[RolloutSpec], workers: int, keep) -> None:
     broken_pools = 0
     while pending:
         isolated = broken_pools >= _ATTEMPTS
-        batches = [[spec] for spec in pending] if isolated else [pending]
+        chunk = workers * ROLLOUTS_PER_WORKER
+        batches = [[spec] for spec in pending] if isolated else [
+            pending[i:i + chunk] for i in range(0, len(pending), chunk)]
         pending = []
         for batch in batches:
             died = _run_pool(batch, 1 if isolated else workers, keep)
@@ -294,8 +299,7 @@ def _run_pool(specs: list[RolloutSpec], workers: int, keep) -> list[RolloutSpec]
     # Spawned, not forked: a fork of a process whose torch/OpenMP threads are running can
     # deadlock in the child (seen in the test suite).
     pool = ProcessPoolExecutor(max_workers=min(workers, len(specs)), initializer=_worker_init,
-                               mp_context=multiprocessing.get_context("spawn"),
-                               max_tasks_per_child=ROLLOUTS_PER_WORKER)
+                               mp_context=multiprocessing.get_context("spawn"))
     died = []
     try:
         futures = {pool.submit(run_rollout, spec): spec for spec in specs}
