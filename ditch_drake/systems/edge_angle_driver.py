@@ -92,6 +92,8 @@ class EdgeAngleDriver(LeafSystem):
         super().__init__()
         self._terrain = terrain
         self._goal_xy = np.asarray(goal_xy, dtype=float)
+        # Which side of the course the goal lies on, for replanning (`desired_heading`).
+        self._goal_away = terrain.distance_and_away(self._goal_xy)[1]
         self._chassis_index = int(chassis_body_index)
         self._config = config or EdgeAngleDriverConfig()
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
@@ -151,7 +153,7 @@ class EdgeAngleDriver(LeafSystem):
         tangent = np.array([-away[1], away[0]])
         if replan:
             # The goal lies across the course from the robot, or on its own side.
-            goal_beyond = float(terrain.distance_and_away(self._goal_xy)[1] @ away) < 0.0
+            goal_beyond = float(self._goal_away @ away) < 0.0
             phase = DESCEND if goal_beyond and distance > terrain.toe_distance_m else (
                 CLIMB if distance <= terrain.hinge_distance_m else EXITED)
             # On a wall, keep to the side the robot already faces, unless it faces the edge
