@@ -23,6 +23,7 @@ import json
 import os
 import tempfile
 import zipfile
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -182,24 +183,17 @@ def dataset_summary(demonstrations: list[Demonstration]) -> dict:
     round's learner), and the class imbalance."""
     labels = np.concatenate([demo.arrays["label"] for demo in demonstrations])
     per_label = np.bincount(labels, minlength=actions.NUM_LABELS)
-    per_task: dict[str, int] = {}
-    per_outcome: dict[str, int] = {}
-    per_driver: dict[str, int] = {}
-    for demo in demonstrations:
-        name = demo.metadata.get("task", {}).get("name", "?")
-        per_task[name] = per_task.get(name, 0) + 1
-        status = demo.metadata.get("outcome", {}).get("status", "?")
-        per_outcome[status] = per_outcome.get(status, 0) + 1
-        driver = demo.metadata.get("learner") or "expert"
-        per_driver[driver] = per_driver.get(driver, 0) + 1
+    per_task = Counter(demo.metadata.get("task", {}).get("name", "?") for demo in demonstrations)
+    per_outcome = Counter(demo.metadata.get("outcome", {}).get("status", "?") for demo in demonstrations)
+    per_driver = Counter(demo.metadata.get("learner") or "expert" for demo in demonstrations)
     nonzero = per_label[per_label > 0]
     return {
         "demonstrations": len(demonstrations),
         "steps": len(labels),
         "per_label": per_label.tolist(),
-        "per_task": per_task,
-        "per_outcome": per_outcome,
-        "per_driver": per_driver,
+        "per_task": dict(per_task),
+        "per_outcome": dict(per_outcome),
+        "per_driver": dict(per_driver),
         "straight_fraction": float(per_label[actions.STRAIGHT_LABEL] / max(1, len(labels))),
         "majority_to_minority_ratio": float(nonzero.max() / nonzero.min()) if len(nonzero) else 0.0,
     }
