@@ -7,6 +7,7 @@ here, keeping the existing keys stable.
 import resource
 import time
 
+import numpy as np
 from pydrake.common import RandomGenerator
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
@@ -20,6 +21,8 @@ from ditch_drake.environments import environment_names
 TRAVERSAL_S = 30.0
 # The first control step: every stage's tick (offsets up to 4 ms) has run once.
 WARMUP_S = 0.005
+# Fixed-command episodes per environment in `measure_closed_loop` (its figures are medians).
+CLOSED_LOOP_EPISODES = 7
 
 
 def _timed_run(diagram, seed: int, duration_s: float, warmup_s: float = 0.0) -> tuple[float, float, float]:
@@ -54,21 +57,30 @@ def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVE
     }
 
 
-def measure_closed_loop(environment: str, seed: int = 0, duration_s: float = TRAVERSAL_S) -> dict:
+def measure_closed_loop(
+    environment: str, seed: int = 0, duration_s: float = TRAVERSAL_S, episodes: int = CLOSED_LOOP_EPISODES
+) -> dict:
     """Real-time factor with every perception block running at 10 Hz and a fixed command.
 
     Also the mean wall time of one control step's observation update (lidar render and
-    cloud, normal image, IMU, goal, stacker), from the same run: the closed loop's wall
-    time minus the plant-only wall time for the same simulated span, per control step.
+    cloud, normal image, IMU, goal, stacker): the closed loop's wall time minus the
+    plant-only wall time for the same simulated span, per control step.
 
     Both figures are the steady state after the first control step (`WARMUP_S`), timed
     apart as `observation_first_step_<env>_ms`: the first render of a Context's
     `RenderEngineVtk` sets up its pipeline (measured: 20-60 ms in a process's first
     Context, about 15 ms in each later one), a cost a batch evaluation pays once per
-    worker rig, whose Simulator and Context serve every rollout. The fixed command drives
-    straight at the ditch, so the run ends (rollover) after about 60 control steps, over
-    which that one render alone would add about 0.8 ms per step.
+    worker rig, whose Simulator and Context serve every rollout.
+
+    The fixed command drives straight at the ditch, so one episode ends (rollover) after
+    about 60 control steps, about 0.2 s of wall time: one such episode is at the mercy of
+    whatever else the machine does in that fraction of a second. So the figures are the
+    medians over `episodes` episodes from the seeded starts `seed`, `seed` + 1, ... (each
+    with its own Simulator and Context, like separate rollouts), and the first step's cost
+    the median of the episodes' first steps.
     """
+    if episodes < 1:
+        raise ValueError(f"episodes={episodes!r} must be >= 1")
     builder = DiagramBuilder()
     scene = AddDitchScene(builder, SceneConfig(environment=environment))
     AddObservation(builder, scene)
@@ -76,14 +88,18 @@ def measure_closed_loop(environment: str, seed: int = 0, duration_s: float = TRA
     diagram = builder.Build()
     plant_only, _ = MakeRolloutDiagram(RolloutConfig(
         scene=SceneConfig(environment=environment), controller=ConstantCommandConfig([robot.MAX_SPEED_MPS, 0.0])))
-    loop_wall, loop_time, loop_warmup_wall = _timed_run(diagram, seed, duration_s, WARMUP_S)
-    plant_wall, plant_time, plant_warmup_wall = _timed_run(plant_only, seed, duration_s, WARMUP_S)
-    steps = loop_time / robot.CONTROL_PERIOD_S
-    observation_ms = 1e3 * (loop_wall - plant_wall * loop_time / plant_time) / steps
+    rtfs, observation_ms, first_step_ms = [], [], []
+    for episode_seed in range(seed, seed + episodes):
+        loop_wall, loop_time, loop_warmup_wall = _timed_run(diagram, episode_seed, duration_s, WARMUP_S)
+        plant_wall, plant_time, plant_warmup_wall = _timed_run(plant_only, episode_seed, duration_s, WARMUP_S)
+        steps = loop_time / robot.CONTROL_PERIOD_S
+        rtfs.append(loop_time / loop_wall)
+        observation_ms.append(1e3 * (loop_wall - plant_wall * loop_time / plant_time) / steps)
+        first_step_ms.append(1e3 * (loop_warmup_wall - plant_warmup_wall))
     return {
-        f"closed_loop_{environment}_rtf": loop_time / loop_wall,
-        f"observation_update_{environment}_ms": observation_ms,
-        f"observation_first_step_{environment}_ms": 1e3 * (loop_warmup_wall - plant_warmup_wall),
+        f"closed_loop_{environment}_rtf": float(np.median(rtfs)),
+        f"observation_update_{environment}_ms": float(np.median(observation_ms)),
+        f"observation_first_step_{environment}_ms": float(np.median(first_step_ms)),
     }
 
 
@@ -123,9 +139,29 @@ def measure_rollouts_per_minute(rollouts: int = 4, environment: str = "wide") ->
     return {"evaluate_rollouts_per_min": report.rollouts_per_minute}
 
 
+def measure_host_reference_ms(repeats: int = 5) -> float:
+    """Median wall time (ms) of a fixed single-threaded CPU workload: a pure-Python loop
+    and elementwise numpy arithmetic. It measures the machine, not the project: on a
+    shared virtual machine its speed changes from minute to minute (the same loop took
+    43 ms and 84 ms within one minute here), and every other figure moves with it. The
+    bench times it at its start and its end so that a run's figures can be read against
+    the host's state then."""
+    values = np.linspace(0.0, 1.0, 100_000)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        total = 0
+        for i in range(500_000):
+            total += i
+        for _ in range(20):
+            np.sin(values)
+        times.append(time.perf_counter() - start)
+    return 1e3 * float(np.median(times))
+
+
 def run_bench(environments: list[str] | None = None, training: bool = False) -> dict:
     """All figures, in a stable key order; `training` adds the slow training-memory run."""
-    figures: dict[str, float] = {}
+    figures: dict[str, float] = {"host_reference_start_ms": measure_host_reference_ms()}
     environments = environments or environment_names()
     for name in environments:
         figures.update(measure_plant_rtf(name))
@@ -146,4 +182,5 @@ def run_bench(environments: list[str] | None = None, training: bool = False) -> 
         figures["train_peak_rss_mib"] = memory["train_peak_rss_mib"]
         figures["train_pipeline_s"] = memory["train_pipeline_s"]
     figures["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    figures["host_reference_end_ms"] = measure_host_reference_ms()
     return figures

@@ -22,7 +22,7 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     from ditch_drake import bench
 
     monkeypatch.setattr(bench.measure_plant_rtf, "__defaults__", (0, 0.5))
-    monkeypatch.setattr(bench.measure_closed_loop, "__defaults__", (0, 0.5))
+    monkeypatch.setattr(bench.measure_closed_loop, "__defaults__", (0, 0.5, 2))
     monkeypatch.setattr(bench, "measure_blocks", lambda: {"lidar_render_and_cloud_ms": 1.0})
     monkeypatch.setattr(bench, "measure_rollouts_per_minute", lambda: {"evaluate_rollouts_per_min": 1.0})
     from ditch_drake.benchmarks import bench_training
@@ -32,7 +32,7 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     figures = json.loads(capsys.readouterr().out)
     assert set(figures) >= {"plant_narrow_rtf", "scene_build_narrow_s", "plant_min_rtf", "peak_rss_mib",
                             "closed_loop_narrow_rtf", "observation_update_narrow_ms", "observation_first_step_narrow_ms",
-                            "closed_loop_min_rtf"}
+                            "closed_loop_min_rtf", "host_reference_start_ms", "host_reference_end_ms"}
     assert all(key.rsplit("_", 1)[-1] in {"rtf", "s", "mib", "ms", "min"} for key in figures)
     assert {"train_samples_per_s", "evaluate_rollouts_per_min", "train_wide_40_demos_s"} <= set(figures)
     assert figures["plant_narrow_rtf"] > 0
@@ -98,3 +98,16 @@ def test_collect_labeller_choice_reaches_the_dagger_labeller(capsys, monkeypatch
     assert all(config.variation.steering_noise_radps == 0.0 for config in seen)
     assert main(["collect", "--env", "narrow", "--out", out, "--labeller", "replanning"]) == 2
     assert "--labeller replanning: a labeller needs --learner" in capsys.readouterr().err
+
+
+def test_collect_lead_in_reaches_the_expert_and_the_labeller(monkeypatch, tmp_path):
+    from ditch_drake.demos import collect as collect_module
+
+    seen = []
+    monkeypatch.setattr(collect_module, "collect", lambda config: seen.append(config) or {"unfilled_slots": 0})
+    out = str(tmp_path / "demos")
+    assert main(["collect", "--env", "narrow", "--out", out, "--lead-in"]) == 0
+    assert main(["collect", "--env", "narrow", "--out", out, "--lead-in", "--learner", "narrow"]) == 0
+    assert main(["collect", "--env", "narrow", "--out", out]) == 0
+    assert [config.variation.lead_in for config in seen] == [True, True, False]
+    assert seen[0].variation.steering_noise_radps > 0.0  # The demonstrators' variation, not the labeller's.
