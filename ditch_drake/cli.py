@@ -110,9 +110,10 @@ def cmd_collect(args) -> int:
     from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect
 
     config = CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out, workers=args.workers)
+    config = replace(config, variation=replace(config.variation, lead_in=args.lead_in))
     if args.learner is not None:
         config = replace(config, learner=args.learner, variation=replace(
-            LABELLER_VARIATION, replan_each_step=args.labeller == "replanning"))
+            LABELLER_VARIATION, replan_each_step=args.labeller == "replanning", lead_in=args.lead_in))
     elif args.labeller != "latched":
         raise ConfigError(f"--labeller {args.labeller}: a labeller needs --learner (a DAgger round)")
     report = collect(config)
@@ -380,6 +381,9 @@ def build_parser() -> argparse.ArgumentParser:
     collect.add_argument("--labeller", choices=["latched", "replanning"], default="latched",
                          help="with --learner: the expert keeps the plan it chose before the wall (latched) "
                               "or decides it afresh from the current pose every step (replanning)")
+    collect.add_argument("--lead-in", action="store_true",
+                         help="the expert first makes room along the ditch when the crossing would not fit "
+                              "before the ditch's end (EdgeAngleDriverConfig.lead_in)")
     collect.set_defaults(run=cmd_collect)
 
     teleop = commands.add_parser("teleop", help="record your own demonstration: steer in meshcat")

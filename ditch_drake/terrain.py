@@ -206,19 +206,35 @@ class DitchTerrain:
         x = np.linspace(-p.length_m / 2, p.length_m / 2, count + 1)
         return np.stack([x, p.sine_amplitude_m * np.sin(k * x)], axis=1)
 
-    def nearest_on_course(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Returns (d, c): distance (m) and nearest course point for points (..., 2)."""
-        xy = np.asarray(xy, dtype=float)
-        flat = xy.reshape(-1, 2)
+    def _nearest_segments(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For points (n, 2): the nearest course segment's index, the parameter t in [0, 1]
+        of the nearest point on it, and the squared distance to that point."""
         rel = flat[:, None, :] - self._seg_start[None, :, :]
         t = np.clip(np.einsum("nmk,mk->nm", rel, self._seg_vec) / self._seg_len2, 0.0, 1.0)
         closest = self._seg_start[None] + t[..., None] * self._seg_vec[None]
         dist2 = np.sum((flat[:, None, :] - closest) ** 2, axis=2)
         best = np.argmin(dist2, axis=1)
         rows = np.arange(len(flat))
-        d = np.sqrt(dist2[rows, best])
-        c = closest[rows, best]
-        return d.reshape(xy.shape[:-1]), c.reshape(xy.shape)
+        return best, t[rows, best], dist2[rows, best]
+
+    def nearest_on_course(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Returns (d, c): distance (m) and nearest course point for points (..., 2)."""
+        xy = np.asarray(xy, dtype=float)
+        best, t, dist2 = self._nearest_segments(xy.reshape(-1, 2))
+        c = self._seg_start[best] + t[:, None] * self._seg_vec[best]
+        return np.sqrt(dist2).reshape(xy.shape[:-1]), c.reshape(xy.shape)
+
+    def course_left_ahead(self, xy, direction) -> float:
+        """Course length (m) from the course point nearest to `xy` to the course's end that
+        `direction` (a planar vector) points to along the course; inf for a crater (a
+        point course has no ends)."""
+        if self.params.course == "point":
+            return math.inf
+        (segment,), (t,), _ = self._nearest_segments(np.asarray(xy, dtype=float).reshape(1, 2))
+        lengths = np.sqrt(self._seg_len2)
+        behind = float(lengths[:segment].sum() + t * lengths[segment])
+        forward = float(np.asarray(direction, dtype=float) @ self._seg_vec[segment]) >= 0.0
+        return float(lengths.sum()) - behind if forward else behind
 
     def distance_and_away(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Distance (m) to the course and the unit direction away from it, for xy (..., 2).

@@ -67,3 +67,85 @@ def test_a_replanning_labeller_answers_from_the_current_pose_not_the_latched_pla
 def test_the_replanning_driver_itself_gets_through():
     (record,) = driven_trials("narrow", 1, EdgeAngleDriverConfig(replan_each_step=True), seeds=[5], time_step_s=0.02)
     assert record["status"] == "reached_goal"
+
+
+def test_lead_in_heads_away_along_the_rim_only_when_the_ditch_is_too_short_ahead():
+    import math
+
+    import numpy as np
+
+    from ditch_drake.environments import get_environment
+    from ditch_drake.systems.edge_angle_driver import DESCEND, EdgeAngleDriver
+    from ditch_drake.terrain import DitchTerrain
+
+    terrain = DitchTerrain(get_environment("narrow").terrain)  # Course from x = -15 to 15 at y = 0.
+    def heading(goal, lead_in, start=(0.0, -9.0)):
+        driver = EdgeAngleDriver(terrain, np.array(goal), 0, EdgeAngleDriverConfig(lead_in=lead_in))
+        return driver.desired_heading(np.array(start), 0.0, DESCEND, heading=math.pi / 2)[0], driver
+
+    # Straight across from the middle: the convention goes east (+x), where 15 m of ditch is left.
+    plain, driver = heading((0.0, 9.0), False)
+    assert abs(plain - math.pi / 2) < 1e-9  # Straight at the goal.
+    needed = driver.crossing_length_m(20.0, 35.0, 2.5)
+    assert needed > terrain.course_left_ahead([0.0, -9.0], [1.0, 0.0]) == 15.0
+    led, _ = heading((0.0, 9.0), True)
+    assert math.cos(led) < -0.5  # West along the rim first, to make room.
+    # From x = -5, 20 m are left: room enough, no lead-in.
+    assert abs(heading((5.0, 9.0), True, start=(-5.0, -9.0))[0] - heading((5.0, 9.0), False, start=(-5.0, -9.0))[0]) < 1e-9
+    # Shallower angles travel farther along the ditch.
+    assert driver.crossing_length_m(17.0, 32.0, 2.5) > needed > driver.crossing_length_m(23.0, 38.0, 2.5)
+    # The expert's drawn style carries the choice into a built driver's context (`set_style`).
+    from ditch_drake.systems.expert import ExpertVariation, draw_expert_style
+
+    style = draw_expert_style(3, ExpertVariation(lead_in=True)).driver
+    context = driver.CreateDefaultContext()
+    driver.set_style(context, style)
+    assert style.lead_in and context.get_numeric_parameter(0).get_value()[4] == 1.0
+
+
+def test_course_left_ahead_counts_to_the_end_it_points_at():
+    import math
+
+    from ditch_drake.environments import get_environment
+    from ditch_drake.terrain import DitchTerrain
+
+    line = DitchTerrain(get_environment("narrow").terrain)
+    assert line.course_left_ahead([-5.0, -9.0], [1.0, 0.0]) == 20.0
+    assert line.course_left_ahead([-5.0, -9.0], [-1.0, 0.2]) == 10.0
+    assert line.course_left_ahead([40.0, 3.0], [1.0, 0.0]) == 0.0
+    sine = DitchTerrain(get_environment("sine").terrain)
+    ahead, behind = sine.course_left_ahead([0.0, -9.0], [1.0, 0.0]), sine.course_left_ahead([0.0, -9.0], [-1.0, 0.0])
+    assert ahead + behind > 30.0  # The sine is longer than its 30 m span.
+    assert DitchTerrain(get_environment("crater").terrain).course_left_ahead([0.0, -12.0], [1.0, 0.0]) == math.inf
+
+
+def test_with_lead_in_the_straight_across_crossing_stays_out_of_the_ditch_end():
+    """Without it the narrow crossing from the middle runs into the ditch's rounded end
+    (x = 15 m) before it turns up; with it the expert starts farther west and stays clear."""
+    from pydrake.common import RandomGenerator
+    from pydrake.systems.analysis import Simulator
+
+    from ditch_drake.diagrams.ditch_scene import SceneConfig
+    from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig
+
+    farthest_east = {}
+    for lead_in in (False, True):
+        scene_config = SceneConfig(environment="narrow", task=0)
+        scene_config.plant.time_step = 0.02
+        diagram, scene = MakeRolloutDiagram(RolloutConfig(
+            scene=scene_config, controller=EdgeAngleDriverConfig(lead_in=lead_in)))
+        simulator = Simulator(diagram)
+        context = simulator.get_mutable_context()
+        diagram.SetRandomContext(context, RandomGenerator(5))
+        simulator.Initialize()
+        chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+        plant_context = scene.plant.GetMyContextFromRoot(context)
+        monitor_context = scene.monitor.GetMyContextFromRoot(context)
+        xs = []
+        while scene.monitor.outcome(monitor_context).status == "running":
+            simulator.AdvanceTo(context.get_time() + 0.5)
+            xs.append(scene.plant.EvalBodyPoseInWorld(plant_context, chassis).translation()[0])
+        assert scene.monitor.outcome(monitor_context).status == "reached_goal"
+        farthest_east[lead_in] = max(xs)
+    assert farthest_east[False] > 14.0
+    assert farthest_east[True] < 12.0

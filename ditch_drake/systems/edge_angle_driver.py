@@ -46,6 +46,17 @@ class EdgeAngleDriverConfig:
             For labelling a learner's states (DAgger): a learner off the latched plan's
             line gets the answer to where it is, not a U-turn back to the plan on a
             steep wall.
+        lead_in: make room for the crossing first. Down the wall at `wall_angle_deg`
+            and up at the climb angle the robot travels a long way along the ditch, in
+            the narrow ditch more than a 30 m ditch leaves from its middle, and a
+            crossing from there ends in the ditch's rounded end. With
+            `lead_in`, on the flat before the approach zone, when the course ahead in
+            the chosen direction along the edge is shorter than the crossing needs
+            (`crossing_length_m`), the driver first heads for a lead-in point on the
+            flat that leaves `lead_in_extra_m` more than that, `lead_in_offset_m`
+            beyond the approach zone, and turns into the approach from there.
+        lead_in_extra_m: course kept beyond the crossing's need at the lead-in point (m).
+        lead_in_offset_m: how far outside the approach zone the lead-in point lies (m).
     """
 
     wall_angle_deg: float = 20.0
@@ -57,6 +68,9 @@ class EdgeAngleDriverConfig:
     speed_mps: float = robot.MAX_SPEED_MPS
     straight_across_deg: float = 15.0
     replan_each_step: bool = False
+    lead_in: bool = False
+    lead_in_extra_m: float = 1.5
+    lead_in_offset_m: float = 1.0
 
 
 DESCEND, CLIMB, EXITED = 0, 1, 2
@@ -109,11 +123,12 @@ class EdgeAngleDriver(LeafSystem):
     @staticmethod
     def _style_vector(config: EdgeAngleDriverConfig) -> np.ndarray:
         climb = np.nan if config.climb_angle_deg is None else config.climb_angle_deg
-        return np.array([config.wall_angle_deg, climb, config.approach_margin_m, float(config.replan_each_step)])
+        return np.array([config.wall_angle_deg, climb, config.approach_margin_m, float(config.replan_each_step),
+                         float(config.lead_in)])
 
     def set_style(self, context, config: EdgeAngleDriverConfig) -> None:
-        """Sets the wall and climb angles, the approach margin and `replan_each_step` in
-        this system's `context`."""
+        """Sets the wall and climb angles, the approach margin, `replan_each_step` and
+        `lead_in` in this system's `context`."""
         context.get_mutable_numeric_parameter(self._style_index).SetFromVector(self._style_vector(config))
 
     def _path_is_clear(self, xy: np.ndarray) -> bool:
@@ -128,12 +143,40 @@ class EdgeAngleDriver(LeafSystem):
             return 1.0
         return 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
 
+    def crossing_length_m(self, wall_angle_deg: float, climb_angle_deg: float, approach_margin_m: float) -> float:
+        """About how far (m) a crossing travels along the ditch from where it enters the
+        approach zone to where it leaves the far wall: down the wall at the wall angle,
+        across a wide bottom at `bottom_angle_deg`, up at the climb angle. Only about half
+        of the approach zone counts: the robot turns into it from the goal's heading."""
+        terrain, config = self._terrain, self._config
+        wall_m = terrain.hinge_distance_m - terrain.toe_distance_m
+        bottom_m = max(2.0 * (terrain.toe_distance_m - config.bottom_margin_m), 0.0)
+        climb = wall_angle_deg if math.isnan(climb_angle_deg) else climb_angle_deg
+        return ((wall_m + approach_margin_m / 2) / math.tan(math.radians(wall_angle_deg))
+                + bottom_m / math.tan(math.radians(config.bottom_angle_deg))
+                + wall_m / math.tan(math.radians(climb)))
+
+    def _lead_in_heading(self, xy: np.ndarray, distance: float, away: np.ndarray, needed_m: float) -> float | None:
+        """The heading to the lead-in point (rad) when the course ahead is too short for the
+        crossing from here; None when it is long enough (see `EdgeAngleDriverConfig.lead_in`)."""
+        tangent = np.array([-away[1], away[0]])
+        side = self._approach_side(self._goal_xy - xy, -away, tangent)
+        ahead = self._terrain.course_left_ahead(xy, side * tangent)
+        if ahead >= needed_m:
+            return None
+        config = self._config
+        back_m = needed_m + config.lead_in_extra_m - ahead
+        target = xy - back_m * side * tangent + (
+            self._terrain.hinge_distance_m + config.approach_margin_m + config.lead_in_offset_m - distance) * away
+        return math.atan2(target[1] - xy[1], target[0] - xy[0])
+
     def desired_heading(self, xy: np.ndarray, along_sign: float, phase: int,
                         style: np.ndarray | None = None, heading: float = 0.0) -> tuple[float, float, int]:
         """Desired heading (rad) at xy, and the along-edge sign and phase to keep.
 
         `style` is [wall angle deg, climb angle deg (NaN: the wall angle), approach
-        margin m, replan each step (0 or 1)]; None uses the constructor's config.
+        margin m, replan each step (0 or 1), lead in (0 or 1)]; None uses the
+        constructor's config.
         `heading` (rad), the robot's current yaw, is read only when replanning.
 
         Phases: DESCEND until the robot reaches the bottom, then CLIMB, then EXITED
@@ -143,7 +186,7 @@ class EdgeAngleDriver(LeafSystem):
         the rim).
         """
         config, terrain = self._config, self._terrain
-        wall_angle_deg, climb_angle_deg, approach_margin_m, replan = (
+        wall_angle_deg, climb_angle_deg, approach_margin_m, replan, lead_in = (
             self._style_vector(config) if style is None else np.asarray(style, dtype=float))
         to_goal = self._goal_xy - xy
         goal_heading = math.atan2(to_goal[1], to_goal[0])
@@ -172,6 +215,11 @@ class EdgeAngleDriver(LeafSystem):
             rim = math.cos(math.radians(10)) * rim_sign * tangent + math.sin(math.radians(10)) * away
             return math.atan2(rim[1], rim[0]), 0.0, phase
         if distance > terrain.hinge_distance_m + approach_margin_m:
+            if lead_in and phase == DESCEND:
+                needed_m = self.crossing_length_m(wall_angle_deg, climb_angle_deg, approach_margin_m)
+                lead_in_heading = self._lead_in_heading(xy, distance, away, needed_m)
+                if lead_in_heading is not None:
+                    return lead_in_heading, 0.0, phase
             return goal_heading, 0.0, phase
         if distance <= terrain.toe_distance_m:
             phase = CLIMB

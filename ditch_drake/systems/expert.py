@@ -25,6 +25,8 @@ class ExpertVariation:
             steering command every control step.
         replan_each_step: see `EdgeAngleDriverConfig` (True for a DAgger labeller
             that answers from the current pose).
+        lead_in: see `EdgeAngleDriverConfig`: first make room along the ditch when the
+            crossing would not fit between the robot and the ditch's end.
     """
 
     wall_angle_deg: tuple[float, float] = (17.0, 23.0)
@@ -33,6 +35,7 @@ class ExpertVariation:
     reaction_delay_steps: int = 1
     steering_noise_radps: float = 0.05
     replan_each_step: bool = False
+    lead_in: bool = False
 
 
 @dataclass
@@ -53,6 +56,7 @@ def draw_expert_style(seed: int, variation: ExpertVariation | None = None) -> Ex
         climb_angle_deg=float(rng.uniform(*variation.climb_angle_deg)),
         approach_margin_m=float(rng.uniform(*variation.approach_margin_m)),
         replan_each_step=variation.replan_each_step,
+        lead_in=variation.lead_in,
     )
     delay = int(rng.integers(0, variation.reaction_delay_steps + 1))
     return ExpertStyle(driver, delay, variation.steering_noise_radps)
