@@ -156,10 +156,10 @@ class EdgeAngleDriver(LeafSystem):
                 + bottom_m / math.tan(math.radians(config.bottom_angle_deg))
                 + wall_m / math.tan(math.radians(climb)))
 
-    def _lead_in_heading(self, xy: np.ndarray, distance: float, away: np.ndarray, needed_m: float) -> float | None:
+    def _lead_in_heading(self, xy: np.ndarray, distance: float, away: np.ndarray, tangent: np.ndarray,
+                         needed_m: float) -> float | None:
         """The heading to the lead-in point (rad) when the course ahead is too short for the
         crossing from here; None when it is long enough (see `EdgeAngleDriverConfig.lead_in`)."""
-        tangent = np.array([-away[1], away[0]])
         side = self._approach_side(self._goal_xy - xy, -away, tangent)
         ahead = self._terrain.course_left_ahead(xy, side * tangent)
         if ahead >= needed_m:
@@ -217,7 +217,7 @@ class EdgeAngleDriver(LeafSystem):
         if distance > terrain.hinge_distance_m + approach_margin_m:
             if lead_in and phase == DESCEND:
                 needed_m = self.crossing_length_m(wall_angle_deg, climb_angle_deg, approach_margin_m)
-                lead_in_heading = self._lead_in_heading(xy, distance, away, needed_m)
+                lead_in_heading = self._lead_in_heading(xy, distance, away, tangent, needed_m)
                 if lead_in_heading is not None:
                     return lead_in_heading, 0.0, phase
             return goal_heading, 0.0, phase
