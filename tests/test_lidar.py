@@ -21,6 +21,7 @@ from ditch_drake.systems.lidar import (
     DepthImagesToLidarCloud,
     LidarConfig,
     LidarHandles,
+    MergeAnchoredPerceptionBoxes,
     lidar_camera_info,
     lidar_camera_poses,
 )
@@ -172,6 +173,50 @@ def test_points_lie_on_the_terrain(environment, on_hinge, tolerance_m, request):
     np.testing.assert_array_less(np.abs(p_W[2] - height), tolerance_m)
 
 
+def _random_terrain_poses(terrain, count: int, seed: int, max_tilt_deg: float = 40.0) -> list[RigidTransform]:
+    """Chassis poses 0.25 m above the terrain, z along its normal (tilts up to `max_tilt_deg`), random yaw."""
+    rng = np.random.default_rng(seed)
+    low, high = terrain.bounds_xy()
+    poses = []
+    while len(poses) < count:
+        xy = rng.uniform(low, high)
+        normal = terrain.normal(xy[None])[0]
+        if normal[2] < math.cos(math.radians(max_tilt_deg)):
+            continue
+        yaw = rng.uniform(-math.pi, math.pi)
+        heading = np.array([math.cos(yaw), math.sin(yaw), 0.0])
+        x = heading - normal * normal.dot(heading)
+        x /= np.linalg.norm(x)
+        R_WB = RotationMatrix(np.column_stack([x, np.cross(normal, x), normal]))
+        poses.append(RigidTransform(R_WB, [*xy, float(terrain.height(xy[None])[0]) + 0.25]))
+    return poses
+
+
+@pytest.mark.parametrize("faces", ["up", "top"])
+@pytest.mark.parametrize("environment", ["sine", "crater"])
+def test_merged_terrain_mesh_renders_like_the_boxes(environment, faces):
+    # The lidar renders only some faces of the terrain's boxes; every face of every box must see the same.
+    exact = _build(environment, LidarConfig(terrain_faces="all"))
+    merged = _build(environment, LidarConfig(terrain_faces=faces))
+    poses = _random_terrain_poses(merged.scene.terrain, count=25, seed=1)
+    differ = total = 0
+    for X_WB in poses:
+        _, organized_exact, _ = _scan(exact, X_WB)
+        _, organized_merged, _ = _scan(merged, X_WB)
+        same = (np.isnan(organized_exact) & np.isnan(organized_merged)) | (
+            np.abs(organized_exact - organized_merged) < 1e-4
+        )
+        differ += (~same.all(axis=0)).sum()
+        total += same.shape[1]
+        assert np.isfinite(organized_merged).all(axis=0).sum() > 100
+    assert differ <= 1e-3 * total
+
+
+def test_merge_rejects_unknown_faces(wide):
+    with pytest.raises(ValueError, match="faces='bottom'"):
+        MergeAnchoredPerceptionBoxes(wide.scene.scene_graph, wide.scene.plant.get_source_id(), faces="bottom")
+
+
 def test_sees_into_the_ditch_from_its_edge(wide):
     p_L, _, X_WL = _scan(wide, _on_hinge_nose_down(wide))
     p_W = X_WL.multiply(p_L)
@@ -210,6 +255,7 @@ def test_noise_is_repeatable_per_seed():
         ("noise_std_m", -0.1),
         ("min_range_m", 5.0),
         ("rasterizer_threads", -1),
+        ("terrain_faces", "bottom"),
     ],
 )
 def test_bad_config_names_the_value(field, value):

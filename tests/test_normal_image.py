@@ -20,6 +20,7 @@ from ditch_drake.perception.normal_image import (
     estimate_normals_pca,
     normal_image,
     normalize_to_unit_ball,
+    organized_cloud_to_normal_image,
 )
 from ditch_drake.systems.normal_image import NormalImageConverter
 
@@ -219,6 +220,37 @@ def test_degenerate_clouds_give_finite_images(case, method):
         np.testing.assert_allclose(image[covered], math.cos(math.radians(10.0)), atol=0.02)
     else:
         assert not image.any()
+
+
+def test_organized_image_from_coordinates_is_the_whole_images_bit_for_bit():
+    # Rows without a return above and below (the lidar's sky and chassis rows), a hole, an
+    # inf: working on the band of rows with returns, by coordinate, changes nothing.
+    grid = bench.lidar_depth_cloud(30, 45)
+    grid[:7] = np.nan
+    grid[-3:] = np.nan
+    grid[12, 10:20] = np.nan
+    grid[15, 4, 1] = np.inf
+    points = grid.reshape(-1, 3)
+    normals_z = estimate_normals_organized(grid)[..., 2].ravel()
+    expected = normal_image(points, normals_z)
+    assert (expected > 0).mean() > 0.1
+    np.testing.assert_array_equal(organized_cloud_to_normal_image(points.T, grid.shape[:2]), expected)
+    np.testing.assert_array_equal(cloud_to_normal_image(points, organized_shape=grid.shape[:2]), expected)
+    # A PointCloud holds float32 coordinates.
+    converter = NormalImageConverter(organized_shape=grid.shape[:2], R_BS=RotationMatrix())
+    points_32 = points.astype(np.float32).astype(np.float64)
+    np.testing.assert_array_equal(
+        converter.image_from_cloud(make_point_cloud(points)),
+        cloud_to_normal_image(points_32, organized_shape=grid.shape[:2]),
+    )
+
+
+def test_organized_image_from_coordinates_checks_the_shape():
+    with pytest.raises(ValueError, match=r"\(3, 12\).*\(3, 10\).*\(2, 5\)"):
+        organized_cloud_to_normal_image(np.zeros((3, 12)), (2, 5))
+    converter = NormalImageConverter(organized_shape=(2, 5))
+    with pytest.raises(ValueError, match=r"organized_shape \(2, 5\).*12 points"):
+        converter.image_from_cloud(make_point_cloud(np.zeros((12, 3))))
 
 
 def test_nan_normals_are_skipped():

@@ -1,6 +1,7 @@
 """Times the lidar (`ditch_drake.systems.lidar`): one control step's render and point cloud.
 
-Run: `python -m ditch_drake.benchmarks.bench_lidar [environment] [repeats]`. Prints the
+Run: `python -m ditch_drake.benchmarks.bench_lidar [environment] [repeats] [terrain_faces]`
+(`LidarConfig.terrain_faces`: up, top or all; default up). Prints the
 median wall and CPU times (ms, one process) of the lidar's update (both cameras' depth
 renders through `RenderEngineVtk` plus the conversion to the clouds), the robot moving a
 little between steps so that every step renders afresh. `RenderEngineVtk` renders on the
@@ -69,4 +70,5 @@ def measure_lidar_ms(env: str = "wide", repeats: int = 20, config: LidarConfig |
 if __name__ == "__main__":
     environment = sys.argv[1] if len(sys.argv) > 1 else "wide"
     repeats = int(sys.argv[2]) if len(sys.argv) > 2 else 20
-    print(measure_lidar_ms(environment, repeats))
+    faces = sys.argv[3] if len(sys.argv) > 3 else LidarConfig.terrain_faces
+    print(measure_lidar_ms(environment, repeats, LidarConfig(terrain_faces=faces)))

@@ -81,6 +81,9 @@ from ditch_drake import robot, schedule
 # ground, the returns are exact with this offset and up to half a pixel off without it.
 PIXEL_CENTER = 0.5
 
+# The choices of `MergeAnchoredPerceptionBoxes`'s `faces` (and `LidarConfig.terrain_faces`).
+_FACE_CHOICES = ("top", "up", "all")
+
 # Drake's camera frame C in a frame F with +x forward, +y left, +z up: columns are C's axes.
 _R_FC = RotationMatrix(np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]))
 
@@ -110,6 +113,8 @@ class LidarConfig:
             chassis: they only ever see the chassis top (see `lidar_camera_info`).
         renderer_name: the SceneGraph renderer the cameras use (added if missing).
         merge_terrain_geometry: merge the anchored perception boxes for fast rendering.
+        terrain_faces: which of the merged boxes' faces are rendered: "top", "up" or "all"
+            (`MergeAnchoredPerceptionBoxes`).
         rasterizer_threads: worker threads of Mesa's llvmpipe, the CPU rasterizer behind
             headless EGL (its `LP_NUM_THREADS`; 0: rasterize in the rendering thread).
             `AddLidar` sets it for the process unless `LP_NUM_THREADS` is already set;
@@ -137,6 +142,7 @@ class LidarConfig:
     crop_self_occluded: bool = True
     renderer_name: str = "lidar_vtk"
     merge_terrain_geometry: bool = True
+    terrain_faces: str = "up"
     rasterizer_threads: int | None = 0
 
     def validate(self) -> None:
@@ -155,6 +161,7 @@ class LidarConfig:
             ("self_filter_margin_m", self.self_filter_margin_m, self.self_filter_margin_m >= 0, ">= 0"),
             ("period_s", self.period_s, self.period_s > 0, "> 0"),
             ("seed", self.seed, isinstance(self.seed, int) and self.seed >= 0, "an int >= 0"),
+            ("terrain_faces", self.terrain_faces, self.terrain_faces in _FACE_CHOICES, f"one of {_FACE_CHOICES}"),
             ("rasterizer_threads", self.rasterizer_threads,
              self.rasterizer_threads is None or (isinstance(self.rasterizer_threads, int) and self.rasterizer_threads >= 0),
              "None or an int >= 0"),
@@ -420,24 +427,41 @@ class LidarHandles:
     renderer_name: str
 
 
-def MergeAnchoredPerceptionBoxes(scene_graph: SceneGraph, source_id: SourceId, up_faces_only: bool = True) -> int:
+def MergeAnchoredPerceptionBoxes(scene_graph: SceneGraph, source_id: SourceId, faces: str = "up") -> int:
     """Replaces `source_id`'s anchored perception `Box`es by one mesh per diffuse colour.
 
     A renderer then draws a few actors instead of hundreds (`RenderEngineVtk` costs 10-35 us
-    per actor per image on the CPU). With `up_faces_only` a mesh keeps only the boxes' faces
-    whose outward normal points up (world z > `UP_FACE_MIN_NORMAL_Z`), about a fifth of the
-    triangles: for terrain pieces seen from above the other faces are buried in the
-    neighbouring pieces. Compared with the boxes, depth images from physically possible
-    robot poses agreed on all but 0.01 % of the pixels (slivers of box sides that stick out
-    at the sine ditch's bends, up to 0.3 m off; measured on 200 random poses per
-    environment); set it False for the exact boxes. The boxes lose only their perception
-    role; collision and illustration (Meshcat) are untouched. Each mesh copies the
-    perception properties (label, colour) of its first box. Must run before a Context is
-    created; a second call finds no boxes and does nothing.
+    per actor per image on the CPU), and fewer triangles make each image cheaper still.
+    `faces` chooses the boxes' faces a mesh keeps:
+
+    - "up" (the default): every face whose outward normal points up (world z >
+      `UP_FACE_MIN_NORMAL_Z`), about a third of the ditches' triangles: for terrain pieces
+      seen from above the others are buried in the neighbouring pieces.
+    - "top": only each box's own +z face where it points up, a sixth of the triangles,
+      about half of "up"'s: the terrain's pieces are slabs whose +z face is the ground's
+      surface (`DitchTerrain.box_pieces`, `DitchTerrain.pieces_height`), and the upper end
+      faces of the wall slabs that "up" adds are buried too.
+    - "all": all faces, the exact boxes.
+
+    On random robot poses on the terrain both "up" and "top" see the same depth as "all"
+    in all but a few pixels in a hundred thousand (slivers of box sides that stick out at
+    the sine ditch's bends and the crater's rim; `tests/test_lidar.py`). "top" renders
+    faster, most in the sine ditch (`python -m ditch_drake.benchmarks.bench_lidar sine 50
+    top`), but those few pixels reach the policies' images and move some rollouts a little,
+    so the default stays "up", with which every recorded result of the project was made.
+    The boxes lose only their perception role; collision and illustration (Meshcat) are
+    untouched. Each mesh copies the perception properties (label, colour) of its first
+    box. Must run before a Context is created; a second call finds no boxes and does
+    nothing.
+
+    Raises:
+        ValueError: `faces` is not "top", "up" or "all".
 
     Returns:
         The number of boxes merged.
     """
+    if faces not in _FACE_CHOICES:
+        raise ValueError(f"faces={faces!r} must be one of {_FACE_CHOICES}")
     inspector = scene_graph.model_inspector()
     groups: dict[tuple, list] = {}
     for geometry_id in inspector.GetGeometries(inspector.world_frame_id(), Role.kPerception):
@@ -453,7 +477,8 @@ def MergeAnchoredPerceptionBoxes(scene_graph: SceneGraph, source_id: SourceId, u
         boxes = [(inspector.GetShape(g).size(), inspector.GetPoseInFrame(g).GetAsMatrix34()) for g in geometry_ids]
         properties = PerceptionProperties(inspector.GetPerceptionProperties(geometry_ids[0]))
         name = f"merged_perception_boxes_{index}"
-        obj = _boxes_obj(boxes, min_normal_z=UP_FACE_MIN_NORMAL_Z if up_faces_only else -np.inf)
+        min_normal_z = -np.inf if faces == "all" else UP_FACE_MIN_NORMAL_Z
+        obj = _boxes_obj(boxes, min_normal_z, top_only=faces == "top")
         mesh = InMemoryMesh(mesh_file=MemoryFile(obj, ".obj", f"{name}.obj"))
         merged = scene_graph.RegisterAnchoredGeometry(source_id, GeometryInstance(RigidTransform(), Mesh(mesh), name))
         scene_graph.AssignRole(source_id, merged, properties)
@@ -503,9 +528,12 @@ _CUBE_FACES = [
 ]
 
 
-def _boxes_obj(boxes: list[tuple[np.ndarray, np.ndarray]], min_normal_z: float = -np.inf) -> str:
+def _boxes_obj(
+    boxes: list[tuple[np.ndarray, np.ndarray]], min_normal_z: float = -np.inf, top_only: bool = False
+) -> str:
     """OBJ text of boxes given as (size, X_WG as a 3 x 4 matrix), flat-shaded, keeping only
-    the faces whose outward normal has a world z component above `min_normal_z`."""
+    the faces whose outward normal has a world z component above `min_normal_z`, and with
+    `top_only` only each box's own +z face."""
     signs = np.array([corners for _, corners in _CUBE_FACES], dtype=float)  # (6, 4, 3)
     normals = np.array([normal for normal, _ in _CUBE_FACES], dtype=float)  # (6, 3)
     sizes = np.array([size for size, _ in boxes])
@@ -515,6 +543,8 @@ def _boxes_obj(boxes: list[tuple[np.ndarray, np.ndarray]], min_normal_z: float =
     )
     face_normals = np.einsum("nij,fj->nfi", X[:, :, :3], normals)  # (n, 6, 3)
     keep = face_normals[..., 2] > min_normal_z
+    if top_only:
+        keep &= normals[:, 2] > 0
     corners, face_normals = corners[keep], face_normals[keep]  # (m, 4, 3), (m, 3)
     quads = 1 + 4 * np.arange(len(corners))[:, None] + np.arange(4)  # 1-based vertex indices
     lines = [f"v {x:.6f} {y:.6f} {z:.6f}" for x, y, z in corners.reshape(-1, 3)]
@@ -559,7 +589,7 @@ def AddLidar(builder: DiagramBuilder, scene, config: LidarConfig | None = None, 
     body_frame_id = plant.GetBodyFrameIdOrThrow(mount.body().index())
     RemoveSensorHousings(scene_graph, plant.get_source_id(), body_frame_id, X_BL.translation())
     if config.merge_terrain_geometry:
-        MergeAnchoredPerceptionBoxes(scene_graph, plant.get_source_id())
+        MergeAnchoredPerceptionBoxes(scene_graph, plant.get_source_id(), config.terrain_faces)
     if config.rasterizer_threads is not None:
         os.environ.setdefault("LP_NUM_THREADS", str(config.rasterizer_threads))
     if not scene_graph.HasRenderer(config.renderer_name):

@@ -7,7 +7,11 @@ from pydrake.perception import PointCloud
 from pydrake.systems.framework import LeafSystem
 
 from ditch_drake import robot
-from ditch_drake.perception.normal_image import NormalImageConfig, cloud_to_normal_image
+from ditch_drake.perception.normal_image import (
+    NormalImageConfig,
+    cloud_to_normal_image,
+    organized_cloud_to_normal_image,
+)
 
 
 class NormalImageConverter(LeafSystem):
@@ -78,7 +82,8 @@ class NormalImageConverter(LeafSystem):
                 "use NormalImageConfig(normal_method='pca') for an unorganized cloud"
             )
         self._organized_shape = organized_shape
-        self._R_BS = None if R_BS is None else R_BS.matrix()
+        # The identity (the lidar's frame is parallel to the body's) costs nothing.
+        self._R_BS = None if R_BS is None or R_BS.IsExactlyIdentity() else R_BS.matrix()
         self._use_cloud_normals = use_cloud_normals
         self._cloud_port = self.DeclareAbstractInputPort("point_cloud", Value(PointCloud()))
         self._image_index = self.DeclareDiscreteState(self._config.rows * self._config.cols)
@@ -99,9 +104,18 @@ class NormalImageConverter(LeafSystem):
         """
         if cloud.size() == 0:
             return np.zeros(self.image_shape, dtype=np.float32)
+        own_normals = self._use_cloud_normals and cloud.has_normals()
+        if self._config.normal_method == "organized" and not own_normals:
+            xyzs = cloud.xyzs()
+            if cloud.size() != self._organized_shape[0] * self._organized_shape[1]:
+                raise ValueError(
+                    f"organized_shape {self._organized_shape} does not match the cloud's {cloud.size()} points"
+                )
+            xyzs = xyzs if self._R_BS is None else self._R_BS @ xyzs
+            return organized_cloud_to_normal_image(xyzs, self._organized_shape, self._config)
         points = np.ascontiguousarray(cloud.xyzs().T, dtype=np.float64)
         normals = None
-        if self._use_cloud_normals and cloud.has_normals():
+        if own_normals:
             normals = np.ascontiguousarray(cloud.normals().T, dtype=np.float64)
         if self._R_BS is not None:
             points = points @ self._R_BS.T
