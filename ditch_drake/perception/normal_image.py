@@ -482,10 +482,10 @@ def organized_cloud_to_normal_image(
     # Rows without a return are NaN, like the padding around the image, so the band's
     # normals are the whole image's.
     band = slice(returned_rows[0] * width, (returned_rows[-1] + 1) * width)
-    grid = np.where(finite[band], xyzs[:, band], np.nan).reshape(3, -1, width)
+    in_band = finite[band]
+    grid = np.where(in_band, xyzs[:, band], np.nan).reshape(3, -1, width)
     normals, inverse_norm = _organized_normals_planar(grid, config.discontinuity_ratio)
     normals_z = np.multiply(normals[2], inverse_norm).ravel()
-    in_band = finite[band]
     points = np.compress(in_band, grid.reshape(3, -1), axis=1)
     centroid = points @ np.ones(points.shape[1]) / points.shape[1]
     return _image_of_finite_points(points[0], points[1], points[2], centroid, normals_z[in_band], config)

@@ -106,12 +106,7 @@ class NormalImageConverter(LeafSystem):
             return np.zeros(self.image_shape, dtype=np.float32)
         own_normals = self._use_cloud_normals and cloud.has_normals()
         if self._config.normal_method == "organized" and not own_normals:
-            xyzs = cloud.xyzs()
-            if cloud.size() != self._organized_shape[0] * self._organized_shape[1]:
-                raise ValueError(
-                    f"organized_shape {self._organized_shape} does not match the cloud's {cloud.size()} points"
-                )
-            xyzs = xyzs if self._R_BS is None else self._R_BS @ xyzs
+            xyzs = cloud.xyzs() if self._R_BS is None else self._R_BS @ cloud.xyzs()
             return organized_cloud_to_normal_image(xyzs, self._organized_shape, self._config)
         points = np.ascontiguousarray(cloud.xyzs().T, dtype=np.float64)
         normals = None
