@@ -116,6 +116,21 @@ def test_cloud_is_within_range_and_field_of_view(environment, request):
     assert np.nanmin(left) > np.nanmax(right)  # +y (left) in the left half
 
 
+def test_point_cloud_follows_every_update(wide):
+    # `point_cloud` is computed from the organized state when read: empty before the first
+    # update, and the returns of the newest update after each, in one Context.
+    context = wide.diagram.CreateDefaultContext()
+    converter = wide.lidar.converter
+    converter_context = converter.GetMyContextFromRoot(context)
+    assert converter.GetOutputPort("point_cloud").Eval(converter_context).size() == 0
+    sizes = []
+    for X_WB in (None, _on_hinge_nose_down(wide)):
+        p_L, organized, _ = _scan(wide, X_WB, context)
+        np.testing.assert_array_equal(p_L, organized[:, ~np.isnan(organized[0])])
+        sizes.append(p_L.shape[1])
+    assert sizes[0] > 500 and sizes[1] > 500 and sizes[0] != sizes[1]
+
+
 def test_no_point_inside_the_chassis_box():
     # Rendered: uncropped, so the cameras' lower rows see the chassis top.
     config = LidarConfig(width=32, height=24, crop_self_occluded=False)

@@ -293,19 +293,17 @@ def make_point_cloud(points: np.ndarray, normals: np.ndarray | None = None) -> P
     return cloud
 
 
-def test_converter_system_periodic_update():
+def test_converter_system_image_is_a_cached_function_of_the_cloud():
     grid = tilted_plane_grid(30.0)
     system = NormalImageConverter(organized_shape=grid.shape[:2])
     assert system.GetInputPort("point_cloud") is not None
     context = system.CreateDefaultContext()
+    assert context.num_discrete_state_groups() == 0 and context.num_abstract_states() == 0
     output = system.GetOutputPort("normal_image")
     assert output.size() == 128 * 128
-    assert not output.Eval(context).any()  # zeros before the first update
+    system.GetInputPort("point_cloud").FixValue(context, PointCloud())
+    assert not output.Eval(context).any()  # an empty cloud (before the lidar's first update)
     system.GetInputPort("point_cloud").FixValue(context, make_point_cloud(grid.reshape(-1, 3)))
-    attribute = system.GetUniquePeriodicDiscreteUpdateAttribute()
-    assert attribute.period_sec() == robot.CONTROL_PERIOD_S
-    updated = system.EvalUniquePeriodicDiscreteUpdate(context)
-    context.SetDiscreteState(updated)
     image = output.Eval(context)
     assert image.shape == (128 * 128,)
     covered = image > 0
@@ -316,6 +314,22 @@ def test_converter_system_periodic_update():
         cloud_to_normal_image(grid.reshape(-1, 3), organized_shape=grid.shape[:2]),
         atol=1e-6,
     )
+    # The image depends on the cloud alone: time passing does not remake it, a new cloud does.
+    made = []
+    image_from_cloud = system.image_from_cloud
+
+    def counting(cloud):
+        made.append(cloud.size())
+        return image_from_cloud(cloud)
+
+    system.image_from_cloud = counting
+    context.SetTime(0.35)
+    np.testing.assert_array_equal(output.Eval(context), image)
+    assert made == []
+    system.GetInputPort("point_cloud").FixValue(context, make_point_cloud(tilted_plane_grid(10.0).reshape(-1, 3)))
+    output.Eval(context)
+    output.Eval(context)
+    assert made == [grid.shape[0] * grid.shape[1]]
 
 
 def test_converter_in_simulator_with_sensor_rotation_and_cloud_normals():
@@ -348,7 +362,6 @@ def test_converter_needs_organized_shape():
     system = NormalImageConverter(NormalImageConfig(normal_method="pca"))
     context = system.CreateDefaultContext()
     system.GetInputPort("point_cloud").FixValue(context, PointCloud())
-    context.SetDiscreteState(system.EvalUniquePeriodicDiscreteUpdate(context))
     assert not system.GetOutputPort("normal_image").Eval(context).any()
 
 

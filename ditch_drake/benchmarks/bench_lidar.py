@@ -3,8 +3,9 @@
 Run: `python -m ditch_drake.benchmarks.bench_lidar [environment] [repeats] [terrain_faces]`
 (`LidarConfig.terrain_faces`: up, top or all; default up). Prints the
 median wall and CPU times (ms, one process) of the lidar's update (both cameras' depth
-renders through `RenderEngineVtk` plus the conversion to the clouds), the robot moving a
-little between steps so that every step renders afresh. `RenderEngineVtk` renders on the
+renders through `RenderEngineVtk` plus the conversion to the organized cloud; the
+returns-only `point_cloud` is made only when read, which the policies' loops never do),
+the robot moving a little between steps so that every step renders afresh. `RenderEngineVtk` renders on the
 CPU here (Mesa's llvmpipe through EGL). `AddLidar` keeps the render on the calling thread
 (`LidarConfig.rasterizer_threads`, `LP_NUM_THREADS=0`); `LP_NUM_THREADS=2` in the
 environment before the process starts measures llvmpipe's threaded default instead, whose
@@ -23,7 +24,7 @@ from ditch_drake.systems.lidar import AddLidar, LidarConfig
 
 
 def measure_lidar_ms(env: str = "wide", repeats: int = 20, config: LidarConfig | None = None) -> dict:
-    """Median time (ms) of one lidar update: render every camera and make the clouds.
+    """Median time (ms) of one lidar update: render every camera and make the organized cloud.
 
     The robot stands at the environment's first task start and moves 2 mm forward between
     updates (a moved robot invalidates the cached renders). One untimed update warms up.

@@ -53,8 +53,7 @@ def AddObservation(builder: DiagramBuilder, scene: DitchScene, config: Observati
     lidar = AddLidar(builder, scene, config.lidar)
     # The organized cloud keeps the depth images' pixel neighbours for fast normals.
     normal_image = builder.AddNamedSystem("normal_image", NormalImageConverter(
-        config.normal_image, organized_shape=lidar.converter.organized_shape, R_BS=lidar.X_BL.rotation(),
-        offset_s=schedule.NORMAL_IMAGE_OFFSET_S))
+        config.normal_image, organized_shape=lidar.converter.organized_shape, R_BS=lidar.X_BL.rotation()))
     builder.Connect(lidar.converter.GetOutputPort("organized_points"), normal_image.GetInputPort("point_cloud"))
     imu = AddImu(builder, plant.get_body_poses_output_port(), chassis.index(), config.imu)
     goal = builder.AddNamedSystem("goal_sensor", GoalSensor(chassis.index(), scene.task.goal))

@@ -27,8 +27,11 @@ class FrameStacker(LeafSystem):
     it evaluates at t_k before the updates at t_k. For a direct-feedthrough source
     of the body poses (`Imu`, `GoalSensor`) that is the pose at t_k (the discrete
     plant's state at t_k, before its own step); for a source whose output is its
-    own state updated at the same ticks (the normal-image converter) it is the
-    value that source computed at t_{k-1} (its initial value at t_0). The outputs
+    own state updated at the same ticks it is the value that source computed at
+    t_{k-1} (its initial value at t_0). The normal-image converter is a function of
+    the lidar's cloud (state), so the image is that of the cloud the lidar holds at
+    t_k: in `AddObservation` the lidar ticks earlier in the same control step
+    (`ditch_drake.schedule`), so it is this control step's cloud. The outputs
     read the state, so between t_k and t_{k+1} they hold the entries pushed at
     t_k, t_{k-1}, t_{k-2}, t_{k-3}; a controller updating at t_k itself sees the
     stacks as pushed at t_{k-1}. (`Simulator.AdvanceTo(t)` handles an event at
@@ -99,4 +102,5 @@ class FrameStacker(LeafSystem):
         for port, index, size in self._channels:
             stack = discrete_state.get_mutable_value(index)
             stack[size:] = stack[:-size]  # numpy copies overlapping slices correctly.
-            stack[:size] = port.Eval(context)
+            # A read-only view of the input's value: `Eval` would copy it first.
+            stack[:size] = port.EvalBasicVector(context).value()

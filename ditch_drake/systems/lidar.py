@@ -247,12 +247,13 @@ class DepthImagesToLidarCloud(LeafSystem):
     the cameras render at the control rate, not at every physics step. A forced
     unrestricted update event runs the same update (`ExecuteForcedEvents`).
 
-    State: both clouds live in the Context as abstract state, and the outputs hand them out
-    (`DeclareStateOutputPort`). A `PointCloud` is a C++ value, cloned in C++ (a memcpy, no
-    Python deep copy) when the update copies the state; the cloud's size changes from update
-    to update, and consumers take `PointCloud`s, so discrete state would only add a
-    conversion on every read. Before the first update the cloud is empty and the organized
-    cloud all NaN.
+    State: the organized cloud lives in the Context as abstract state, and `organized_points`
+    hands it out (`DeclareStateOutputPort`). A `PointCloud` is a C++ value, cloned in C++ (a
+    memcpy, no Python deep copy) when the update copies the state; consumers take
+    `PointCloud`s, so discrete state would only add a conversion on every read.
+    `point_cloud` (the returns alone) is computed from that state when it is read and cached
+    until the next update: the learned policy's loop never reads it, so it costs nothing
+    there. Before the first update the organized cloud is all NaN and `point_cloud` empty.
 
     Noise: with `noise_std_m` or `dropout_probability` > 0 each update draws from a numpy
     generator seeded with (`config.seed`, the two `noise_seed` samples). A Python LeafSystem
@@ -306,9 +307,13 @@ class DepthImagesToLidarCloud(LeafSystem):
             self._seed_port = self.DeclareVectorInputPort("noise_seed", BasicVector(2), RandomDistribution.kUniform)
         organized = PointCloud(self._unit_rays_L.shape[1], Fields(BaseField.kXYZs))
         organized.mutable_xyzs()[:] = np.nan
-        self._cloud_index = self.DeclareAbstractState(Value(PointCloud(0, Fields(BaseField.kXYZs))))
         self._organized_index = self.DeclareAbstractState(Value(organized))
-        self.DeclareStateOutputPort("point_cloud", self._cloud_index)
+        self.DeclareAbstractOutputPort(
+            "point_cloud",
+            lambda: Value(PointCloud(0, Fields(BaseField.kXYZs))),
+            self._calc_returns,
+            prerequisites_of_calc={self.abstract_state_ticket(self._organized_index)},
+        )
         self.DeclareStateOutputPort("organized_points", self._organized_index)
         self.DeclarePeriodicUnrestrictedUpdateEvent(config.period_s, config.offset_s, self._update)
         self.DeclareForcedUnrestrictedUpdateEvent(self._update)
@@ -400,11 +405,14 @@ class DepthImagesToLidarCloud(LeafSystem):
         depths = [port.Eval(context).data for port in self._image_ports]
         points = self.organized_points_from_depths(depths, self._rng(context))
         state.get_mutable_abstract_state(self._organized_index).get_mutable_value().mutable_xyzs()[:] = points
+        return EventStatus.Succeeded()
+
+    def _calc_returns(self, context, output) -> None:
+        points = context.get_abstract_state(self._organized_index).get_value().xyzs()
         returns = np.compress(~np.isnan(points[0]), points, axis=1)
-        cloud = state.get_mutable_abstract_state(self._cloud_index).get_mutable_value()
+        cloud = output.get_mutable_value()
         cloud.resize(returns.shape[1])
         cloud.mutable_xyzs()[:] = returns
-        return EventStatus.Succeeded()
 
 
 @dataclass

@@ -6,7 +6,6 @@ from pydrake.math import RotationMatrix
 from pydrake.perception import PointCloud
 from pydrake.systems.framework import LeafSystem
 
-from ditch_drake import robot
 from ditch_drake.perception.normal_image import (
     NormalImageConfig,
     cloud_to_normal_image,
@@ -17,9 +16,14 @@ from ditch_drake.perception.normal_image import (
 class NormalImageConverter(LeafSystem):
     """Turns the lidar's point cloud into the 128 x 128 surface-normal image.
 
-    The image is made in a periodic discrete update (`period_s`, the control rate) and
-    kept in the discrete state, which the output reads; it is all zeros until the first
-    update. See `ditch_drake.perception.normal_image` for the method.
+    The image is the output's cached value, computed when it is read and depending only on
+    the `point_cloud` input: it is made once per new cloud (the lidar's update at the
+    control rate), at the first read after it, and a read at any other time (a physics
+    step, a later stage of the same control step) costs a cache lookup. The block has no
+    state and no event of its own, so it adds no tick to the Simulator's schedule; whoever
+    reads it (the frame stacker's update) sees the image of the lidar's newest cloud. An
+    empty cloud (before the lidar's first update) gives all zeros. See
+    `ditch_drake.perception.normal_image` for the method.
 
     .. pydrake_system::
 
@@ -49,10 +53,8 @@ class NormalImageConverter(LeafSystem):
         organized_shape: tuple[int, int] | None = None,
         R_BS: RotationMatrix | None = None,
         use_cloud_normals: bool = True,
-        period_s: float = robot.CONTROL_PERIOD_S,
-        offset_s: float = 0.0,
     ):
-        """Declares the ports, the image state and the periodic update.
+        """Declares the ports.
 
         Args:
             config: the image and the normal estimator; None: `NormalImageConfig()`
@@ -63,8 +65,6 @@ class NormalImageConverter(LeafSystem):
                 body frame B with +z up; None: the identity (the cloud is in B).
             use_cloud_normals: use the cloud's own normals when it has them
                 (`has_normals()`) instead of estimating them.
-            period_s: update period (s).
-            offset_s: time of the first update (s); see `ditch_drake.schedule`.
 
         Raises:
             ValueError: the "organized" method without `organized_shape`, or a shape
@@ -86,9 +86,12 @@ class NormalImageConverter(LeafSystem):
         self._R_BS = None if R_BS is None or R_BS.IsExactlyIdentity() else R_BS.matrix()
         self._use_cloud_normals = use_cloud_normals
         self._cloud_port = self.DeclareAbstractInputPort("point_cloud", Value(PointCloud()))
-        self._image_index = self.DeclareDiscreteState(self._config.rows * self._config.cols)
-        self._image_port = self.DeclareStateOutputPort("normal_image", self._image_index)
-        self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._update)
+        self.DeclareVectorOutputPort(
+            "normal_image",
+            self._config.rows * self._config.cols,
+            self._calc_image,
+            prerequisites_of_calc={self._cloud_port.ticket()},
+        )
 
     @property
     def image_shape(self) -> tuple[int, int]:
@@ -117,6 +120,5 @@ class NormalImageConverter(LeafSystem):
             normals = None if normals is None else normals @ self._R_BS.T
         return cloud_to_normal_image(points, self._config, self._organized_shape, normals)
 
-    def _update(self, context, discrete_state) -> None:
-        image = self.image_from_cloud(self._cloud_port.Eval(context))
-        discrete_state.set_value(self._image_index, image.ravel())
+    def _calc_image(self, context, output) -> None:
+        output.SetFromVector(self.image_from_cloud(self._cloud_port.Eval(context)).ravel())
