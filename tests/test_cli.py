@@ -22,7 +22,7 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     from ditch_drake import bench
 
     monkeypatch.setattr(bench.measure_plant_rtf, "__defaults__", (0, 0.5))
-    monkeypatch.setattr(bench.measure_closed_loop, "__defaults__", (0, 0.5, 2))
+    monkeypatch.setattr(bench.measure_closed_loops, "__defaults__", (0, 0.5, 2))
     monkeypatch.setattr(bench, "measure_blocks", lambda: {"lidar_render_and_cloud_ms": 1.0})
     monkeypatch.setattr(bench, "measure_rollouts_per_minute", lambda: {"evaluate_rollouts_per_min": 1.0})
     from ditch_drake.benchmarks import bench_training

@@ -1,8 +1,8 @@
 """Repeats the bench's closed-loop measurement to show how much the shared host moves it.
 
 Run: `python -m ditch_drake.benchmarks.bench_closed_loop [repeats] [environment ...]`
-(default 5 repeats, every environment). Each repeat is one `measure_closed_loop` per
-environment (the figures `ditch-drake bench --json` prints once) between two host
+(default 5 repeats, every environment). Each repeat is one `measure_closed_loops` over
+the environments (the figures `ditch-drake bench --json` prints once) between two host
 references (`measure_host_reference_ms`), printed as one JSON line as soon as it is done;
 the last line sums them up: per environment the median and the range of
 `observation_update_<env>_ms` and `closed_loop_<env>_rtf`, and in how many repeats each
@@ -17,7 +17,7 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from ditch_drake.bench import measure_closed_loop, measure_host_reference_ms
+from ditch_drake.bench import measure_closed_loops, measure_host_reference_ms
 from ditch_drake.environments import environment_names
 
 # The perception issue's targets.
@@ -26,7 +26,7 @@ CLOSED_LOOP_TARGET_RTF = 25.0
 
 
 def sample_closed_loop(repeats: int, environments: list[str]) -> list[dict]:
-    """`repeats` rounds of `measure_closed_loop` over `environments`, each printed as a JSON line."""
+    """`repeats` rounds of `measure_closed_loops` over `environments`, each printed as a JSON line."""
     if repeats < 1:
         raise ValueError(f"repeats={repeats!r} must be >= 1")
     samples = []
@@ -36,8 +36,7 @@ def sample_closed_loop(repeats: int, environments: list[str]) -> list[dict]:
                 "utc": time.strftime("%H:%M:%S", time.gmtime()),
                 "host_reference_start_ms": measure_host_reference_ms(),
             }
-            for name in environments:
-                sample.update(measure_closed_loop(name))
+            sample.update(measure_closed_loops(environments))
             sample["host_reference_end_ms"] = measure_host_reference_ms()
             print(json.dumps(sample), flush=True)
             samples.append(sample)
