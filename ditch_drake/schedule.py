@@ -2,7 +2,7 @@
 
 Every stage updates periodically at `robot.CONTROL_PERIOD_S`. Drake hands all the
 updates due at one instant the state from before any of them, so stages that share
-an instant see each other's previous results. Staggering them by a millisecond
+an instant see each other's previous results. Staggering them by milliseconds
 runs the chain lidar -> frame stacker -> controller -> recorder in order within each
 control step, with simulated latency of milliseconds per link instead of a whole
 control period.
