@@ -115,13 +115,6 @@ def measure_closed_loops(
     return figures
 
 
-def measure_closed_loop(
-    environment: str, seed: int = 0, duration_s: float = TRAVERSAL_S, episodes: int = CLOSED_LOOP_EPISODES
-) -> dict:
-    """`measure_closed_loops` for one environment."""
-    return measure_closed_loops([environment], seed, duration_s, episodes)
-
-
 def measure_blocks() -> dict:
     """One control step of each expensive block, in ms (medians, one process)."""
     from ditch_drake.benchmarks.bench_dwa import measure_dwa_ms
