@@ -1,15 +1,15 @@
 """Times the lidar (`ditch_drake.systems.lidar`): one control step's render and point cloud.
 
 Run: `python -m ditch_drake.benchmarks.bench_lidar [environment] [repeats] [terrain_faces]`
-(`LidarConfig.terrain_faces`: up, top or all; default up). Prints the
-median wall and CPU times (ms, one process) of the lidar's update (both cameras' depth
-renders through `RenderEngineVtk` plus the conversion to the organized cloud; the
-returns-only `point_cloud` is made only when read, which the policies' loops never do),
-the robot moving a little between steps so that every step renders afresh. `RenderEngineVtk` renders on the
-CPU here (Mesa's llvmpipe through EGL). `AddLidar` keeps the render on the calling thread
-(`LidarConfig.rasterizer_threads`, `LP_NUM_THREADS=0`); `LP_NUM_THREADS=2` in the
-environment before the process starts measures llvmpipe's threaded default instead, whose
-CPU time can exceed its wall time.
+(`LidarConfig.terrain_faces`: up, top or all; default up). Prints the median wall and CPU
+times (ms, one process) of the lidar's update (both cameras' depth renders through
+`RenderEngineVtk` plus the conversion to the organized cloud; the returns-only
+`point_cloud` is made only when read, which the policies' loops never do), the robot
+moving a little between steps so that every step renders afresh. `RenderEngineVtk`
+renders on the CPU here (Mesa's llvmpipe through EGL). `AddLidar` keeps the render on
+the calling thread (`LidarConfig.rasterizer_threads`, `LP_NUM_THREADS=0`);
+`LP_NUM_THREADS=2` in the environment before the process starts measures llvmpipe's
+threaded default instead, whose CPU time can exceed its wall time.
 """
 
 import sys
