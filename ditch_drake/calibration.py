@@ -11,8 +11,7 @@ bottom flips the robot backwards (paper 4.1).
 """
 
 import math
-import os
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -26,6 +25,8 @@ from ditch_drake.actions import ANGULAR_RATES_RADPS
 from ditch_drake.diagrams.ditch_scene import DefaultPlantConfig, DitchScene, SceneConfig
 from ditch_drake.diagrams.rollout import ConstantCommandConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
 from ditch_drake.environments import environment_names, get_environment
+from ditch_drake.errors import ConfigError
+from ditch_drake.parallel import WorkerPool, worker_count
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeStatus
 
@@ -45,7 +46,7 @@ class CalibrationConfig:
         shallow: the driver that holds a shallow angle to the local edge.
         head_on: the driver that heads straight at the ditch.
         flat_duration_s: length of each flat-ground run; the last half is averaged.
-        workers: parallel processes (0: one per core).
+        workers: parallel processes (None: one per core; 0: in this process).
     """
 
     trials: int = 10
@@ -55,7 +56,7 @@ class CalibrationConfig:
     head_on: EdgeAngleDriverConfig = field(
         default_factory=lambda: EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None))
     flat_duration_s: float = 4.0
-    workers: int = 0
+    workers: int | None = None
 
 
 def _scene_config(environment: str, task: int, time_step_s: float) -> SceneConfig:
@@ -173,25 +174,40 @@ def _rate(records: list[dict], status: EpisodeStatus) -> float:
 
 def run_calibration(config: CalibrationConfig | None = None, environments: list[str] | None = None,
                     progress: bool = True) -> dict:
-    """Runs every environment's trials in parallel processes; returns one JSON-able dict."""
+    """Runs every environment's trials in parallel processes; returns one JSON-able dict.
+
+    Ctrl-C kills the workers at once and re-raises: a calibration is judged whole or not at all.
+    """
     config = config or CalibrationConfig()
     environments = environments or environment_names()
     for name in environments:
         get_environment(name)  # Fails early, naming an unknown environment.
     jobs = [job for name in environments for job in _jobs(name, config)]
-    workers = config.workers or os.cpu_count() or 1
+    if config.trials < 1:
+        raise ConfigError(f"trials={config.trials}: expected >= 1 seeded trials per driven case")
+    workers = worker_count(config.workers)
     results: dict[str, dict] = {name: {"head_on": [], "shallow": {}, "climb_out_head_on": []} for name in environments}
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        futures = [pool.submit(_run_job, job, config) for job in jobs]
-        for future in tqdm(as_completed(futures), total=len(futures), desc="calibrate", disable=not progress):
-            (kind, environment, task, _), value = future.result()
-            bucket = results[environment]
-            if kind == "flat":
-                bucket.update(value)
-            elif kind == "shallow":
-                bucket["shallow"][task] = value
-            else:
-                bucket[kind].extend(value)
+
+    def keep(job_and_value) -> None:
+        (kind, environment, task, _), value = job_and_value
+        bucket = results[environment]
+        if kind == "flat":
+            bucket.update(value)
+        elif kind == "shallow":
+            bucket["shallow"][task] = value
+        else:
+            bucket[kind].extend(value)
+
+    with tqdm(total=len(jobs), desc="calibrate", disable=not progress) as bar:
+        if workers == 0:
+            for job in jobs:
+                keep(_run_job(job, config))
+                bar.update(1)
+        else:
+            with WorkerPool(workers) as pool:
+                for future in as_completed([pool.submit(_run_job, job, config) for job in jobs]):
+                    keep(future.result())
+                    bar.update(1)
     report = {"time_step_s": config.time_step_s, "trials": config.trials, "seed": config.seed, "environments": {}}
     all_ok = True
     for name in environments:

@@ -1,4 +1,10 @@
-"""The `ditch-drake` command line."""
+"""The `ditch-drake` command line.
+
+Every command's heavy imports (Drake, torch) happen inside the command, so that the parser
+and every `--help` answer at once. A user's mistake (a bad value, a bad file) ends in exit
+code 2 and one line `ditch-drake: error: ...`; Ctrl-C ends in 130 and SIGTERM in 143, after
+the command has kept what finished.
+"""
 
 import argparse
 import json
@@ -6,34 +12,74 @@ import os
 import shlex
 import sys
 import time
-from dataclasses import replace
 
-from ditch_drake.actions import ANGULAR_RATES_RADPS
-from ditch_drake.demos.dataset import DatasetError
-from ditch_drake.environments import ConfigError, environment_names
-from ditch_drake.evaluation.results import ResultsError
-from ditch_drake.learning.checkpoint import CheckpointError
-from ditch_drake.terrain import TerrainError
+from ditch_drake.diagrams.controllers import CONTROLLERS
+from ditch_drake.errors import ConfigError, ResultsError, TerrainError
+from ditch_drake.parallel import check_workers, interrupt_exit_code, terminate_as_interrupt
+
+# The single-episode commands (demo, replay, view, teleop) share these defaults. Seed 0 of the
+# wide ditch's task 1 is the one evaluation rollout (of 30) in which the shipped Wide policy
+# rolls over (docs/learning.md); the defaults show a typical crossing, and the README says so.
+DEFAULT_ENVIRONMENT = "wide"
+DEFAULT_TASK = 1
+DEFAULT_SEED = 1
 
 
-def _print_table(rows: list[dict], columns: list[str]) -> None:
+def _user_errors() -> tuple[type[Exception], ...]:
+    from ditch_drake.demos.dataset import DatasetError
+    from ditch_drake.learning.checkpoint import CheckpointError
+
+    return ConfigError, TerrainError, DatasetError, CheckpointError, ResultsError
+
+
+def _print_table(rows: list[dict], columns: list[str], file=None) -> None:
     widths = [max(len(column), *(len(str(row[column])) for row in rows)) for column in columns]
-    print("  ".join(column.ljust(width) for column, width in zip(columns, widths)))
+    print("  ".join(column.ljust(width) for column, width in zip(columns, widths)), file=file)
     for row in rows:
-        print("  ".join(str(row[column]).ljust(width) for column, width in zip(columns, widths)))
+        print("  ".join(str(row[column]).ljust(width) for column, width in zip(columns, widths)), file=file)
+
+
+def _checkpoint_for(args, environment: str) -> str:
+    """The learned policy's checkpoint: --checkpoint, else the environment's shipped model."""
+    from ditch_drake.learning.checkpoint import SHIPPED_MODELS
+
+    if args.checkpoint:
+        return args.checkpoint
+    if environment not in SHIPPED_MODELS:
+        raise ConfigError(f"environment {environment!r} has no shipped model; pass --checkpoint (a .pt file or one "
+                          f"of {list(SHIPPED_MODELS)})")
+    return environment
+
+
+def _check_seed(seed: int, count: int = 1) -> None:
+    from ditch_drake.evaluation.batch import check_seed
+
+    check_seed(seed, count)
+
+
+def _check_task(environment: str, task: int) -> None:
+    from ditch_drake.environments import get_environment
+
+    tasks = get_environment(environment).tasks
+    if not 0 <= task < len(tasks):
+        raise ConfigError(f"--task {task}: {environment!r} has tasks 0..{len(tasks) - 1} "
+                          f"({', '.join(f'{i} {t.name}' for i, t in enumerate(tasks))})")
 
 
 def cmd_demo(args) -> int:
     """The main job: the shipped policy, the DWA baseline and a head-on driver through one ditch;
     an outcome table and the policy's rollout as a standalone HTML page."""
+    _check_task(args.env, args.task)
+    _check_seed(args.seed)
+    checkpoint = _checkpoint_for(args, args.env)
     from pydrake.systems.analysis import Simulator
 
+    from ditch_drake.diagrams.controllers import controller_config
     from ditch_drake.diagrams.ditch_scene import SceneConfig
     from ditch_drake.diagrams.replay import ReplayConfig, record_replay
     from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
 
     scene = SceneConfig(environment=args.env, task=args.task)
-    checkpoint = args.checkpoint or args.env
     rows = []
 
     def row(name, outcome, wall_s):
@@ -41,16 +87,20 @@ def cmd_demo(args) -> int:
                      "path_m": f"{outcome.path_length_m:.1f}", "peak_tilt_deg": f"{outcome.peak_tilt_deg:.0f}",
                      "wall_s": f"{wall_s:.1f}"})
 
+    print(f"[1/3] learned policy ({checkpoint} model), recorded as {args.html}", file=sys.stderr, flush=True)
     start = time.perf_counter()
     replay = record_replay(ReplayConfig(
-        rollout=RolloutConfig(scene=scene, controller=_controller_config("learned", checkpoint)),
-        seed=args.seed, out=args.html))
+        rollout=RolloutConfig(scene=scene, controller=controller_config("learned", checkpoint, args.seed)),
+        seed=args.seed, out=args.html), progress="learned policy")
     row(f"learned policy ({checkpoint} model)", replay.outcome, time.perf_counter() - start)
-    for name, controller in (("DWA baseline (move_base-style)", "dwa"),
-                             ("head-on scripted driver (reference)", "head_on")):
+    for step, (name, controller) in enumerate((("DWA baseline (move_base-style)", "dwa"),
+                                               ("head-on scripted driver (reference)", "head_on")), start=2):
+        print(f"[{step}/3] {name}", file=sys.stderr, flush=True)
         start = time.perf_counter()
-        diagram, built = MakeRolloutDiagram(RolloutConfig(scene=scene, controller=_controller_config(controller, "")))
-        row(name, RunEpisode(Simulator(diagram), diagram, built, args.seed), time.perf_counter() - start)
+        diagram, built = MakeRolloutDiagram(RolloutConfig(scene=scene,
+                                                          controller=controller_config(controller, "", args.seed)))
+        row(name, RunEpisode(Simulator(diagram), diagram, built, args.seed, progress=controller),
+            time.perf_counter() - start)
     print(f"environment {args.env}, task {args.task} ({built.task.name}), seed {args.seed}")
     _print_table(rows, ["controller", "outcome", "sim_time_s", "path_m", "peak_tilt_deg", "wall_s"])
     print(f"recording of the learned policy's rollout: {replay.html_path} (open it in any browser)")
@@ -59,6 +109,8 @@ def cmd_demo(args) -> int:
 
 def cmd_view(args) -> int:
     """Opens the scene in meshcat and drives it with the scripted driver in real time."""
+    _check_task(args.env, args.task)
+    _check_seed(args.seed)
     from pydrake.geometry import StartMeshcat
     from pydrake.systems.analysis import Simulator
 
@@ -70,22 +122,25 @@ def cmd_view(args) -> int:
                                         meshcat=meshcat)
     simulator = Simulator(diagram)
     simulator.set_target_realtime_rate(args.realtime_rate)
-    print(f"meshcat: {meshcat.web_url()}  (Ctrl-C to stop)", flush=True)
-    try:
-        outcome = RunEpisode(simulator, diagram, scene, args.seed)
-        print(f"outcome: {outcome.status} after {outcome.time_s:.1f} s")
-        if args.wait:
-            input("press Enter to close")
-    except KeyboardInterrupt:
-        print("stopped")
+    print(f"meshcat: open {meshcat.web_url()} to watch  (Ctrl-C to stop)", flush=True)
+    outcome = RunEpisode(simulator, diagram, scene, args.seed)
+    print(f"outcome: {outcome.status} after {outcome.time_s:.1f} s")
+    if args.wait:
+        input("press Enter to close")
     return 0
 
 
 def cmd_calibrate(args) -> int:
+    check_workers(args.workers, "--workers")
+    if args.trials < 1:
+        raise ConfigError(f"--trials {args.trials}: expected >= 1 (seeded trials per driven case)")
+    _check_seed(args.seed, args.trials)
     from ditch_drake.calibration import CalibrationConfig, run_calibration
 
     config = CalibrationConfig(trials=args.trials, seed=args.seed, workers=args.workers)
     if args.time_step is not None:
+        if not args.time_step > 0:
+            raise ConfigError(f"--time-step {args.time_step}: expected a positive plant step in s")
         config.time_step_s = args.time_step
     start = time.perf_counter()
     report = run_calibration(config, args.env or None, progress=not args.json or sys.stderr.isatty())
@@ -107,6 +162,12 @@ def cmd_bench(args) -> int:
 
 
 def cmd_collect(args) -> int:
+    check_workers(args.workers, "--workers")
+    _check_seed(args.seed, args.demos if args.demos > 0 else 1)
+    if args.learner is None and args.labeller != "latched":
+        raise ConfigError(f"--labeller {args.labeller}: a labeller needs --learner (a DAgger round)")
+    from dataclasses import replace
+
     from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect
 
     config = CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out, workers=args.workers)
@@ -114,22 +175,27 @@ def cmd_collect(args) -> int:
     if args.learner is not None:
         config = replace(config, learner=args.learner, variation=replace(
             LABELLER_VARIATION, replan_each_step=args.labeller == "replanning", lead_in=args.lead_in))
-    elif args.labeller != "latched":
-        raise ConfigError(f"--labeller {args.labeller}: a labeller needs --learner (a DAgger round)")
     report = collect(config)
     print(json.dumps(report, indent=2))
+    if report["interrupted"]:
+        print(f"interrupted: {report['recorded']} demonstrations recorded by this run, "
+              f"{report['kept_before'] + report['recorded']} of {args.demos} in {args.out}; "
+              "run the same command again to continue", file=sys.stderr)
+        return report["exit_code"]
     return 0 if not report["unfilled_slots"] else 1
 
 
 def cmd_teleop(args) -> int:
     """A person drives (arrow keys or gamepad in the meshcat page); a success is kept."""
+    _check_task(args.env, args.task)
+    _check_seed(args.seed)
     from pydrake.geometry import StartMeshcat
 
     from ditch_drake.demos.collect import next_free_demo_path, record_person_demonstration
     from ditch_drake.demos.dataset import save_demonstration
 
     meshcat = StartMeshcat()
-    print(f"meshcat: {meshcat.web_url()}  steer with the arrow keys (or a gamepad) in that tab", flush=True)
+    print(f"meshcat: open {meshcat.web_url()} and steer with the arrow keys (or a gamepad) in that tab", flush=True)
     demonstration = record_person_demonstration(args.env, args.task, meshcat, args.seed, args.realtime_rate)
     status = demonstration.metadata["outcome"]["status"]
     if status != "reached_goal":
@@ -140,6 +206,7 @@ def cmd_teleop(args) -> int:
 
 
 def cmd_dataset_info(args) -> int:
+    from ditch_drake.actions import ANGULAR_RATES_RADPS
     from ditch_drake.demos.dataset import dataset_summary, load_dataset
 
     summary = dataset_summary(load_dataset(args.path))
@@ -160,26 +227,38 @@ def cmd_dataset_info(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from ditch_drake.demos.dataset import load_dataset, to_array_set
-    from ditch_drake.learning.train import TrainConfig, available_precision, train
+    from dataclasses import replace
 
-    device = _training_device(args.device)  # Before minutes of loading: a bad device fails at once.
+    from ditch_drake.learning.config import TrainConfig
+
+    # Every setting is checked here, before minutes of loading: a bad value fails at once.
+    config = TrainConfig.from_options(
+        epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
+        max_batches_per_epoch=args.batches_per_epoch, synthetic_fraction=args.synthetic_fraction,
+        num_threads=args.threads)
+    if args.max_demos is not None and args.max_demos < 1:
+        raise ConfigError(f"--max-demos {args.max_demos}: expected >= 1 demonstrations per directory")
+    from ditch_drake.demos.dataset import load_dataset, to_array_set
+    from ditch_drake.learning.train import available_precision, train
+
+    device = _training_device(args.device)
     precision = available_precision(device) if args.precision == "auto" else args.precision
+    config = replace(config, device=device, precision=precision)
     demonstrations = []
     for directory in args.data:  # Several directories train the amalgam model.
         demonstrations += load_dataset(directory, max_demos=args.max_demos)
-    defaults = TrainConfig()
-    config = TrainConfig(
-        epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
-        max_batches_per_epoch=args.batches_per_epoch,
-        smote=replace(defaults.smote, max_synthetic_fraction=args.synthetic_fraction),
-        num_threads=args.threads, device=device, precision=precision)
     result = train(to_array_set(demonstrations), config, output_path=args.out, resume=args.resume)
     best = next((record for record in result.history if record["epoch"] == result.best_epoch), {})
-    print(json.dumps({"out": str(result.output_path), "best_epoch": result.best_epoch,
-                      "stopped_early": result.stopped_early, "interrupted": result.interrupted,
-                      "best": best}, default=float))
-    return 130 if result.interrupted else 0
+    print(json.dumps({"out": str(result.output_path) if result.output_path else None,
+                      "resume_file": str(result.resume_file) if result.resume_file else None,
+                      "best_epoch": result.best_epoch, "stopped_early": result.stopped_early,
+                      "interrupted": result.interrupted, "best": best}, default=float))
+    if result.interrupted:
+        print("interrupted: " + (f"the best finished epoch is in {result.output_path}" if result.output_path
+                                 else "no epoch had finished, so no checkpoint was written")
+              + (f"; --resume continues from {result.resume_file}" if result.resume_file else ""), file=sys.stderr)
+        return 130
+    return 0
 
 
 def _training_device(requested: str) -> str:
@@ -194,31 +273,24 @@ def _training_device(requested: str) -> str:
     return requested
 
 
-def _controller_config(name: str, checkpoint: str):
-    from ditch_drake.diagrams.rollout import DwaBaselineConfig, ExpertConfig, LearnedPolicyConfig
-    from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
-
-    configs = {"learned": lambda: LearnedPolicyConfig(checkpoint=checkpoint), "dwa": DwaBaselineConfig,
-               "expert": ExpertConfig, "edge_angle": EdgeAngleDriverConfig,
-               "head_on": lambda: EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None)}
-    if name not in configs:
-        raise ConfigError(f"unknown controller {name!r}; expected one of {list(configs)}")
-    return configs[name]()
-
-
 def cmd_replay(args) -> int:
     """One seeded rollout recorded as a standalone HTML page (opens offline in any browser)."""
+    _check_task(args.env, args.task)
+    _check_seed(args.seed)
+    if not args.time_limit > 0:
+        raise ConfigError(f"--time-limit {args.time_limit}: expected a positive episode timeout in s")
+    checkpoint = _checkpoint_for(args, args.env) if args.controller == "learned" else ""
+    from ditch_drake.diagrams.controllers import controller_config
     from ditch_drake.diagrams.ditch_scene import SceneConfig
     from ditch_drake.diagrams.replay import ReplayConfig, record_replay
     from ditch_drake.diagrams.rollout import RolloutConfig
     from ditch_drake.systems.episode_monitor import EpisodeConfig
 
     scene = SceneConfig(environment=args.env, task=args.task, episode=EpisodeConfig(time_limit_s=args.time_limit))
-    config = ReplayConfig(rollout=RolloutConfig(scene=scene, controller=_controller_config(args.controller,
-                                                                                           args.checkpoint)),
-                          seed=args.seed, out=args.out)
+    config = ReplayConfig(rollout=RolloutConfig(scene=scene, controller=controller_config(
+        args.controller, checkpoint, args.seed)), seed=args.seed, out=args.out)
     try:
-        result = record_replay(config)
+        result = record_replay(config, progress=args.controller)
     except OSError as error:  # An unwritable output (ReplayOutputError) or no such checkpoint file.
         print(f"ditch-drake: error: {error}", file=sys.stderr)
         return 2
@@ -233,7 +305,8 @@ def cmd_checkpoint_info(args) -> int:
     """What each checkpoint was trained on and how it validated."""
     from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
 
-    checkpoints = {name: load_checkpoint(resolve_checkpoint_path(name)) for name in args.checkpoints}
+    checkpoints = {name: load_checkpoint(resolve_checkpoint_path(name), allow_untrained=True)
+                   for name in args.checkpoints}
     rows = [{"checkpoint": name, **checkpoint.summary()} for name, checkpoint in checkpoints.items()]
     _print_table(rows, list(rows[0]))
     if args.confusion:
@@ -247,18 +320,26 @@ def cmd_checkpoint_info(args) -> int:
 
 def cmd_evaluate(args) -> int:
     """Seeded rollouts of one controller in one or more environments, appended to a results file."""
+    check_workers(args.workers, "--workers")
+    from ditch_drake.environments import environment_names, get_environment
     from ditch_drake.evaluation.batch import evaluate, load_results, make_specs
+    from ditch_drake.evaluation.results import current_records
     from ditch_drake.evaluation.summary import group_by, summarize
 
-    specs = []
+    specs, plan = [], []
     for environment in args.env or environment_names():
-        specs += make_specs(args.controller, args.checkpoint, environment, args.task, args.rollouts, args.seed,
+        checkpoint = _checkpoint_for(args, environment) if args.controller == "learned" else ""
+        specs += make_specs(args.controller, checkpoint, environment, args.task, args.rollouts, args.seed,
                             args.time_limit)
+        tasks = len(args.task) if args.task else len(get_environment(environment).tasks)
+        plan.append(f"{environment}: {tasks} tasks x {args.rollouts} rollouts = {tasks * args.rollouts}")
+    print(f"{args.controller}: " + "; ".join(plan) + f" (seeds {args.seed}..{args.seed + args.rollouts - 1})",
+          file=sys.stderr, flush=True)
     report = evaluate(specs, args.out, workers=args.workers, backend=args.backend, address=args.address)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     keys = {spec.key for spec in specs}
-    records = [record for record in load_results([args.out]) if record.key in keys]
+    records, _ = current_records([record for record in load_results([args.out]) if record.key in keys])
     rows = []
     for (controller, checkpoint, environment, task), group in group_by(
             records, "controller", "checkpoint", "environment", "task").items():
@@ -271,11 +352,16 @@ def cmd_evaluate(args) -> int:
     if rows:
         _print_table(rows, ["controller", "checkpoint", "env", "task", "success", "around", "wilson95", "failures",
                             "errors"])
-    print(json.dumps({"out": str(args.out), "skipped": report.skipped, "recorded": report.recorded,
-                      "successes_recorded": report.successes, "errors_recorded": report.errors,
-                      "wall_s": round(report.wall_s, 1), "rollouts_per_minute": round(report.rollouts_per_minute, 2),
+    print(json.dumps({"out": str(args.out), "requested": report.requested, "skipped": report.skipped,
+                      "recorded": report.recorded, "successes_recorded": report.successes,
+                      "errors_recorded": report.errors, "wall_s": round(report.wall_s, 1),
+                      "rollouts_per_minute": round(report.rollouts_per_minute, 2),
                       "interrupted": report.interrupted}))
-    return 130 if report.interrupted else 0
+    if report.interrupted:
+        print(f"interrupted: {report.recorded} rollouts recorded by this run, {report.skipped + report.recorded} of "
+              f"{report.requested} in {args.out}; run the same command again to continue", file=sys.stderr)
+        return report.exit_code
+    return 0
 
 
 def cmd_experiment(args) -> int:
@@ -284,29 +370,55 @@ def cmd_experiment(args) -> int:
 
     config = load_experiment(args.file)
     stages = tuple(args.stage) if args.stage else ("collect", "train", "evaluate", "report")
+    command = " ".join(["ditch-drake experiment", str(args.file)] + [f"--only {env}" for env in args.only or []]
+                       + [f"--stage {stage}" for stage in args.stage or []])
     try:
-        command = " ".join(["ditch-drake experiment", str(args.file)] + [f"--only {env}" for env in args.only or []]
-                           + [f"--stage {stage}" for stage in args.stage or []])
         timings = run_experiment(config, only=args.only, stages=stages, command=command)
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as error:
         print("interrupted; finished work is kept, run the same command again to continue", file=sys.stderr)
-        return 130
+        return interrupt_exit_code(error)
     print(json.dumps({name: round(value, 1) for name, value in timings.items()}))
     return 0
 
 
 def cmd_report(args) -> int:
-    """The results page and its figures from results files."""
-    from ditch_drake.evaluation.report import write_report
+    """The results page and its figures from the current records of results files, its success
+    tables also printed; by default beside the results, and never over a file git tracks unless
+    `--out` / `--figures` names it."""
+    from pathlib import Path
 
-    command = "ditch-drake report " + " ".join(args.results) + f" --out {args.out} --figures {args.figures}"
-    if args.title != "Results":
-        command += f" --title {shlex.quote(args.title)}"
-    print(write_report(args.results, args.out, args.figures, title=args.title, command=command))
+    from ditch_drake.evaluation.report import (
+        default_outputs,
+        figures_beside,
+        load_report_data,
+        tracked_by_git,
+        write_report,
+    )
+
+    missing = [entry for entry in args.results if not Path(entry).exists()]
+    if missing:
+        print(f"ditch-drake: error: no results file or folder at {', '.join(missing)}", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else default_outputs(args.results)[0]
+    figures = Path(args.figures) if args.figures else figures_beside(out)
+    for path, flag, given in ((out, "--out", args.out), (figures, "--figures", args.figures)):
+        if not given and tracked_by_git(path):
+            print(f"ditch-drake: error: the default {flag} {path} is tracked by git: name it with {flag} to "
+                  "overwrite it, or choose another path", file=sys.stderr)
+            return 2
+    data = load_report_data(args.results)
+    for note in data.notes:
+        print(f"note: {note}", file=sys.stderr)
+    command = shlex.join(["ditch-drake", "report", *map(str, args.results), "--out", str(out), "--figures",
+                          str(figures), *(["--title", args.title] if args.title != "Results" else [])])
+    page = write_report(args.results, out, figures, title=args.title, command=command, data=data)
+    print(data.markdown_tables())
+    print(f"wrote {page} (figures in {figures})")
     return 0
 
 
 def cmd_figure(args) -> int:
+    from ditch_drake.environments import environment_names
     from ditch_drake.figures import diagram_figure, normal_image_figure
 
     if args.kind == "diagram":
@@ -330,51 +442,95 @@ def cmd_figure(args) -> int:
     return 0
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Shows every option's default (unless its help already says it), and keeps the
+    environments list of the epilogs as written."""
+
+    def _get_help_string(self, action):
+        if "default" in (action.help or ""):
+            return action.help
+        return super()._get_help_string(action)
+
+
+class _Parser(argparse.ArgumentParser):
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("formatter_class", _HelpFormatter)
+        super().__init__(*args, **kwargs)
+
+
+def _environments_epilog() -> str:
+    """The packaged environments and their tasks, by index and name."""
+    from ditch_drake.environments import environment_names, get_environment
+
+    lines = ["environments and their tasks (--env NAME --task INDEX):"]
+    for name in environment_names():
+        tasks = get_environment(name).tasks
+        lines.append(f"  {name}: " + ", ".join(f"{index} {task.name}" for index, task in enumerate(tasks)))
+    return "\n".join(lines)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ditch-drake", description=__doc__)
-    commands = parser.add_subparsers(dest="command", required=True)
+    from ditch_drake.environments import environment_names
+    from ditch_drake.learning.config import TrainConfig
+
+    environments = environment_names()
+    epilog = _environments_epilog()
+    parser = _Parser(prog="ditch-drake", description=__doc__.split("\n\n")[0], epilog=epilog)
+    commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser, metavar="COMMAND")
+
+    def add(name: str, help: str, with_environments: bool = False) -> argparse.ArgumentParser:
+        return commands.add_parser(name, help=help, description=help, epilog=epilog if with_environments else None)
 
     def add_env(sub, many=False):
         if many:
             sub.add_argument("--env", action="append", metavar="NAME",
-                             help=f"environment (repeatable; default: all of {environment_names()})")
+                             help=f"environment (repeatable; default: all of {environments})")
         else:
-            sub.add_argument("--env", default="wide", metavar="NAME", help=f"one of {environment_names()}")
+            sub.add_argument("--env", default=DEFAULT_ENVIRONMENT, metavar="NAME",
+                             help=f"environment, one of {environments}")
 
-    demo = commands.add_parser("demo", help="the main job: shipped policy, DWA baseline and a head-on driver "
-                                             "through a ditch; outcome table and an HTML recording")
-    add_env(demo)
-    demo.add_argument("--task", type=int, default=1)
-    # Seed 0 of this task is the one evaluation rollout (of 30) in which the shipped Wide policy
-    # rolls over (docs/learning.md); the main job shows a typical crossing, and says so in the README.
-    demo.add_argument("--seed", type=int, default=1)
-    demo.add_argument("--checkpoint", default=None, help="the learned policy (default: the environment's shipped model)")
+    def add_episode(sub):
+        add_env(sub)
+        sub.add_argument("--task", type=int, default=DEFAULT_TASK, help="task index (the list below)")
+        sub.add_argument("--seed", type=int, default=DEFAULT_SEED,
+                         help="the episode's seed (start jitter, sensor noise, expert style)")
+
+    def add_workers(sub, what: str):
+        sub.add_argument("--workers", type=int, default=None,
+                         help=f"worker processes for the {what} (default None: one per core; 0: in this process)")
+
+    controllers_help = "; ".join(f"{name}: {text}" for name, text in CONTROLLERS.items())
+
+    demo = add("demo", "the main job: shipped policy, DWA baseline and a head-on driver through a ditch; outcome "
+                       "table and an HTML recording", with_environments=True)
+    add_episode(demo)
+    demo.add_argument("--checkpoint", default=None,
+                      help="the learned policy, a shipped name or a .pt file (default: the environment's shipped model)")
     demo.add_argument("--html", default="results/demo.html", help="where the recording goes")
     demo.set_defaults(run=cmd_demo)
 
-    view = commands.add_parser("view", help="open the scene in meshcat and drive through it")
-    add_env(view)
-    view.add_argument("--task", type=int, default=0)
-    view.add_argument("--seed", type=int, default=0)
-    view.add_argument("--realtime-rate", type=float, default=1.0)
+    view = add("view", "open the scene in meshcat and drive through it in real time", with_environments=True)
+    add_episode(view)
+    view.add_argument("--realtime-rate", type=float, default=1.0, help="simulated seconds per wall-clock second")
     view.add_argument("--wait", action="store_true", help="keep meshcat open until Enter")
     view.set_defaults(run=cmd_view)
 
-    calibrate = commands.add_parser("calibrate", help="the physics calibration benchmark (exit 1 if it falls short)")
+    calibrate = add("calibrate", "the physics calibration benchmark (exit 1 if it falls short)")
     add_env(calibrate, many=True)
     calibrate.add_argument("--json", action="store_true", help="one JSON object on stdout")
-    calibrate.add_argument("--trials", type=int, default=10)
-    calibrate.add_argument("--seed", type=int, default=0)
-    calibrate.add_argument("--workers", type=int, default=0, help="processes (0: one per core)")
-    calibrate.add_argument("--time-step", type=float, default=None, help="plant step in s (default: the scene's)")
+    calibrate.add_argument("--trials", type=int, default=10, help="seeded trials per driven case")
+    calibrate.add_argument("--seed", type=int, default=0, help="first seed; trial i uses seed + i")
+    add_workers(calibrate, "trials")
+    calibrate.add_argument("--time-step", type=float, default=None,
+                           help="plant step in s (default None: the scene's)")
     calibrate.set_defaults(run=cmd_calibrate)
 
-    collect = commands.add_parser("collect", help="record expert demonstrations (resumable)")
+    collect = add("collect", "record expert demonstrations (resumable; Ctrl-C keeps what finished)")
     add_env(collect)
-    collect.add_argument("--demos", type=int, default=40)
-    collect.add_argument("--seed", type=int, default=0)
+    collect.add_argument("--demos", type=int, default=40, help="successful demonstrations, spread over the tasks")
+    collect.add_argument("--seed", type=int, default=0, help="demonstration i's first attempt uses seed + i")
     collect.add_argument("--out", required=True, help="directory of demo_NNN.npz files")
-    collect.add_argument("--workers", type=int, default=0, help="processes (0: one per core)")
+    add_workers(collect, "demonstrations")
     collect.add_argument("--learner", default=None, metavar="CHECKPOINT",
                          help="DAgger: this policy drives, the expert labels; every rollout is kept "
                               "(--demos rollouts, one per seed)")
@@ -386,102 +542,108 @@ def build_parser() -> argparse.ArgumentParser:
                               "before the ditch's end (EdgeAngleDriverConfig.lead_in)")
     collect.set_defaults(run=cmd_collect)
 
-    teleop = commands.add_parser("teleop", help="record your own demonstration: steer in meshcat")
-    add_env(teleop)
-    teleop.add_argument("--task", type=int, default=0)
-    teleop.add_argument("--seed", type=int, default=0)
+    teleop = add("teleop", "record your own demonstration: steer in meshcat", with_environments=True)
+    add_episode(teleop)
     teleop.add_argument("--out", required=True, help="directory of demo_NNN.npz files")
-    teleop.add_argument("--realtime-rate", type=float, default=1.0)
+    teleop.add_argument("--realtime-rate", type=float, default=1.0, help="simulated seconds per wall-clock second")
     teleop.set_defaults(run=cmd_teleop)
 
-    info = commands.add_parser("dataset-info", help="counts per label and task, class imbalance")
+    info = add("dataset-info", "counts per label and task, class imbalance")
     info.add_argument("path", help="a directory of demonstrations")
-    info.add_argument("--json", action="store_true")
+    info.add_argument("--json", action="store_true", help="one JSON object on stdout")
     info.set_defaults(run=cmd_dataset_info)
 
-    replay = commands.add_parser("replay", help="record one rollout as a standalone HTML page (meshcat animation)")
-    replay.add_argument("--controller", default="learned", choices=["expert", "learned", "dwa", "edge_angle", "head_on"],
-                        help="the learned policy (default; --checkpoint picks it), the scripted expert, the DWA "
-                             "baseline, or a scripted edge-angle / head-on driver")
-    replay.add_argument("--checkpoint", default="wide", help="the learned policy: a shipped name or a .pt file")
-    add_env(replay)
-    replay.add_argument("--task", type=int, default=1)
-    replay.add_argument("--seed", type=int, default=0)
+    replay = add("replay", "record one rollout as a standalone HTML page (meshcat animation)", with_environments=True)
+    replay.add_argument("--controller", default="learned", choices=list(CONTROLLERS), help=controllers_help)
+    replay.add_argument("--checkpoint", default=None,
+                        help="the learned policy, a shipped name or a .pt file (default: the environment's shipped "
+                             "model)")
+    add_episode(replay)
     replay.add_argument("--time-limit", type=float, default=120.0, help="episode timeout (s)")
-    replay.add_argument("--out", default="results/replay.html")
+    replay.add_argument("--out", default="results/replay.html", help="the HTML page to write")
     replay.set_defaults(run=cmd_replay)
 
-    info = commands.add_parser("checkpoint-info", help="training data and validation metrics of checkpoints")
+    info = add("checkpoint-info", "training data and validation metrics of checkpoints")
     info.add_argument("checkpoints", nargs="+", help="shipped model names or .pt files")
     info.add_argument("--confusion", action="store_true", help="also the validation confusion matrices")
     info.set_defaults(run=cmd_checkpoint_info)
 
-    evaluation = commands.add_parser("evaluate", help="seeded rollouts in parallel, appended to a results file")
-    evaluation.add_argument("--controller", default="learned", help="learned, dwa, expert or edge_angle")
-    evaluation.add_argument("--checkpoint", default="wide", help="the learned policy: a shipped name or a .pt file")
+    evaluation = add("evaluate", "seeded rollouts in parallel, appended to a results file (rerun to resume; "
+                                 "Ctrl-C keeps what finished)", with_environments=True)
+    evaluation.add_argument("--controller", default="learned", choices=list(CONTROLLERS), help=controllers_help)
+    evaluation.add_argument("--checkpoint", default=None,
+                            help="the learned policy, a shipped name or a .pt file (default: each environment's "
+                                 "shipped model)")
     add_env(evaluation, many=True)
-    evaluation.add_argument("--task", type=int, action="append", default=None, help="task index (repeatable; default all)")
-    evaluation.add_argument("--rollouts", type=int, default=10, help="seeded rollouts per task")
-    evaluation.add_argument("--seed", type=int, default=0, help="first seed; rollout i uses seed + i")
+    evaluation.add_argument("--task", type=int, action="append", default=None,
+                            help="task index (repeatable; default None: every task of the environment)")
+    evaluation.add_argument("--rollouts", type=int, default=10,
+                            help="seeded rollouts per task (3 tasks x 10 rollouts = 30 per environment)")
+    evaluation.add_argument("--seed", type=int, default=0, help="first seed; rollout i of each task uses seed + i")
     evaluation.add_argument("--time-limit", type=float, default=120.0, help="episode timeout (s)")
     evaluation.add_argument("--out", default="results/evaluate.jsonl", help="results file (JSON Lines), appended")
-    evaluation.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    add_workers(evaluation, "rollouts")
     evaluation.add_argument("--backend", default="local", choices=["local", "ray"],
                             help="local process pool, or a Ray cluster (pip install -e '.[ray]')")
-    evaluation.add_argument("--address", default=None, help="Ray cluster address (default: start Ray here)")
+    evaluation.add_argument("--address", default=None, help="Ray cluster address (default None: start Ray here)")
     evaluation.set_defaults(run=cmd_evaluate)
 
-    experiment = commands.add_parser("experiment", help="the paper's pipeline from an experiment YAML")
+    experiment = add("experiment", "the paper's pipeline from an experiment YAML: collect, train, evaluate, report")
     experiment.add_argument("file", help="experiment file, e.g. experiments/paper.yaml")
     experiment.add_argument("--only", action="append", metavar="ENV",
                             help="only the models and evaluations that involve this environment (repeatable)")
     experiment.add_argument("--stage", action="append", choices=["collect", "train", "evaluate", "report"],
-                            help="run only this stage (repeatable; default all, in order)")
+                            help="run only this stage (repeatable; default: all, in order)")
     experiment.set_defaults(run=cmd_experiment)
 
     report = commands.add_parser("report", help="results page (Markdown) and figures from results files")
     report.add_argument("results", nargs="+", help="results files or folders of them (*.jsonl)")
-    report.add_argument("--out", default="docs/results.md")
-    report.add_argument("--figures", default="docs/img", help="folder of the PNG figures")
+    report.add_argument("--out", default=None,
+                        help="the Markdown page (default: beside the first results entry: <folder>/report.md, or "
+                             "<file stem>_report.md; a default path that git tracks is refused, name it to overwrite)")
+    report.add_argument("--figures", default=None,
+                        help="folder of the PNG figures (default: <page stem>_img beside the page)")
     report.add_argument("--title", default="Results")
     report.set_defaults(run=cmd_report)
 
-    training = commands.add_parser("train", help="behavioural cloning from demonstrations")
+    defaults = TrainConfig()
+    training = add("train", "behavioural cloning from demonstrations (Ctrl-C keeps the best finished epoch)")
     training.add_argument("--data", action="append", required=True, metavar="DIR",
                           help="demonstration directory (repeat for an amalgam of environments)")
     training.add_argument("--out", required=True, help="checkpoint path (.pt)")
-    training.add_argument("--seed", type=int, default=0)
-    training.add_argument("--max-demos", type=int, default=None, help="use the first N demonstrations of each directory")
-    from ditch_drake.learning.train import TrainConfig
-
-    defaults = TrainConfig()
-    training.add_argument("--epochs", type=int, default=defaults.epochs)
-    training.add_argument("--patience", type=int, default=defaults.patience)
-    training.add_argument("--batch-size", type=int, default=defaults.batch_size)
+    training.add_argument("--seed", type=int, default=defaults.seed,
+                          help="seeds the split, SMOTE, initialization, shuffling and dropout")
+    training.add_argument("--max-demos", type=int, default=None,
+                          help="use the first N demonstrations of each directory (default None: all)")
+    training.add_argument("--epochs", type=int, default=defaults.epochs, help="most epochs to run")
+    training.add_argument("--patience", type=int, default=defaults.patience,
+                          help="epochs without a better validation accuracy before stopping")
+    training.add_argument("--batch-size", type=int, default=defaults.batch_size, help="samples per optimizer step")
     training.add_argument("--batches-per-epoch", type=int, default=defaults.max_batches_per_epoch,
                           help="batches drawn (without replacement) from the shuffled training set per epoch")
     training.add_argument("--synthetic-fraction", type=float, default=defaults.smote.max_synthetic_fraction,
                           help="at most this many SMOTE samples per real training sample")
-    training.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    training.add_argument("--threads", type=int, default=None, help="torch threads (default None: all cores)")
     training.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                           help="auto: CUDA when torch sees a GPU, else the CPU (a CUDA run is not bitwise "
                                "reproducible on the CPU)")
     training.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto",
                           help="bf16: training steps under bfloat16 autocast; auto: bf16 on a CPU with native "
                                "bf16 (AVX512-BF16 or AMX), else fp32")
-    training.add_argument("--resume", action="store_true", help="continue an interrupted run")
+    training.add_argument("--resume", action="store_true",
+                          help="continue an interrupted run from its .resume file beside --out")
     training.set_defaults(run=cmd_train)
 
-    figure = commands.add_parser("figure", help="figures for docs/: surface-normal images per environment, the diagram, "
-                                 "the DWA baseline at the ditch")
-    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot", "dwa"])
+    figure = add("figure", "figures for docs/: surface-normal images per environment, the diagram, a browser "
+                           "screenshot of a recording, the DWA baseline at the ditch")
+    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot", "dwa"], help="which figure")
     figure.add_argument("--html", default="results/demo.html", help="screenshot: the recording to open in Chromium")
     add_env(figure, many=True)
-    figure.add_argument("--out", default="docs/img")
-    figure.add_argument("--seed", type=int, default=0)
+    figure.add_argument("--out", default="docs/img", help="folder of the figures")
+    figure.add_argument("--seed", type=int, default=0, help="the episode's seed")
     figure.set_defaults(run=cmd_figure)
 
-    bench = commands.add_parser("bench", help="speed and memory figures")
+    bench = add("bench", "speed and memory figures as one JSON object (--json)")
     add_env(bench, many=True)
     bench.add_argument("--json", action="store_true", help="one JSON object on stdout")
     bench.add_argument("--training", action="store_true",
@@ -493,15 +655,21 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return args.run(args)
-    except (ConfigError, TerrainError, DatasetError, CheckpointError, ResultsError) as error:
-        print(f"ditch-drake: error: {error}", file=sys.stderr)
-        return 2
+        with terminate_as_interrupt():
+            return args.run(args)
+    except KeyboardInterrupt as error:
+        print("ditch-drake: interrupted", file=sys.stderr)
+        return interrupt_exit_code(error)
     except BrokenPipeError:
         # The reader went away (`ditch-drake dataset-info ... | head`): stop quietly, and keep
         # Python's exit-time flush of stdout from raising again.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
+    except Exception as error:
+        if not isinstance(error, _user_errors()):
+            raise
+        print(f"ditch-drake: error: {error}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

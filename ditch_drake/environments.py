@@ -1,7 +1,10 @@
 """The named environments and their start/goal tasks, loaded from YAML data."""
 
+import dataclasses
 import functools
 import math
+import types
+import typing
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
@@ -10,11 +13,8 @@ import numpy as np
 import yaml
 from pydrake.common.yaml import yaml_load_typed
 
-from ditch_drake.terrain import DitchTerrain, TerrainError, TerrainParams
-
-
-class ConfigError(ValueError):
-    """A configuration file or value is malformed or out of range."""
+from ditch_drake.errors import ConfigError, TerrainError
+from ditch_drake.terrain import DitchTerrain, TerrainParams
 
 
 @dataclass
@@ -62,11 +62,72 @@ def load_typed_yaml(path: str | Path, schema: type, what: str):
     except OSError as error:
         raise ConfigError(f"cannot read {what} {path}: {error}") from error
     try:
-        return yaml_load_typed(schema=schema, data=text)
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
     except yaml.YAMLError as error:
         raise ConfigError(f"malformed YAML in {path}: {error}") from error
+    if root is None:
+        raise ConfigError(f"{what} {path} is empty; expected a mapping of {schema.__name__}'s fields")
+    _check_node(root, schema, f"{what} {path}", "")
+    try:
+        return yaml_load_typed(schema=schema, data=text)
     except (RuntimeError, ValueError, TypeError, AssertionError) as error:
         raise ConfigError(f"invalid {what} {path}: {error}") from error
+
+
+_SCALAR_TAGS = {int: ("int",), float: ("int", "float"), bool: ("bool",), str: ("str", "int", "float", "bool")}
+
+
+def _check_node(node, schema, where: str, key: str) -> None:
+    """Raises ConfigError naming the key, its line, the bad value and the expected type, for a
+    YAML node that does not fit `schema` (a dataclass, a scalar type, list, dict or Optional).
+    Types it does not know are left to `yaml_load_typed`."""
+    line = node.start_mark.line + 1
+    name = key or "the top level"
+    origin, arguments = typing.get_origin(schema), typing.get_args(schema)
+    if origin in (typing.Union, types.UnionType):
+        if node.tag == "tag:yaml.org,2002:null" and type(None) in arguments:
+            return
+        options = [argument for argument in arguments if argument is not type(None)]
+        if len(options) == 1:
+            _check_node(node, options[0], where, key)
+        return
+    if dataclasses.is_dataclass(schema):
+        if not isinstance(node, yaml.MappingNode):
+            raise ConfigError(f"{where}, line {line}: {name} is {_describe(node)}; expected a mapping of "
+                              f"{schema.__name__}'s fields")
+        field_types = typing.get_type_hints(schema)
+        for key_node, value_node in node.value:
+            if key_node.value not in field_types:
+                raise ConfigError(f"{where}, line {key_node.start_mark.line + 1}: unknown key "
+                                  f"{_join(key, key_node.value)!r}; expected one of {sorted(field_types)}")
+            _check_node(value_node, field_types[key_node.value], where, _join(key, key_node.value))
+        return
+    if origin is list:
+        if not isinstance(node, yaml.SequenceNode):
+            raise ConfigError(f"{where}, line {line}: {name} is {_describe(node)}; expected a list")
+        for index, item in enumerate(node.value):
+            _check_node(item, arguments[0] if arguments else typing.Any, where, f"{key}[{index}]")
+        return
+    if origin is dict:
+        if not isinstance(node, yaml.MappingNode):
+            raise ConfigError(f"{where}, line {line}: {name} is {_describe(node)}; expected a mapping")
+        for key_node, value_node in node.value:
+            _check_node(value_node, arguments[1] if arguments else typing.Any, where, _join(key, key_node.value))
+        return
+    if schema in _SCALAR_TAGS:
+        tag = node.tag.rsplit(":", 1)[-1] if isinstance(node, yaml.ScalarNode) else None
+        if tag not in _SCALAR_TAGS[schema]:
+            raise ConfigError(f"{where}, line {line}: {name} is {_describe(node)}; expected {schema.__name__}")
+
+
+def _join(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else str(key)
+
+
+def _describe(node) -> str:
+    if isinstance(node, yaml.ScalarNode):
+        return f"{node.value!r} ({node.tag.rsplit(':', 1)[-1]})"
+    return "a list" if isinstance(node, yaml.SequenceNode) else "a mapping"
 
 
 def load_environments(path: str | Path | None = None) -> dict[str, Environment]:

@@ -5,6 +5,7 @@ from pathlib import Path
 import numpy as np
 
 from ditch_drake.demos.collect import record_demonstration
+from ditch_drake.files import atomic_write_text
 
 
 def normal_image_figure(environment: str, out_dir: str | Path, seed: int = 0) -> Path:
@@ -48,7 +49,6 @@ def diagram_figure(out_dir: str | Path, environment: str = "wide", controller: s
     Raises:
         FileNotFoundError: Graphviz's `dot` is not installed (Debian: apt-get install graphviz).
     """
-    import os
     import shutil
     import subprocess
 
@@ -62,9 +62,4 @@ def diagram_figure(out_dir: str | Path, environment: str = "wide", controller: s
     diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment), controller=config))
     svg = subprocess.run([dot, "-Tsvg"], input=diagram.GetGraphvizString(max_depth=max_depth), capture_output=True,
                          text=True, check=True).stdout
-    out = Path(out_dir) / "diagram.svg"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    temporary = out.with_name(f".{out.name}.tmp")
-    temporary.write_text(svg)
-    os.replace(temporary, out)
-    return out
+    return atomic_write_text(Path(out_dir) / "diagram.svg", svg)

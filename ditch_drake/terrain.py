@@ -17,18 +17,15 @@ The same description gives
 A new shape is a new `TerrainParams`, not new code.
 """
 
-
 import itertools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from ditch_drake.errors import TerrainError
+
 COURSE_KINDS = ("line", "sine", "point")
-
-
-class TerrainError(ValueError):
-    """A terrain parameter is out of its allowed range."""
 
 
 @dataclass

@@ -70,7 +70,7 @@ def test_calibration_passes_in_every_environment():
 def test_view_runs_an_episode_in_meshcat(capsys):
     assert main(["view", "--env", "narrow", "--realtime-rate", "0"]) == 0
     out = capsys.readouterr().out
-    assert "meshcat: http" in out and "outcome: reached_goal" in out
+    assert "meshcat: open http" in out and "outcome: reached_goal" in out
 
 
 def test_ci_runs_exactly_the_readme_test_command():
@@ -90,7 +90,7 @@ def test_collect_labeller_choice_reaches_the_dagger_labeller(capsys, monkeypatch
     from ditch_drake.demos import collect as collect_module
 
     seen = []
-    monkeypatch.setattr(collect_module, "collect", lambda config: seen.append(config) or {"unfilled_slots": 0})
+    monkeypatch.setattr(collect_module, "collect", lambda config: seen.append(config) or {"unfilled_slots": [], "interrupted": False})
     out = str(tmp_path / "dagger")
     assert main(["collect", "--env", "narrow", "--out", out, "--learner", "narrow", "--labeller", "replanning"]) == 0
     assert main(["collect", "--env", "narrow", "--out", out, "--learner", "narrow"]) == 0
@@ -104,7 +104,7 @@ def test_collect_lead_in_reaches_the_expert_and_the_labeller(monkeypatch, tmp_pa
     from ditch_drake.demos import collect as collect_module
 
     seen = []
-    monkeypatch.setattr(collect_module, "collect", lambda config: seen.append(config) or {"unfilled_slots": 0})
+    monkeypatch.setattr(collect_module, "collect", lambda config: seen.append(config) or {"unfilled_slots": [], "interrupted": False})
     out = str(tmp_path / "demos")
     assert main(["collect", "--env", "narrow", "--out", out, "--lead-in"]) == 0
     assert main(["collect", "--env", "narrow", "--out", out, "--lead-in", "--learner", "narrow"]) == 0

@@ -11,7 +11,7 @@ from ditch_drake.evaluation import batch
 from ditch_drake.evaluation.batch import evaluate, make_specs, run_rollout
 from ditch_drake.evaluation.results import RecordWriter, ResultsError, RolloutSpec, read_records
 from ditch_drake.evaluation.summary import group_by, summarize, wilson_interval
-from ditch_drake.learning.checkpoint import make_checkpoint, save_checkpoint
+from ditch_drake.learning.checkpoint import CheckpointError, checkpoint_digest, make_checkpoint, save_checkpoint
 from ditch_drake.learning.model import FourInputClassifier
 
 # Short episodes: the expert is still on its approach when they time out.
@@ -93,7 +93,11 @@ def test_pending_rollouts_run_in_fresh_pools_of_workers_times_rollouts_per_worke
 def test_a_rollout_that_raises_is_recorded_as_an_error_and_the_run_goes_on(tmp_path):
     broken = tmp_path / "broken.pt"
     broken.write_bytes(b"not a checkpoint")
-    bad = make_specs("learned", str(broken), "wide", tasks=[0], rollouts=1, time_limit_s=1.0)
+    with pytest.raises(CheckpointError, match="broken.pt"):  # `make_specs` checks the checkpoint up front.
+        make_specs("learned", str(broken), "wide", tasks=[0], rollouts=1, time_limit_s=1.0)
+    # A spec made by other means still fails inside its rollout, and the run goes on.
+    bad = [dataclasses.replace(SPECS[0], controller="learned", checkpoint=str(broken),
+                               checkpoint_sha256=checkpoint_digest(str(broken)))]
     report = evaluate(bad + SPECS[:1], tmp_path / "results.jsonl", workers=0, progress=False)
     assert (report.recorded, report.errors, report.successes) == (2, 1, 0)
     errors = [r for r in read_records(tmp_path / "results.jsonl")[0] if r.status == "error"]
@@ -149,7 +153,7 @@ def test_a_worker_keeps_only_its_most_recently_used_rigs(monkeypatch):
     monkeypatch.setattr(batch, "MakeRolloutDiagram", lambda config: built.append(config) or (object(), object()))
     monkeypatch.setattr(batch, "Simulator", lambda diagram: object())
     monkeypatch.setattr(batch, "_WORKER_RIGS", type(batch._WORKER_RIGS)())
-    specs = [RolloutSpec("edge_angle", "", env, task, 0, 120.0, 1.5) for env in ("wide", "sine") for task in (0, 1, 2)]
+    specs = [RolloutSpec("edge_angle", "", "", env, task, 0, 120.0, 1.5) for env in ("wide", "sine") for task in (0, 1, 2)]
     first = batch._rig(specs[0])
     assert batch._rig(dataclasses.replace(specs[0], seed=9)) is first and len(built) == 1  # Reused across seeds.
     for spec in specs[1:]:
@@ -161,9 +165,10 @@ def test_a_worker_keeps_only_its_most_recently_used_rigs(monkeypatch):
 
 
 def test_spec_keys_identify_rollouts():
-    a = RolloutSpec("learned", "wide", "narrow", 1, 4, 120.0, 1.5)
-    assert a.key == "learned|wide|narrow|1|4|120|1.5"
+    a = RolloutSpec("learned", "wide", "0123456789abcdef", "narrow", 1, 4, 120.0, 1.5)
+    assert a.key == "learned|wide@0123456789abcdef|narrow|1|4|120|1.5"
     assert a.key != dataclasses.replace(a, seed=5).key
+    assert a.key != dataclasses.replace(a, checkpoint_sha256="fedcba9876543210").key
 
 
 def test_checkpoints_of_another_action_table_or_input_shape_are_refused(tmp_path):

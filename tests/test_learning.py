@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from ditch_drake import actions
+from ditch_drake.learning import train as train_module
 from ditch_drake.learning.balance import SmoteConfig, balance, smote_samples, synthetic_counts
 from ditch_drake.learning.checkpoint import (
     SCHEMA,
@@ -178,7 +179,7 @@ def _metrics(result) -> list[dict]:
     return [{k: v for k, v in record.items() if k != "seconds"} for record in result.history]
 
 
-def test_tiny_training_is_deterministic_and_resumable(tmp_path):
+def test_tiny_training_is_deterministic_and_resumable(tmp_path, monkeypatch):
     arrays = make_arrays(skewed_labels(60), demos=6, seed=1)
     generator_state = torch.get_rng_state()
     first = train(arrays, TINY, progress=False)
@@ -196,14 +197,27 @@ def test_tiny_training_is_deterministic_and_resumable(tmp_path):
     fitted = InputStats.fit(arrays, train_rows)
     assert np.allclose(first.checkpoint.input_stats.distance_mean, fitted.distance_mean)
 
-    # One epoch saved, then resumed to two: the same as two epochs in one go.
+    # Interrupted after one epoch, then resumed to two: the same as two epochs in one go. (A
+    # run that finishes removes its resume file, so the first part is an interrupted run.)
     output = tmp_path / "policy.pt"
-    partial = train(arrays, TrainConfig(**{**vars(TINY), "epochs": 1}), progress=False, output_path=output)
+    real_evaluate = train_module.evaluate
+    calls = {"n": 0}
+
+    def evaluate_then_interrupt(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == 2:
+            raise KeyboardInterrupt
+        return real_evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "evaluate", evaluate_then_interrupt)
+    partial = train(arrays, TINY, progress=False, output_path=output)
     assert output.exists() and resume_path(output).exists() and len(partial.history) == 1
+    monkeypatch.undo()
     resumed = train(arrays, TINY, progress=False, output_path=output, resume=True)
     assert _metrics(resumed) == _metrics(first)
     assert _same_weights(_weights(resumed), _weights(first))
     assert _same_weights(load_checkpoint(output).state_dict, _weights(first))
+    assert not resume_path(output).exists()
 
 
 def test_bf16_training_is_deterministic_recorded_and_differs_from_fp32():

@@ -1,9 +1,12 @@
-"""Collecting demonstrations with the scripted expert, resumably and in parallel."""
+"""Collecting demonstrations with the scripted expert, resumably and in parallel.
 
-import multiprocessing
-import os
+Each demonstration is written by its worker, atomically, the moment it ends; Ctrl-C or
+SIGTERM kills the workers at once (`ditch_drake.parallel`) and the report says how many were
+kept, so the same command run again records only the missing ones.
+"""
+
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -25,8 +28,11 @@ from ditch_drake.demos.dataset import (
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
 from ditch_drake.diagrams.rollout import AddLearnedPolicy
-from ditch_drake.environments import ConfigError, get_environment
+from ditch_drake.environments import get_environment
+from ditch_drake.errors import ConfigError
+from ditch_drake.files import remove_stale_temporaries
 from ditch_drake.learning.checkpoint import checkpoint_digest, load_checkpoint, resolve_checkpoint_path
+from ditch_drake.parallel import WorkerPool, check_workers, interrupt_exit_code, terminate_as_interrupt, worker_count
 from ditch_drake.systems.demo_recorder import DemoRecorder
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
@@ -55,7 +61,7 @@ class CollectConfig:
         seed: demo i's first attempt uses seed + i; a failed attempt k uses
             seed + i + 1000 k (failed demonstrations are not kept).
         out: directory of `demo_NNN.npz` files.
-        workers: processes (0: one per core).
+        workers: processes (None: one per core; 0: in this process).
         observation: perception settings.
         variation: the expert's per-demonstration variation.
         learner: None records the expert's demonstrations (successes only). A checkpoint
@@ -69,7 +75,7 @@ class CollectConfig:
     demos: int = 40
     seed: int = 0
     out: str = "data/demos/wide"
-    workers: int = 0
+    workers: int | None = None
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     variation: ExpertVariation = field(default_factory=ExpertVariation)
     learner: str | None = None
@@ -267,33 +273,52 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     """Collects the missing demonstrations of `config.out`; returns a report.
 
     Interrupted and rerun, it keeps the valid files already written and records
-    only the missing ones; a damaged file is renamed aside, not overwritten.
+    only the missing ones; a damaged file is renamed aside, not overwritten. Ctrl-C
+    (KeyboardInterrupt) or SIGTERM stops it within a second or two: the report then has
+    `interrupted` True and the shell's `exit_code` (130 or 143), and is not re-raised.
     """
     get_environment(config.environment)
     if not isinstance(config.demos, int) or config.demos <= 0:
         raise ConfigError(f"demos={config.demos!r} must be a positive integer")
+    check_workers(config.workers)
+    if isinstance(config.seed, bool) or not isinstance(config.seed, int) or config.seed < 0:
+        raise ConfigError(f"seed={config.seed!r}: expected an integer >= 0 (it seeds Drake's RandomGenerator)")
     out = Path(config.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output path {out} is a file; expected a directory of demonstrations")
     if config.learner is not None:
         load_checkpoint(resolve_checkpoint_path(config.learner))  # A bad checkpoint fails here, not in a worker.
     out.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out)
     start = time.perf_counter()
     set_aside: list[str] = []
     missing = [index for index in range(config.demos) if not _existing_demo(demo_path(config.out, index), set_aside)]
-    workers = config.workers or os.cpu_count() or 1
+    workers = worker_count(config.workers)
     results = []
-    # Spawned, not forked: a fork of a process whose torch/OpenMP threads are running can deadlock.
-    with ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn")) as pool:
-        futures = [pool.submit(_collect_slot, config, index) for index in missing]
-        bar = tqdm(as_completed(futures), total=len(futures), desc=f"collect {config.environment}",
-                   disable=not progress)
-        for future in bar:
-            results.append(future.result())
-            if config.learner is None:
-                bar.set_postfix(failed=sum(len(r["failures"]) for r in results))
+    bar = tqdm(total=len(missing), desc=f"collect {config.environment}", disable=not progress)
+
+    def keep(result: dict) -> None:
+        results.append(result)
+        bar.update(1)
+        if config.learner is None:
+            bar.set_postfix(failed=sum(len(r["failures"]) for r in results))
+        else:
+            bar.set_postfix(learner_reached_goal=sum(r["status"] == "reached_goal" for r in results))
+
+    interrupted, exit_code = False, 0
+    try:
+        with terminate_as_interrupt():
+            if workers == 0 or not missing:
+                for index in missing:
+                    keep(_collect_slot(config, index))
             else:
-                bar.set_postfix(learner_reached_goal=sum(r["status"] == "reached_goal" for r in results))
+                with WorkerPool(min(workers, len(missing))) as pool:
+                    for future in as_completed([pool.submit(_collect_slot, config, index) for index in missing]):
+                        keep(future.result())
+    except KeyboardInterrupt as error:
+        interrupted, exit_code = True, interrupt_exit_code(error)
+    finally:
+        bar.close()
     failures = [failure for result in results for failure in result["failures"]]
     wall_s = time.perf_counter() - start
     recorded = sum(result["seed"] is not None for result in results)
@@ -312,4 +337,6 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
                                for status in sorted({r["status"] for r in results if r["status"]})},
         "wall_s": wall_s,
         "demos_per_minute": 60.0 * recorded / wall_s if recorded else 0.0,
+        "interrupted": interrupted,
+        "exit_code": exit_code,
     }

@@ -14,15 +14,19 @@ Arrays, T control steps each (`SCHEMA_VERSION` 1):
 | `raw_command` | (T, 2) float32 | command before quantization [v, w] |
 | `metadata` | 0-d str | JSON: schema version, environment, task, seed, outcome, control period, action table, expert style |
 
+The metadata is a JSON object; the keys that code reads back are checked for their JSON
+type when present (`_METADATA_TYPES`), so a file whose `task` is a string fails on loading
+with a message, not later in a summary.
+
 The image stack a policy sees at step t is `image[t], image[t-1], image[t-2],
 image[t-3]` (zeros before the first step); `restack_images` rebuilds it. Files are
-written atomically (temporary file, then rename).
+written atomically (temporary file, flushed to disk, then rename) with the mode a plain
+`open()` gives (0644 under the usual umask 022).
 """
 
 import json
-import os
-import tempfile
 import zipfile
+import zlib
 from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +35,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ditch_drake import __version__, actions
+from ditch_drake.errors import ConfigError, DatasetError
+from ditch_drake.files import atomic_output
 from ditch_drake.observation_spec import IMAGE_SHAPE, STACK_DEPTH
 
 if TYPE_CHECKING:  # Reading and training need no Drake: a GPU box without pydrake can train.
@@ -48,10 +54,38 @@ _ARRAYS = {
     "pose": ((6,), np.float32),
     "raw_command": ((2,), np.float32),
 }
-
-
-class DatasetError(ValueError):
-    """A demonstration file is missing, corrupt, or not what the schema says."""
+# The metadata keys that code reads back, and their JSON types. Absent keys pass (files made
+# by hand or by older versions; `dataset_summary` counts them as "?"); bools are not integers.
+_METADATA_TYPES = {
+    "schema_version": int,
+    "ditch_drake_version": str,
+    "action_table": list,
+    "image_encoding": str,
+    "environment": str,
+    "task": dict,
+    "seed": int,
+    "outcome": dict,
+    "control_period_s": (int, float),
+    "expert_style": dict,
+    "driver": str,
+    "learner": (str, type(None)),
+    "learner_sha256": str,
+    "trimmed_steps": int,
+}
+_NESTED_METADATA_TYPES = {("task", "index"): int, ("task", "name"): str, ("outcome", "status"): str}
+_JSON_TYPE_NAMES = {
+    dict: "an object",
+    list: "an array",
+    str: "a string",
+    int: "an integer",
+    float: "a number",
+    bool: "a boolean",
+    type(None): "null",
+}
+_EXPECTED_FILE = (
+    f"a .npz of the arrays {list(_ARRAYS)} and a JSON metadata string (schema_version "
+    f"{SCHEMA_VERSION}), as `ditch-drake collect` writes"
+)
 
 
 @dataclass
@@ -95,43 +129,111 @@ def standard_metadata(**fields) -> dict:
 
 
 def save_demonstration(path: str | Path, demonstration: Demonstration) -> Path:
-    """Validates and writes one demonstration atomically; returns the path."""
+    """Validates and writes one demonstration atomically; returns the path.
+
+    The file gets the mode a plain `open()` would give (0666 less the umask; see
+    `ditch_drake.files.atomic_output`).
+    """
     path = Path(path)
     _validate(demonstration.arrays, demonstration.metadata, path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz.tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as file:
-            np.savez_compressed(file, metadata=np.array(json.dumps(demonstration.metadata)), **demonstration.arrays)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
+    with atomic_output(path) as file:
+        np.savez_compressed(file, metadata=np.array(json.dumps(demonstration.metadata)), **demonstration.arrays)
     return path
 
 
 def load_demonstration(path: str | Path) -> Demonstration:
     """Reads and validates one file.
 
+    Nothing in the file is unpickled: an archive holding Python objects, like one that is
+    not an archive at all, is refused as not a demonstration file.
+
     Raises:
         DatasetError: naming the file and what is wrong with it.
     """
     path = Path(path)
+    if path.is_dir():
+        raise DatasetError(f"demonstration file {path} is a folder; expected {_EXPECTED_FILE}")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {key: data[key] for key in data.files if key != "metadata"}
-            metadata = json.loads(str(data["metadata"])) if "metadata" in data.files else None
+        data = np.load(path, allow_pickle=False)
     except FileNotFoundError as error:
         raise DatasetError(f"demonstration file {path} does not exist") from error
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, json.JSONDecodeError) as error:
-        raise DatasetError(f"demonstration file {path} is corrupt or not a .npz demonstration: {error}") from error
-    if metadata is None:
-        raise DatasetError(f"demonstration file {path} has no metadata")
+    except PermissionError as error:
+        raise DatasetError(f"demonstration file {path} cannot be read: {error.strerror}") from error
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+        # numpy's own message for bytes that are neither .npy nor .npz suggests unpickling
+        # them (allow_pickle), which a file of unknown origin must never get: not passed on.
+        reason = "it is empty" if isinstance(error, EOFError) else "it is not a .npz archive"
+        raise DatasetError(_not_a_demonstration(path, f"{reason}, {type(error).__name__}")) from error
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise DatasetError(_not_a_demonstration(path, "it is a single .npy array, not a .npz archive"))
+    try:
+        with data:
+            arrays = {key: data[key] for key in data.files if key != "metadata"}
+            text = data["metadata"] if "metadata" in data.files else None
+    except ValueError as error:  # numpy refuses object arrays without unpickling them.
+        raise DatasetError(_not_a_demonstration(path, "it holds pickled Python objects")) from error
+    except (OSError, EOFError, zipfile.BadZipFile, zlib.error) as error:
+        reason = f"truncated or damaged: {type(error).__name__}: {error}"
+        raise DatasetError(_not_a_demonstration(path, reason)) from error
+    if text is None:
+        raise DatasetError(f"demonstration file {path} has no metadata; expected {_EXPECTED_FILE}")
+    if text.shape != () or text.dtype.kind != "U":
+        raise DatasetError(
+            f"demonstration file {path}: 'metadata' is a {text.dtype} array of shape {text.shape}; "
+            "expected a 0-d string of JSON"
+        )
+    try:
+        metadata = json.loads(str(text))
+    except json.JSONDecodeError as error:
+        raise DatasetError(f"demonstration file {path}: 'metadata' is not JSON ({error})") from error
     _validate(arrays, metadata, path)
     return Demonstration(arrays, metadata, path)
 
 
+def _not_a_demonstration(path: Path, reason: str) -> str:
+    return (
+        f"demonstration file {path} is corrupt or not a demonstration file of this schema ({reason}); "
+        f"expected {_EXPECTED_FILE}"
+    )
+
+
+def _json_type(kinds: type | tuple[type, ...]) -> str:
+    kinds = kinds if isinstance(kinds, tuple) else (kinds,)
+    return " or ".join(_JSON_TYPE_NAMES[kind] for kind in kinds)
+
+
+def _is_a(value, kinds: type | tuple[type, ...]) -> bool:
+    """isinstance, except that a JSON boolean is not an integer or a number."""
+    kinds = kinds if isinstance(kinds, tuple) else (kinds,)
+    return isinstance(value, kinds) and not (isinstance(value, bool) and bool not in kinds)
+
+
+def _validate_metadata(metadata, path: Path) -> None:
+    """Checks the JSON types of the metadata keys that code reads (`_METADATA_TYPES`)."""
+    if not isinstance(metadata, dict):
+        raise DatasetError(
+            f"{path}: the metadata is {_json_type(type(metadata))} in JSON; expected an object "
+            "of keys such as schema_version, environment, task, seed, outcome"
+        )
+    for key, kinds in _METADATA_TYPES.items():
+        if key in metadata and not _is_a(metadata[key], kinds):
+            value = metadata[key]
+            raise DatasetError(
+                f"{path}: metadata key {key!r} is {_json_type(type(value))} ({value!r:.60}); "
+                f"expected {_json_type(kinds)}"
+            )
+    for (outer, key), kinds in _NESTED_METADATA_TYPES.items():
+        inner = metadata.get(outer, {})
+        if key in inner and not _is_a(inner[key], kinds):
+            value = inner[key]
+            raise DatasetError(
+                f"{path}: metadata key {outer!r}.{key!r} is {_json_type(type(value))} "
+                f"({value!r:.60}); expected {_json_type(kinds)}"
+            )
+
+
 def _validate(arrays: dict, metadata: dict, path: Path) -> None:
+    _validate_metadata(metadata, path)
     version = metadata.get("schema_version")
     if version != SCHEMA_VERSION:
         raise DatasetError(f"{path}: schema_version {version!r}, expected {SCHEMA_VERSION}")
@@ -171,7 +273,14 @@ def demonstration_paths(directory: str | Path) -> list[Path]:
 
 
 def load_dataset(directory: str | Path, max_demos: int | None = None) -> list[Demonstration]:
-    """All (or the first `max_demos`) demonstrations of a directory, validated."""
+    """All (or the first `max_demos`) demonstrations of a directory, validated.
+
+    Raises:
+        ConfigError: `max_demos` < 1 (a negative one would silently drop the last files).
+        DatasetError: no such directory, no demonstration files, or a bad file.
+    """
+    if max_demos is not None and max_demos < 1:
+        raise ConfigError(f"max_demos={max_demos}: expected an integer >= 1, or none for all (--max-demos)")
     paths = demonstration_paths(directory)
     if not paths:
         raise DatasetError(f"dataset directory {directory} holds no {FILE_PATTERN} files")

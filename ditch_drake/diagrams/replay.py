@@ -3,14 +3,20 @@
 `record_replay` builds the scene with meshcat visualization, the chosen controller, and a
 lidar of its own for the picture; runs one seeded episode while Meshcat records the
 visualizer's frames; and writes `Meshcat.StaticHtml()` to a file that any browser opens
-offline: the robot, the ditch, the lidar's points and the driven path.
+offline: the robot, the ditch, the lidar's points and the driven path, under a title and a
+legend (inline HTML and CSS, nothing fetched) that say what was run and how it ended:
+environment, task, seed, controller (and checkpoint), outcome, simulated time, path length,
+and the colours of the path and the lidar returns.
 
 Meshcat animations carry transforms and properties, not geometry, so the lidar is shown as
 one point-cloud object per snapshot (every `snapshot_period_s`, in the world frame), each
 made visible only during its own interval of the animation.
 """
 
-import os
+import contextlib
+import html
+import logging
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -20,9 +26,19 @@ from pydrake.geometry import Meshcat, Rgba
 from pydrake.perception import BaseField, Fields, PointCloud
 from pydrake.systems.analysis import Simulator, SimulatorStatus
 from pydrake.systems.framework import Diagram, DiagramBuilder
+from tqdm import tqdm
 
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene
-from ditch_drake.diagrams.rollout import AddController, ExpertConfig, RolloutConfig
+from ditch_drake.diagrams.rollout import (
+    AddController,
+    ConstantCommandConfig,
+    ControllerConfig,
+    DwaBaselineConfig,
+    ExpertConfig,
+    LearnedPolicyConfig,
+    RolloutConfig,
+)
+from ditch_drake.files import atomic_output
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
 from ditch_drake.systems.lidar import AddLidar, LidarConfig, LidarHandles
 
@@ -74,12 +90,25 @@ class ReplayResult:
     snapshots: int
 
 
-def record_replay(config: ReplayConfig, meshcat: Meshcat | None = None) -> ReplayResult:
+def _recording_meshcat() -> Meshcat:
+    """A Meshcat that only records: its "listening for connections" line would invite the
+    user to open a page that shows nothing until the recording is written, so it is not logged."""
+    drake_log = logging.getLogger("drake")
+    level = drake_log.level
+    drake_log.setLevel(logging.WARNING)
+    try:
+        return Meshcat()
+    finally:
+        drake_log.setLevel(level)
+
+
+def record_replay(config: ReplayConfig, meshcat: Meshcat | None = None, progress: str | None = None) -> ReplayResult:
     """Runs one seeded episode and writes its recording as standalone HTML (atomically).
 
     Args:
         config: what to record.
         meshcat: the Meshcat to record into (its scene is cleared first); None makes one.
+        progress: a description for a progress bar of simulated time on stderr (None: none).
 
     Raises:
         ConfigError: an unknown environment or controller (from the builders).
@@ -89,7 +118,7 @@ def record_replay(config: ReplayConfig, meshcat: Meshcat | None = None) -> Repla
         raise ValueError(f"snapshot_period_s={config.snapshot_period_s} and max_points_per_snapshot="
                          f"{config.max_points_per_snapshot} must be positive")
     out = Path(config.out)
-    meshcat = meshcat or Meshcat()
+    meshcat = meshcat or _recording_meshcat()
     meshcat.Delete()
     meshcat.DeleteRecording()
     builder = DiagramBuilder()
@@ -99,36 +128,134 @@ def record_replay(config: ReplayConfig, meshcat: Meshcat | None = None) -> Repla
     diagram = builder.Build()
     # After the builders (which validate the environment and controller) and before minutes of
     # simulation: an unwritable path fails fast, and a bad config leaves no file behind.
-    temporary = _open_output(out)
-    try:
-        outcome, snapshots = _record_episode(config, meshcat, diagram, scene, lidar)
-        temporary.write_text(meshcat.StaticHtml())
-        os.replace(temporary, out)
-    finally:
-        temporary.unlink(missing_ok=True)
+    with _output(out) as file:
+        outcome, snapshots = _record_episode(config, meshcat, diagram, scene, lidar, progress)
+        file.write(with_legend(meshcat.StaticHtml(), replay_title(config, outcome),
+                               replay_fields(config, scene, outcome)).encode("utf-8"))
     return ReplayResult(outcome=outcome, html_path=out, html_bytes=out.stat().st_size, snapshots=snapshots)
 
 
-def _open_output(out: Path) -> Path:
-    """Creates `out`'s folder and an empty temporary file beside `out` (renamed over it at the end).
+def controller_description(config: ControllerConfig) -> str:
+    """The controller in words, with the learned policy's checkpoint and its file's digest."""
+    if isinstance(config, LearnedPolicyConfig):
+        from ditch_drake.learning.checkpoint import checkpoint_digest
+
+        try:
+            digest = f", sha256 {checkpoint_digest(config.checkpoint)}"
+        except OSError:
+            digest = ""
+        return f"learned policy, checkpoint {config.checkpoint}{digest}"
+    if isinstance(config, ExpertConfig):
+        return f"scripted expert (style seed {config.style_seed})"
+    if isinstance(config, DwaBaselineConfig):
+        return "DWA baseline (move_base)"
+    if isinstance(config, ConstantCommandConfig):
+        return f"constant command {config.command} [m/s, rad/s]"
+    return f"edge-angle driver (wall angle {config.wall_angle_deg:g} deg)"
+
+
+def replay_title(config: ReplayConfig, outcome: EpisodeOutcome) -> str:
+    """The page's title: the controller, the environment and task, the seed, the outcome."""
+    short = {LearnedPolicyConfig: "Learned policy", ExpertConfig: "Scripted expert", DwaBaselineConfig: "DWA baseline",
+             ConstantCommandConfig: "Constant command"}.get(type(config.rollout.controller), "Edge-angle driver")
+    scene = config.rollout.scene
+    return f"{short} in {scene.environment}, task {scene.task}, seed {config.seed}: {outcome.status}"
+
+
+def replay_fields(config: ReplayConfig, scene: DitchScene, outcome: EpisodeOutcome) -> list[tuple[str, str]]:
+    """What the page's legend says, as (name, value) rows."""
+    task = scene.task.name or "unnamed"
+    return [("environment", config.rollout.scene.environment),
+            ("task", f"{config.rollout.scene.task} ({task})"),
+            ("seed", str(config.seed)),
+            ("controller", controller_description(config.rollout.controller)),
+            ("outcome", outcome.status),
+            ("simulated time", f"{outcome.time_s:.1f} s (limit {scene.episode.time_limit_s:g} s)"),
+            ("path length", f"{outcome.path_length_m:.1f} m"),
+            ("peak tilt", f"{outcome.peak_tilt_deg:.0f} deg")]
+
+
+def _css(rgba: Rgba) -> str:
+    return f"rgb({round(255 * rgba.r())}, {round(255 * rgba.g())}, {round(255 * rgba.b())})"
+
+
+def _legend_rows(fields: list[tuple[str, str]]) -> str:
+    """The fields as table rows: short ones two to a row, a long one across the row."""
+    cells, rows = [], []
+    for name, value in fields:
+        cell = f"<th>{html.escape(name)}</th><td>{html.escape(value)}</td>"
+        if len(value) > 28:
+            rows.append(cell.replace("<td>", '<td colspan="3">'))
+        else:
+            cells.append(cell)
+        if len(cells) == 2:
+            rows.append("".join(cells))
+            cells = []
+    rows += ["".join(cells)] if cells else []
+    return "".join(f"<tr>{row}</tr>" for row in rows)
+
+
+def with_legend(page: str, title: str, fields: list[tuple[str, str]]) -> str:
+    """Meshcat's static page with `title` as its title, and a legend over the scene's top left
+    corner (above where the camera puts the robot's start): the `fields` and the colour keys of
+    the path and the lidar returns. Inline HTML and CSS only, so the page still opens offline;
+    the legend lets mouse events through to the scene."""
+    keys = (f'<span class="key" style="background:{_css(_PATH_RGBA)};height:4px"></span>driven path '
+            f'<span class="key" style="background:{_css(_LIDAR_RGBA)};border-radius:50%"></span>'
+            "lidar returns (each snapshot shown until the next)")
+    legend = f"""
+  <div id="replay-legend">
+    <h1>{html.escape(title)}</h1>
+    <table>{_legend_rows(fields)}</table>
+    <div>{keys}</div>
+    <p>Open Controls (top right), then Animations, to play or scrub the episode; drag to turn the view.</p>
+  </div>
+  <style>
+    #replay-legend {{
+      position: fixed; top: 6px; left: 6px; z-index: 10; max-width: 520px; padding: 5px 10px;
+      background: rgba(255, 255, 255, 0.85); border-radius: 6px; pointer-events: none;
+      font: 11px/1.3 sans-serif; color: #222;
+    }}
+    #replay-legend h1 {{ font-size: 14px; margin: 0 0 3px 0; }}
+    #replay-legend table {{ border-spacing: 0; }}
+    #replay-legend th {{
+      text-align: left; padding: 0 6px 0 0; font-weight: 600; vertical-align: top; white-space: nowrap;
+    }}
+    #replay-legend td {{ padding: 0 14px 0 0; }}
+    #replay-legend .key {{
+      display: inline-block; width: 12px; height: 12px; margin: 3px 5px 0 0; vertical-align: middle;
+    }}
+    #replay-legend span.key + span.key {{ margin-left: 12px; }}
+    #replay-legend p {{ margin: 2px 0 0 0; color: #555; }}
+  </style>
+"""
+    page = page.replace("<title>Drake MeshCat</title>", f"<title>{html.escape(title)}</title>", 1)
+    end = page.rfind("</body>")
+    return page[:end] + legend + page[end:] if end >= 0 else page + legend
+
+
+@contextlib.contextmanager
+def _output(out: Path):
+    """`atomic_output(out)`, opened before the episode runs so that an unwritable path fails at once.
 
     Raises:
         ReplayOutputError: naming the path and the reason.
     """
-    temporary = out.with_name(f".{out.name}.tmp")
     try:
         if out.is_dir():
             raise IsADirectoryError(21, "is a directory")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        temporary.write_text("")
+        opened = atomic_output(out)
+        file = opened.__enter__()
     except OSError as error:
         where = f"{error.filename}: " if error.filename else ""
         raise ReplayOutputError(f"cannot write the recording to {out} ({where}{error.strerror or error})") from error
-    return temporary
+    with contextlib.ExitStack() as stack:
+        stack.push(opened)
+        yield file
 
 
 def _record_episode(config: ReplayConfig, meshcat: Meshcat, diagram: Diagram, scene: DitchScene,
-                    lidar: LidarHandles) -> tuple[EpisodeOutcome, int]:
+                    lidar: LidarHandles, progress: str | None = None) -> tuple[EpisodeOutcome, int]:
     """Runs the seeded episode while meshcat records; returns its outcome and the snapshot count."""
     _frame_the_task(meshcat, scene)
 
@@ -142,18 +269,23 @@ def _record_episode(config: ReplayConfig, meshcat: Meshcat, diagram: Diagram, sc
     chassis = scene.plant.GetBodyByName("chassis", scene.husky)
     end_time = scene.episode.time_limit_s + 1.0
     path_W, snapshots, previous_t = [], 0, 0.0
-    while True:
-        status = simulator.AdvanceTo(min(context.get_time() + config.snapshot_period_s, end_time))
-        now = context.get_time()
-        X_WB = scene.plant.EvalBodyPoseInWorld(plant_context, chassis)
-        path_W.append(X_WB.translation())
-        cloud_L = lidar.converter.GetOutputPort("point_cloud").Eval(lidar_context)
-        _add_snapshot(meshcat, snapshots, X_WB.multiply(lidar.X_BL), cloud_L, previous_t, now,
-                      config.max_points_per_snapshot)
-        snapshots += 1
-        previous_t = now
-        if status.reason() == SimulatorStatus.ReturnReason.kReachedTerminationCondition or now >= end_time:
-            break
+    bar = None if progress is None else tqdm(total=round(scene.episode.time_limit_s), desc=progress, unit="sim s",
+                                             file=sys.stderr, leave=False)
+    with bar if bar is not None else contextlib.nullcontext():
+        while True:
+            status = simulator.AdvanceTo(min(context.get_time() + config.snapshot_period_s, end_time))
+            now = context.get_time()
+            X_WB = scene.plant.EvalBodyPoseInWorld(plant_context, chassis)
+            path_W.append(X_WB.translation())
+            cloud_L = lidar.converter.GetOutputPort("point_cloud").Eval(lidar_context)
+            _add_snapshot(meshcat, snapshots, X_WB.multiply(lidar.X_BL), cloud_L, previous_t, now,
+                          config.max_points_per_snapshot)
+            snapshots += 1
+            previous_t = now
+            if bar is not None:
+                bar.update(min(int(now), bar.total) - bar.n)
+            if status.reason() == SimulatorStatus.ReturnReason.kReachedTerminationCondition or now >= end_time:
+                break
     meshcat.StopRecording()
     meshcat.SetLine(f"{_PREFIX}/path", np.asfortranarray(np.array(path_W).T), line_width=3.0, rgba=_PATH_RGBA)
     meshcat.PublishRecording()

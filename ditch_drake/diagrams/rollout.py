@@ -1,19 +1,21 @@
 """A scene plus a controller, and running seeded episodes on it."""
 
 import math
+import sys
 import typing
 from dataclasses import dataclass, field
 
 from pydrake.common import RandomGenerator
 from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import Diagram, DiagramBuilder, System
+from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus, System
 from pydrake.systems.primitives import ConstantVectorSource
+from tqdm import tqdm
 
 from ditch_drake import schedule
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
-from ditch_drake.environments import ConfigError
+from ditch_drake.errors import ConfigError
 from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint_path
 from ditch_drake.systems.dwa import DwaConfig, DwaController
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
@@ -151,12 +153,33 @@ def MakeRolloutDiagram(config: RolloutConfig, meshcat: Meshcat | None = None) ->
     return diagram, scene
 
 
-def RunEpisode(simulator: Simulator, diagram: Diagram, scene: DitchScene, seed: int) -> EpisodeOutcome:
-    """Runs one episode from a seeded random start until the monitor ends it."""
+def RunEpisode(simulator: Simulator, diagram: Diagram, scene: DitchScene, seed: int,
+               progress: str | None = None) -> EpisodeOutcome:
+    """Runs one episode from a seeded random start until the monitor ends it.
+
+    Args:
+        progress: a description for a progress bar of simulated time on stderr (None: none).
+            It watches the steps through the Simulator's monitor and changes nothing.
+    """
     context = simulator.get_mutable_context()
     context.SetTime(0.0)
     diagram.SetRandomContext(context, RandomGenerator(seed))
     simulator.Initialize()
     # The monitor terminates the simulation; the bound is only a backstop.
-    simulator.AdvanceTo(scene.episode.time_limit_s + 1.0)
+    end_s = scene.episode.time_limit_s + 1.0
+    if progress is None:
+        simulator.AdvanceTo(end_s)
+    else:
+        with tqdm(total=round(scene.episode.time_limit_s), desc=progress, unit="sim s", file=sys.stderr,
+                  leave=False) as bar:
+
+            def show(root_context) -> EventStatus:
+                bar.update(int(root_context.get_time()) - bar.n)
+                return EventStatus.DidNothing()
+
+            simulator.set_monitor(show)
+            try:
+                simulator.AdvanceTo(end_s)
+            finally:
+                simulator.clear_monitor()
     return scene.monitor.outcome(scene.monitor.GetMyContextFromRoot(context))

@@ -7,7 +7,12 @@ again, it skips the recorded rollouts: nothing is lost and nothing is recorded t
 
 A Python exception inside a rollout is recorded as status "error" with its message. A
 worker process that dies (a crash in compiled code, the out-of-memory killer) takes its
-rollouts with it: they are retried once in a fresh pool, then recorded as errors.
+rollouts with it: they are retried once in a fresh pool, then recorded as errors. An error
+record does not finish its rollout: the next run of the same specs runs it again.
+
+Ctrl-C or SIGTERM stops a run within a second or two: the workers are killed (what they
+were running is lost and runs again next time), every rollout that had ended is already in
+the file, and the report says the run was interrupted (see `ditch_drake.parallel`).
 
 Each worker builds a diagram once per (controller, checkpoint, environment, task, time
 limit) and reuses it for every seed: building the sine ditch costs seconds, more than some
@@ -25,12 +30,10 @@ limit together stopped starting new ones, and the run hung with no process left 
 """
 
 import collections
-import multiprocessing
 import os
-import signal
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
@@ -39,22 +42,16 @@ import numpy as np
 from pydrake.systems.analysis import Simulator
 from tqdm import tqdm
 
+from ditch_drake.diagrams.controllers import CONTROLLERS, controller_config
 from ditch_drake.diagrams.ditch_scene import SceneConfig
-from ditch_drake.diagrams.rollout import (
-    DwaBaselineConfig,
-    ExpertConfig,
-    LearnedPolicyConfig,
-    MakeRolloutDiagram,
-    RolloutConfig,
-    RunEpisode,
-)
-from ditch_drake.environments import ConfigError, get_environment
-from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, read_records
-from ditch_drake.learning.checkpoint import checkpoint_digest, resolve_checkpoint_path
-from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
+from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+from ditch_drake.environments import get_environment
+from ditch_drake.errors import ConfigError
+from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, finished_keys, read_records
+from ditch_drake.learning.checkpoint import checkpoint_digest, load_checkpoint, resolve_checkpoint_path
+from ditch_drake.parallel import WorkerPool, check_workers, interrupt_exit_code, terminate_as_interrupt, worker_count
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 
-CONTROLLERS = ("learned", "dwa", "expert", "edge_angle")
 BACKENDS = ("local", "ray")
 # Pools broken by a dying worker before each remaining rollout runs in a process of its own.
 _ATTEMPTS = 2
@@ -66,21 +63,25 @@ class EvaluationReport:
 
     Attributes:
         results_path: the results file.
-        skipped: rollouts already recorded before this run.
+        requested: distinct rollouts asked for.
+        skipped: rollouts already recorded before this run (error records excluded: they run again).
         recorded: records appended by this run.
         successes: successes among them.
         errors: error records among them.
-        interrupted: Ctrl-C ended the run early (what finished is recorded).
+        interrupted: Ctrl-C or SIGTERM ended the run early (what finished is recorded).
+        exit_code: the shell's code for that stop (130 Ctrl-C, 143 SIGTERM), else 0.
         wall_s: wall-clock time of the run (s).
         warnings: e.g. a torn last line dropped from the results file.
     """
 
     results_path: str
+    requested: int = 0
     skipped: int = 0
     recorded: int = 0
     successes: int = 0
     errors: int = 0
     interrupted: bool = False
+    exit_code: int = 0
     wall_s: float = 0.0
     warnings: list[str] = field(default_factory=list)
 
@@ -93,11 +94,15 @@ def make_specs(controller: str, checkpoint: str, environment: str, tasks: list[i
                rollouts: int = 10, seed: int = 0, time_limit_s: float = EpisodeConfig.time_limit_s) -> list[RolloutSpec]:
     """`rollouts` seeded rollouts (seeds seed, seed + 1, ...) for each task of `environment`.
 
+    The learned policy's checkpoint is loaded and checked here, once, and its contents'
+    digest goes into every spec (and so into the record keys).
+
     Raises:
-        ConfigError: an unknown controller, environment or task, a missing checkpoint, or
-            non-positive counts, each named.
+        ConfigError: an unknown controller, environment or task, a missing checkpoint,
+            non-positive counts or a negative seed, each named.
+        CheckpointError: a checkpoint that does not load, with the loader's message.
     """
-    check_controller(controller, checkpoint)
+    digest = check_controller(controller, checkpoint)
     task_count = len(get_environment(environment).tasks)
     tasks = list(range(task_count)) if tasks is None else list(tasks)
     bad = [task for task in tasks if not 0 <= task < task_count]
@@ -105,30 +110,40 @@ def make_specs(controller: str, checkpoint: str, environment: str, tasks: list[i
         raise ConfigError(f"tasks {bad} of {environment!r} do not exist; expected indices in 0..{task_count - 1}")
     if rollouts < 1 or not time_limit_s > 0:
         raise ConfigError(f"rollouts={rollouts} must be >= 1 and time_limit_s={time_limit_s} positive")
-    return [RolloutSpec(controller, checkpoint if controller == "learned" else "", environment, task, seed + i,
-                        float(time_limit_s), float(EpisodeConfig.goal_radius_m))
+    check_seed(seed, rollouts)
+    return [RolloutSpec(controller, checkpoint if controller == "learned" else "", digest, environment, task,
+                        seed + i, float(time_limit_s), float(EpisodeConfig.goal_radius_m))
             for task in tasks for i in range(rollouts)]
 
 
-def check_controller(controller: str, checkpoint: str) -> None:
-    """Raises ConfigError for an unknown controller or a learned one without a usable checkpoint."""
+def check_seed(seed: int, count: int = 1) -> None:
+    """Raises ConfigError unless seeds seed .. seed + count - 1 fit Drake's RandomGenerator (0 .. 2**32 - 1)."""
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0 or seed + count - 1 >= 2**32:
+        raise ConfigError(f"seed={seed!r}: expected an integer in 0..{2**32 - count} (seeds seed..seed+{count - 1} "
+                          "seed Drake's RandomGenerator)")
+
+
+def check_controller(controller: str, checkpoint: str) -> str:
+    """The checkpoint's digest ("" for a controller without one), after loading it once.
+
+    Raises:
+        ConfigError: an unknown controller, or a learned one without a checkpoint file.
+        CheckpointError: a checkpoint file that does not load.
+    """
     if controller not in CONTROLLERS:
         raise ConfigError(f"unknown controller {controller!r}; expected one of {list(CONTROLLERS)}")
-    if controller == "learned":
-        try:
-            resolve_checkpoint_path(checkpoint)
-        except FileNotFoundError as error:
-            raise ConfigError(str(error)) from error
+    if controller != "learned":
+        return ""
+    try:
+        load_checkpoint(resolve_checkpoint_path(checkpoint))
+    except FileNotFoundError as error:
+        raise ConfigError(str(error)) from error
+    return checkpoint_digest(checkpoint)
 
 
 def rollout_config(spec: RolloutSpec) -> RolloutConfig:
     """The diagram configuration of a spec (the expert's style comes from the seed at run time)."""
-    controller = {
-        "learned": lambda: LearnedPolicyConfig(checkpoint=spec.checkpoint),
-        "dwa": DwaBaselineConfig,
-        "expert": lambda: ExpertConfig(style_seed=spec.seed),
-        "edge_angle": EdgeAngleDriverConfig,
-    }[spec.controller]()
+    controller = controller_config(spec.controller, spec.checkpoint, spec.seed)
     scene = SceneConfig(environment=spec.environment, task=spec.task,
                         episode=replace(EpisodeConfig(), time_limit_s=spec.time_limit_s,
                                                 goal_radius_m=spec.goal_radius_m))
@@ -175,13 +190,16 @@ def run_rollout(spec: RolloutSpec) -> RolloutRecord:
     start = time.perf_counter()
     try:
         digest = checkpoint_digest(spec.checkpoint)
+        if digest != spec.checkpoint_sha256:
+            raise ConfigError(f"checkpoint {spec.checkpoint!r} has digest {digest}, not {spec.checkpoint_sha256} as "
+                              "when the evaluation started: the file changed during the run")
         diagram, scene, simulator = _rig(spec)
         outcome = RunEpisode(simulator, diagram, scene, spec.seed)
     except Exception as error:
         return _error_record(spec, f"{type(error).__name__}: {error}", time.perf_counter() - start)
     region = "" if outcome.success else failure_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
     return RolloutRecord(
-        **common, checkpoint_sha256=digest, status=outcome.status, success=outcome.success, time_s=outcome.time_s,
+        **common, status=outcome.status, success=outcome.success, time_s=outcome.time_s,
         path_length_m=outcome.path_length_m, peak_abs_roll_deg=outcome.peak_abs_roll_deg,
         peak_abs_pitch_deg=outcome.peak_abs_pitch_deg, peak_tilt_deg=outcome.peak_tilt_deg,
         min_stability_margin_deg=outcome.min_stability_margin_deg, final_x_m=float(outcome.final_xy[0]),
@@ -189,8 +207,6 @@ def run_rollout(spec: RolloutSpec) -> RolloutRecord:
 
 
 def _worker_init() -> None:
-    # Ctrl-C is the parent's to handle: it stops handing out rollouts and keeps what ended.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
     # Each worker is one of `workers` processes sharing the cores: one thread each.
     import torch
 
@@ -204,7 +220,7 @@ def _spec_fields(spec: RolloutSpec) -> dict:
 
 def _error_record(spec: RolloutSpec, message: str, wall_s: float = float("nan")) -> RolloutRecord:
     nan = float("nan")
-    return RolloutRecord(**_spec_fields(spec), checkpoint_sha256="", status="error", success=False, time_s=nan,
+    return RolloutRecord(**_spec_fields(spec), status="error", success=False, time_s=nan,
                          path_length_m=nan, peak_abs_roll_deg=nan, peak_abs_pitch_deg=nan, peak_tilt_deg=nan,
                          min_stability_margin_deg=nan, final_x_m=nan, final_y_m=nan, failure_region="",
                          wall_s=wall_s, error=message)
@@ -217,7 +233,7 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
     Args:
         specs: the rollouts; duplicates (same key) run once.
         results_path: the JSON Lines results file (created with its folder if missing).
-        workers: worker processes (default: all cores); 0 runs in this process (tests, debugging).
+        workers: worker processes (None: one per core); 0 runs in this process (tests, debugging).
             With Ray: at most this many rollouts at once (default: as many as the cluster takes).
         progress: a progress bar (rollouts done, success so far, ETA) on stderr.
         backend: "local" (a process pool on this machine) or "ray" (a Ray cluster; the
@@ -225,20 +241,24 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
         address: the Ray cluster's address (None or "local": start a Ray instance here).
 
     Returns:
-        What was skipped, recorded, and how long it took.
+        What was skipped, recorded, and how long it took; `interrupted` and `exit_code` when
+        Ctrl-C (KeyboardInterrupt) or SIGTERM stopped it, which it does not re-raise.
 
     Raises:
         ResultsError: the results file is of another schema or version.
-        ConfigError: an unknown backend, or Ray asked for but not installed.
+        ConfigError: an unknown backend, a negative worker count, or Ray asked for but not installed.
     """
     if backend not in BACKENDS:
         raise ConfigError(f"unknown backend {backend!r}; expected one of {list(BACKENDS)}")
+    check_workers(workers)
     start = time.perf_counter()
     existing, warnings = read_records(results_path)
-    done = {record.key for record in existing}
+    done = finished_keys(existing)
     pending = list({spec.key: spec for spec in specs if spec.key not in done}.values())
-    report = EvaluationReport(str(results_path), skipped=len({s.key for s in specs} & done), warnings=warnings)
-    local_workers = (os.cpu_count() or 1) if workers is None else workers
+    requested = {spec.key for spec in specs}
+    report = EvaluationReport(str(results_path), requested=len(requested), skipped=len(requested & done),
+                              warnings=warnings)
+    local_workers = worker_count(workers)
     bar = tqdm(total=len(pending), desc="rollouts", disable=not progress, file=sys.stderr)
 
     def keep(writer: RecordWriter, record: RolloutRecord) -> None:
@@ -250,7 +270,7 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
         bar.set_postfix(success=f"{report.successes}/{report.recorded}", errors=report.errors)
 
     try:
-        with RecordWriter(results_path) as writer:
+        with terminate_as_interrupt(), RecordWriter(results_path) as writer:
             if not pending:
                 pass
             elif backend == "ray":
@@ -262,8 +282,9 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
                     keep(writer, run_rollout(spec))
             else:
                 _run_in_pools(pending, local_workers, lambda record: keep(writer, record))
-    except KeyboardInterrupt:
+    except KeyboardInterrupt as error:
         report.interrupted = True
+        report.exit_code = interrupt_exit_code(error)
     finally:
         bar.close()
     report.wall_s = time.perf_counter() - start
@@ -296,12 +317,8 @@ def _run_in_pools(pending: list[RolloutSpec], workers: int, keep) -> None:
 
 def _run_pool(specs: list[RolloutSpec], workers: int, keep) -> list[RolloutSpec]:
     """Runs `specs` in one pool, passing each record to `keep`; returns the specs a dead worker took down."""
-    # Spawned, not forked: a fork of a process whose torch/OpenMP threads are running can
-    # deadlock in the child (seen in the test suite).
-    pool = ProcessPoolExecutor(max_workers=min(workers, len(specs)), initializer=_worker_init,
-                               mp_context=multiprocessing.get_context("spawn"))
     died = []
-    try:
+    with WorkerPool(min(workers, len(specs)), initializer=_worker_init) as pool:
         futures = {pool.submit(run_rollout, spec): spec for spec in specs}
         for future in as_completed(futures):
             try:
@@ -310,10 +327,6 @@ def _run_pool(specs: list[RolloutSpec], workers: int, keep) -> list[RolloutSpec]
                 died.append(futures[future])
                 continue
             keep(record)
-    except KeyboardInterrupt:
-        pool.shutdown(wait=False, cancel_futures=True)
-        raise
-    pool.shutdown()
     return died
 
 

@@ -30,6 +30,8 @@ from pathlib import Path
 
 from ditch_drake.environments import ConfigError, environment_names, load_typed_yaml
 from ditch_drake.evaluation.results import RolloutSpec
+from ditch_drake.files import atomic_write_text
+from ditch_drake.parallel import Terminated, check_workers
 
 
 @dataclass
@@ -97,12 +99,13 @@ class ExperimentConfig:
         demos_dir: demonstrations, one folder per environment.
         models_dir: trained checkpoints.
         results_dir: results files, one per study.
-        report: the report's Markdown file; its figures go to `figures_dir`.
-        figures_dir: PNG figures.
+        report: the report's Markdown file (empty: `report.md` in `results_dir`); its figures go
+            to `figures_dir`.
+        figures_dir: PNG figures (empty: `report_img` beside the report).
         tasks: task indices evaluated in every environment (empty: all).
         rollouts: seeded rollouts per task.
         time_limit_s: the episode timeout (s).
-        workers: worker processes (0: all cores).
+        workers: worker processes (None: one per core; 0: in this process).
         training: training settings.
         studies: what to run.
     """
@@ -112,12 +115,12 @@ class ExperimentConfig:
     demos_dir: str = "data/demos"
     models_dir: str = "models"
     results_dir: str = "results"
-    report: str = "docs/results.md"
-    figures_dir: str = "docs/img"
+    report: str = ""
+    figures_dir: str = ""
     tasks: list[int] = field(default_factory=list)
     rollouts: int = 10
     time_limit_s: float = 120.0
-    workers: int = 0
+    workers: int | None = None
     training: TrainingSettings = field(default_factory=TrainingSettings)
     studies: Studies = field(default_factory=Studies)
 
@@ -151,6 +154,7 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
     if config.rollouts < 1 or not config.time_limit_s > 0:
         raise ConfigError(f"experiment file {path}: rollouts={config.rollouts} must be >= 1 and "
                           f"time_limit_s={config.time_limit_s} positive")
+    check_workers(config.workers, f"experiment file {path}: workers")
     if config.training.precision not in ("auto", "fp32", "bf16"):
         raise ConfigError(f"experiment file {path}: training.precision={config.training.precision!r} must be "
                           "'auto', 'fp32' or 'bf16'")
@@ -234,9 +238,7 @@ def record_run(results_dir: str | os.PathLike, run: dict) -> Path:
     runs = read_runs(results_dir)
     runs = [entry for entry in runs if entry.get("started_utc") != run.get("started_utc")] + [run]
     path.parent.mkdir(parents=True, exist_ok=True)
-    temporary = path.with_name(f".{path.name}.tmp")
-    temporary.write_text(json.dumps(runs, indent=1) + "\n")
-    os.replace(temporary, path)
+    atomic_write_text(path, json.dumps(runs, indent=1) + "\n")
     return path
 
 
@@ -273,7 +275,9 @@ def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stag
     def report() -> None:
         from ditch_drake.evaluation.report import write_report
 
-        write_report([config.results_dir], config.report, config.figures_dir, title=config.name, command=command)
+        page = Path(config.report or Path(config.results_dir) / "report.md")
+        figures = Path(config.figures_dir or page.with_name(f"{page.stem}_img"))
+        write_report([config.results_dir], page, figures, title=config.name, command=command)
 
     runners = {
         "collect": lambda: _collect(config, models, progress),
@@ -333,12 +337,15 @@ def _collect(config: ExperimentConfig, models: list[ModelSpec], progress: bool) 
         report = collect(CollectConfig(environment=env, demos=demos, seed=config.seed,
                                        out=str(Path(config.demos_dir) / env), workers=config.workers), progress)
         _log(progress, f"collect {env}: {report['kept_before']} kept, {report['recorded']} recorded")
+        if report["interrupted"]:
+            _stop(report["exit_code"])
 
 
 def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
     from ditch_drake.demos.dataset import load_dataset, to_array_set
     from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
-    from ditch_drake.learning.train import TrainConfig, available_device, available_precision, resume_path, train
+    from ditch_drake.learning.config import TrainConfig
+    from ditch_drake.learning.train import available_device, available_precision, resume_path, train
 
     out = model_path(config, model)
     if out.exists() and not resume_path(out).exists():
@@ -361,8 +368,9 @@ def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
                                max_batches_per_epoch=settings.batches_per_epoch,
                                smote=replace(defaults.smote, max_synthetic_fraction=settings.synthetic_fraction))
     out.parent.mkdir(parents=True, exist_ok=True)
-    train(to_array_set(demonstrations), train_config, progress=progress, output_path=out, resume=True)
-    resume_path(out).unlink(missing_ok=True)  # Finished: a later run keeps the checkpoint.
+    result = train(to_array_set(demonstrations), train_config, progress=progress, output_path=out, resume=True)
+    if result.interrupted:  # `train` kept what it could (see its docstring); the pipeline stops here.
+        raise KeyboardInterrupt()
 
 
 def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool) -> None:
@@ -375,12 +383,17 @@ def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress:
             _log(progress, f"evaluate {evaluation.study}: no checkpoint {model_path(config, evaluation.model)}; skipped")
         by_study.setdefault(evaluation.study, []).extend(specs)
     for study, specs in by_study.items():
-        report = evaluate(specs, Path(config.results_dir) / f"{study}.jsonl", workers=config.workers or None,
+        report = evaluate(specs, Path(config.results_dir) / f"{study}.jsonl", workers=config.workers,
                           progress=progress)
         _log(progress, f"evaluate {study}: " + json.dumps(
             {"recorded": report.recorded, "skipped": report.skipped, "wall_s": round(report.wall_s, 1)}))
         if report.interrupted:
-            raise KeyboardInterrupt
+            _stop(report.exit_code)
+
+
+def _stop(exit_code: int) -> None:
+    """Passes on the stop a stage caught and reported: Ctrl-C or SIGTERM, by its exit code."""
+    raise Terminated() if exit_code == Terminated.exit_code else KeyboardInterrupt()
 
 
 def _log(progress: bool, line: str) -> None:

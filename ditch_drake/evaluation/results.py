@@ -4,7 +4,13 @@ A results file is JSON Lines. Every line is one finished rollout (`RolloutRecord
 `schema` and `schema_version`; a line is written whole and flushed to disk before the next
 starts, so a run killed at any moment leaves at most a torn last line, which `read_records`
 reports and drops (its rollout simply runs again). Rollouts are identified by their `key`,
-so a rerun skips what is already recorded and never records a rollout twice.
+which names the checkpoint by its contents' digest as well as by its name, so a rerun skips
+what is already recorded and never records a rollout twice, and a checkpoint retrained at the
+same path is evaluated afresh. An error record is history, not a result: a rerun runs its
+rollout again, and `current_records` leaves it out once a real record of the key exists.
+
+Schema version 2 files (whose key lacked the digest) still read: their keys are rebuilt from
+their fields as they load.
 """
 
 import json
@@ -13,12 +19,12 @@ import os
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
+from ditch_drake.errors import ResultsError
+
 SCHEMA = "ditch_drake.rollout_record"
-SCHEMA_VERSION = 2
-
-
-class ResultsError(ValueError):
-    """A results file that cannot be read as this schema and version."""
+SCHEMA_VERSION = 3
+# Older versions that still read (see the module docstring).
+READABLE_VERSIONS = (2, 3)
 
 
 @dataclass(frozen=True)
@@ -28,6 +34,8 @@ class RolloutSpec:
     Attributes:
         controller: "learned", "dwa", "expert" or "edge_angle".
         checkpoint: the learned policy's shipped name or file ("" for other controllers).
+        checkpoint_sha256: first 16 hex digits of that file's SHA-256 when the spec was made
+            ("" for other controllers); a worker that finds other contents records an error.
         environment: the environment the robot drives in.
         task: index of its start/goal task.
         seed: the episode's seed (start jitter, sensor noise, expert style).
@@ -37,6 +45,7 @@ class RolloutSpec:
 
     controller: str
     checkpoint: str
+    checkpoint_sha256: str
     environment: str
     task: int
     seed: int
@@ -46,8 +55,15 @@ class RolloutSpec:
     @property
     def key(self) -> str:
         """Identifies the rollout within a results file."""
-        return (f"{self.controller}|{self.checkpoint}|{self.environment}|{self.task}|{self.seed}|"
-                f"{self.time_limit_s:g}|{self.goal_radius_m:g}")
+        return record_key(self.controller, self.checkpoint, self.checkpoint_sha256, self.environment, self.task,
+                          self.seed, self.time_limit_s, self.goal_radius_m)
+
+
+def record_key(controller: str, checkpoint: str, checkpoint_sha256: str, environment: str, task: int, seed: int,
+               time_limit_s: float, goal_radius_m: float) -> str:
+    """`RolloutSpec.key` from its parts."""
+    return (f"{controller}|{checkpoint}@{checkpoint_sha256}|{environment}|{task}|{seed}|"
+            f"{time_limit_s:g}|{goal_radius_m:g}")
 
 
 @dataclass
@@ -109,15 +125,24 @@ class RolloutRecord:
         Raises:
             ResultsError: another schema or version, or missing fields, naming `where`.
         """
-        if values.get("schema") != SCHEMA or values.get("schema_version") != SCHEMA_VERSION:
+        if values.get("schema") != SCHEMA or values.get("schema_version") not in READABLE_VERSIONS:
             raise ResultsError(
                 f"{where}: schema {values.get('schema')!r} version {values.get('schema_version')!r}; expected "
-                f"{SCHEMA!r} version {SCHEMA_VERSION} (a file from another version of ditch_drake: write to a new file)")
+                f"{SCHEMA!r} version {' or '.join(map(str, READABLE_VERSIONS))} (a file from another version of "
+                "ditch_drake: write to a new file)")
         names = [f.name for f in fields(cls)]
         missing = [name for name in names if name not in values and name != "error"]
         if missing:
             raise ResultsError(f"{where}: record lacks {missing}")
-        return cls(**{name: (math.nan if values[name] is None else values[name]) for name in names if name in values})
+        record = cls(**{name: (math.nan if values[name] is None else values[name]) for name in names if name in values})
+        if values["schema_version"] == 2:
+            record.key = record_key(record.controller, record.checkpoint, record.checkpoint_sha256, record.environment,
+                                    record.task, record.seed, record.time_limit_s, record.goal_radius_m)
+        return record
+
+    @property
+    def is_error(self) -> bool:
+        return self.status == "error"
 
 
 def read_records(path: str | os.PathLike) -> tuple[list[RolloutRecord], list[str]]:
@@ -150,6 +175,42 @@ def read_records(path: str | os.PathLike) -> tuple[list[RolloutRecord], list[str
             raise ResultsError(f"{path}:{number}: expected a JSON object, got {type(values).__name__}")
         records.append(RolloutRecord.from_dict(values, f"{path}:{number}"))
     return records, warnings
+
+
+def finished_keys(records: list[RolloutRecord]) -> set[str]:
+    """The keys with a real outcome: an error record does not finish its rollout (it runs again)."""
+    return {record.key for record in records if not record.is_error}
+
+
+def current_records(records: list[RolloutRecord],
+                    digests: dict[str, str] | None = None) -> tuple[list[RolloutRecord], list[str]]:
+    """The records a summary counts, one per key, and a note for each group set aside.
+
+    Per key, the last record with a real outcome wins, else the last error record (a
+    rollout that only ever errored is reported as an error). Per learned checkpoint name,
+    only the records of one version of the file count: the digest in `digests` (by
+    checkpoint name; the evaluated file's), else the digest of that name's last record in
+    file order. Records of other versions are set aside, and said so in the notes.
+    """
+    by_key: dict[str, RolloutRecord] = {}
+    for record in records:
+        kept = by_key.get(record.key)
+        if kept is None or not record.is_error or kept.is_error:
+            by_key[record.key] = record
+    wanted = dict(digests or {})
+    for record in records:
+        if record.checkpoint and record.checkpoint_sha256 and record.checkpoint not in (digests or {}):
+            wanted[record.checkpoint] = record.checkpoint_sha256
+    kept, set_aside = [], {}
+    for record in by_key.values():
+        digest = record.checkpoint_sha256
+        if record.checkpoint and digest and digest != wanted.get(record.checkpoint, digest):
+            set_aside[(record.checkpoint, digest)] = set_aside.get((record.checkpoint, digest), 0) + 1
+            continue
+        kept.append(record)
+    notes = [f"{count} records of checkpoint {name!r} with digest {digest} set aside: they are of another version "
+             f"of the file than {wanted[name]}" for (name, digest), count in set_aside.items()]
+    return kept, notes
 
 
 class RecordWriter:

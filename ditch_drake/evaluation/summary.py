@@ -4,7 +4,7 @@ import math
 from collections import Counter
 from dataclasses import dataclass, field
 
-from scipy.stats import norm
+from scipy.stats import binomtest
 
 from ditch_drake.evaluation.results import RolloutRecord
 
@@ -15,7 +15,7 @@ AROUND_TILT_DEG = 15.0
 
 
 def wilson_interval(successes: int, trials: int, confidence: float = 0.95) -> tuple[float, float]:
-    """Wilson score interval of a binomial proportion.
+    """Wilson score interval of a binomial proportion (scipy's `binomtest(...).proportion_ci`).
 
     Raises:
         ValueError: counts out of range or a confidence outside (0, 1).
@@ -25,12 +25,8 @@ def wilson_interval(successes: int, trials: int, confidence: float = 0.95) -> tu
                          "need 0 <= successes <= trials and 0 < confidence < 1")
     if trials == 0:
         return 0.0, 1.0
-    z = float(norm.ppf(0.5 + confidence / 2))
-    p = successes / trials
-    denominator = 1 + z * z / trials
-    centre = (p + z * z / (2 * trials)) / denominator
-    half = z * math.sqrt(p * (1 - p) / trials + z * z / (4 * trials * trials)) / denominator
-    return max(0.0, centre - half), min(1.0, centre + half)
+    interval = binomtest(successes, trials).proportion_ci(confidence_level=confidence, method="wilson")
+    return float(interval.low), float(interval.high)
 
 
 @dataclass

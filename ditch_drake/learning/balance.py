@@ -31,13 +31,13 @@ training pipeline on a 16 k-sample set (uint8 images, 1.0 GiB; 12.8 k training s
 the data's share.
 """
 
-from dataclasses import dataclass
 
 import numpy as np
 import sklearn
 from imblearn.over_sampling import SMOTE
 
 from ditch_drake.actions import NUM_LABELS
+from ditch_drake.learning.config import SmoteConfig
 from ditch_drake.learning.data import (
     SYNTHETIC_DEMO_ID,
     ArraySet,
@@ -51,37 +51,6 @@ _SCALARS = ("imu", "distance", "bearing")
 # however few the samples, and beats its NumPy path only for larger classes (measured:
 # 6 samples 0.51 s vs 0.01 s; 2,000 samples 11 s vs 23 s).
 _CYTHON_NEIGHBOURS_FROM = 256
-
-
-@dataclass
-class SmoteConfig:
-    """How far, and within what memory, SMOTE balances the training split.
-
-    Attributes:
-        target_fraction: each minority class is raised to this fraction of the majority
-            class's count; 0 turns SMOTE off, 1 asks for full balance (subject to the cap).
-        max_synthetic_fraction: at most this many synthetic samples per real training
-            sample (a memory and epoch-time budget).
-        k_neighbors: SMOTE's neighbours (imbalanced-learn's default 5), fewer for classes
-            with fewer samples.
-        chunk_size: new samples per imbalanced-learn call (bounds its temporaries).
-        max_base_samples: a class with more training samples than this is interpolated
-            from a random subset of this size (bounds imbalanced-learn's copies).
-    """
-
-    target_fraction: float = 0.5
-    max_synthetic_fraction: float = 1.0
-    k_neighbors: int = 5
-    chunk_size: int = 512
-    max_base_samples: int = 2048
-
-    def __post_init__(self):
-        if not 0.0 <= self.target_fraction <= 1.0:
-            raise ValueError(f"SmoteConfig.target_fraction={self.target_fraction} must be in [0, 1]")
-        if self.max_synthetic_fraction < 0.0:
-            raise ValueError(f"SmoteConfig.max_synthetic_fraction={self.max_synthetic_fraction} must be >= 0")
-        if self.k_neighbors < 1 or self.chunk_size < 1 or self.max_base_samples < 2:
-            raise ValueError(f"{self}: k_neighbors and chunk_size must be >= 1, max_base_samples >= 2")
 
 
 def synthetic_counts(label_counts: np.ndarray, real_samples: int, config: SmoteConfig) -> np.ndarray:

@@ -15,14 +15,15 @@ classes or code), read back with `torch.load(weights_only=True)`:
 | training | summary of the data: per-label counts, demonstrations used, the `TrainConfig` |
 | metrics | validation metrics of the kept weights, the per-epoch history, ... |
 
-Files are written atomically (a temporary file in the same folder, then `os.replace`), so
-a reader never sees half a file; a corrupt, truncated or foreign file raises
-`CheckpointError` naming the file and what was expected.
+Files are written atomically (a temporary file in the same folder, flushed to disk, then
+`os.replace`), so a reader never sees half a file; a corrupt, truncated or foreign file
+raises `CheckpointError` naming the file and what was expected, a missing path or a folder
+`CheckpointNotFoundError`. A checkpoint whose training finished no epoch (`metrics` says
+`epochs_run` 0 or `best_epoch` -1: untrained weights) is refused unless asked for.
 """
 
 import hashlib
 import os
-import tempfile
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
@@ -32,6 +33,8 @@ import torch
 
 import ditch_drake
 from ditch_drake import actions
+from ditch_drake.errors import CheckpointError, CheckpointNotFoundError
+from ditch_drake.files import atomic_output
 from ditch_drake.learning.data import InputStats
 from ditch_drake.learning.model import FourInputClassifier, ModelConfig
 
@@ -46,8 +49,8 @@ ENVIRONMENT_MODELS = ("crater", "wide", "narrow", "sine")
 SHIPPED_MODELS = (*ENVIRONMENT_MODELS, *(f"{env}_bc40" for env in ENVIRONMENT_MODELS))
 
 
-class CheckpointError(ValueError):
-    """A file that is not a readable checkpoint of the expected schema and version."""
+# What a checkpoint argument may be, for error messages.
+EXPECTED_CHECKPOINT = f"a .pt file written by `ditch-drake train`, or a shipped model name: {list(SHIPPED_MODELS)}"
 
 
 @dataclass
@@ -172,38 +175,30 @@ def to_plain(value, where: str = "value"):
 
 
 def save_payload(payload: dict, path: str | os.PathLike) -> Path:
-    """`torch.save(payload)` to `path` atomically: a temporary file in the same folder, then `os.replace`."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(handle, "wb") as file:
-            torch.save(payload, file)
-            file.flush()
-            os.fsync(file.fileno())
-        # mkstemp makes the file private (0600); a checkpoint gets the usual umask mode instead.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(temporary, 0o666 & ~umask)
-        os.replace(temporary, path)
-    except BaseException:
-        Path(temporary).unlink(missing_ok=True)
-        raise
-    return path
+    """`torch.save(payload)` to `path` atomically: a temporary file in the same folder, then `os.replace`.
+
+    The file is fsynced before the rename and the folder after it, so a crash or a power
+    cut leaves either the old file or the whole new one at `path`, never a partial one.
+    """
+    with atomic_output(path) as file:
+        torch.save(payload, file)
+    return Path(path)
 
 
 def load_payload(path: str | os.PathLike, schema: str, version: int) -> dict:
     """The dict saved at `path`, checked to be of `schema` at a version <= `version`.
 
     Raises:
-        FileNotFoundError: no file at `path`.
+        CheckpointNotFoundError: no file at `path` (nothing, or a folder).
         CheckpointError: not a torch file of plain values (corrupt, truncated, pickled
             code), not a dict, another schema, or a newer schema version.
     """
     path = Path(path)
     expected = f"a torch.save file of {schema} (schema_version <= {version}, tensors and plain values)"
+    if path.is_dir():
+        raise CheckpointNotFoundError(f"{path} is a folder, not a file; expected {expected}")
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such checkpoint file (expected {expected})")
+        raise CheckpointNotFoundError(f"{path}: no such file; expected {expected}")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises RuntimeError, UnpicklingError, EOFError, ... for bad files.
@@ -250,45 +245,64 @@ def resolve_checkpoint_path(name_or_path: str | os.PathLike) -> Path:
     """The file of a shipped model's name (`SHIPPED_MODELS`), or `name_or_path` as a path.
 
     Raises:
-        FileNotFoundError: neither a shipped model nor an existing file, naming both options.
+        CheckpointNotFoundError: neither a shipped model nor an existing file (or a
+            folder, said so), naming both options.
     """
     text = str(name_or_path)
     if text in SHIPPED_MODELS:
         path = SHIPPED_MODELS_DIR / f"{text}.pt"
         if not path.is_file():
-            raise FileNotFoundError(f"shipped model {text!r} is missing from the package ({path})")
+            raise CheckpointNotFoundError(f"shipped model {text!r} is missing from the package ({path})")
         return path
     path = Path(text)
+    if path.is_dir():
+        raise CheckpointNotFoundError(f"checkpoint {text!r} is a folder, not a file; expected {EXPECTED_CHECKPOINT}")
     if not path.is_file():
-        raise FileNotFoundError(
-            f"checkpoint {text!r}: no such file, and not a shipped model (expected one of {list(SHIPPED_MODELS)} "
-            "or the path of a .pt file written by `ditch-drake train`)")
+        raise CheckpointNotFoundError(
+            f"checkpoint {text!r}: no such file, and not a shipped model; expected {EXPECTED_CHECKPOINT}"
+        )
     return path
 
 
-@cache
 def checkpoint_digest(checkpoint: str) -> str:
     """First 16 hex digits of the SHA-256 of a checkpoint file, by shipped name or path ("" for
-    none). Cached per process: evaluation records and DAgger demonstrations name the file
-    they used by it."""
+    none): evaluation records and DAgger demonstrations name the file they used by it.
+
+    Cached per file version (path, size, modification time): a checkpoint retrained at the
+    same path in the same process gets its new digest.
+    """
     if not checkpoint:
         return ""
-    return hashlib.sha256(resolve_checkpoint_path(checkpoint).read_bytes()).hexdigest()[:16]
+    path = resolve_checkpoint_path(checkpoint).resolve()
+    status = path.stat()
+    return _file_digest(path, status.st_size, status.st_mtime_ns)
 
 
-def load_checkpoint(path: str | os.PathLike, allow_other_action_table: bool = False) -> PolicyCheckpoint:
+@cache
+def _file_digest(path: Path, size: int, mtime_ns: int) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()[:16]
+
+
+def load_checkpoint(
+    path: str | os.PathLike, allow_other_action_table: bool = False, allow_untrained: bool = False
+) -> PolicyCheckpoint:
     """Reads and checks a checkpoint written by `save_checkpoint`.
 
     The weights are checked against the stored model config (by building the network),
     so a file that loads here also runs. A checkpoint trained with an action table other
     than the current `actions.COMMANDS` would turn its labels into other commands than
     the demonstrations meant, so it is refused unless `allow_other_action_table`; then the
-    checkpoint's own table is what it returns.
+    checkpoint's own table is what it returns. One whose metrics record that no training
+    epoch finished (`epochs_run` 0 or `best_epoch` < 0, as an older `train` wrote when
+    interrupted in its first epoch) holds the initial random weights and is refused unless
+    `allow_untrained`; metrics without these keys (a checkpoint made outside `train`) say
+    nothing either way and pass.
 
     Raises:
-        FileNotFoundError: no file at `path`.
+        CheckpointNotFoundError: no file at `path`, or a folder (also a FileNotFoundError).
         CheckpointError: naming the file and what was expected, for a corrupt, truncated
-            or foreign file, a newer schema, or contents that do not fit together.
+            or foreign file, a newer schema, contents that do not fit together, or
+            untrained weights.
     """
     path = Path(path)
     payload = load_payload(path, SCHEMA, SCHEMA_VERSION)
@@ -339,4 +353,16 @@ def load_checkpoint(path: str | os.PathLike, allow_other_action_table: bool = Fa
         raise CheckpointError(f"{path}: the weights do not fit the stored model_config ({reason})") from error
     if not all(bool(torch.isfinite(v).all()) for v in model.state_dict().values() if v.is_floating_point()):
         raise CheckpointError(f"{path}: the weights hold non-finite values")
+    if not allow_untrained and is_untrained(checkpoint.metrics):
+        raise CheckpointError(
+            f"{path} holds untrained weights: its training finished no epoch (epochs_run "
+            f"{checkpoint.metrics.get('epochs_run')!r}, best_epoch {checkpoint.metrics.get('best_epoch')!r}); expected "
+            "a checkpoint with at least one finished epoch (allow_untrained=True loads it anyway)"
+        )
     return checkpoint
+
+
+def is_untrained(metrics: dict) -> bool:
+    """Whether a checkpoint's metrics record that its training finished no epoch."""
+    epochs_run, best_epoch = metrics.get("epochs_run"), metrics.get("best_epoch")
+    return (isinstance(epochs_run, int) and epochs_run < 1) or (isinstance(best_epoch, int) and best_epoch < 0)

@@ -28,93 +28,13 @@ Choices where the paper is silent (all in `ModelConfig`):
   FrameStacker outputs them. The image is used as it is ([0, 1]).
 """
 
-from dataclasses import asdict, dataclass, fields
 
 import torch
 from torch import nn
 
-from ditch_drake.actions import NUM_LABELS
-from ditch_drake.observation_spec import (
-    BEARING_STACK_SIZE,
-    DISTANCE_STACK_SIZE,
-    IMAGE_SIZE,
-    IMU_STACK_SIZE,
-    STACK_DEPTH,
-)
+from ditch_drake.learning.config import ModelConfig
 
 SCALAR_INPUTS = ("imu", "distance", "bearing")
-
-
-@dataclass
-class ModelConfig:
-    """Everything that fixes the network's shape; stored in every checkpoint.
-
-    Attributes:
-        image_channels: stacked images (channel 0 newest).
-        image_size: rows = cols of each image.
-        imu_size: length of the IMU stack (roll, pitch per step).
-        distance_size: length of the distance stack.
-        bearing_size: length of the bearing stack.
-        num_labels: output classes (the action table's labels).
-        conv1_channels: filters of the first convolution (paper: 64).
-        conv2_channels: filters of the second convolution (paper: 32).
-        kernel_size: convolution kernel (paper: 3).
-        padding: convolution padding (project: 1, "same").
-        pool_size: max-pooling window and stride (project: 4).
-        pool_after_each_conv: pool after both convolutions (project) or only after the
-            second.
-        dropout: dropout probability of the image and scalar branches (paper: 0.4).
-        scalar_hidden: units of each scalar branch (paper: 32).
-        fusion_hidden: units of the layer after the concatenation (paper: 64).
-    """
-
-    image_channels: int = STACK_DEPTH
-    image_size: int = IMAGE_SIZE
-    imu_size: int = IMU_STACK_SIZE
-    distance_size: int = DISTANCE_STACK_SIZE
-    bearing_size: int = BEARING_STACK_SIZE
-    num_labels: int = NUM_LABELS
-    conv1_channels: int = 64
-    conv2_channels: int = 32
-    kernel_size: int = 3
-    padding: int = 1
-    pool_size: int = 4
-    pool_after_each_conv: bool = True
-    dropout: float = 0.4
-    scalar_hidden: int = 32
-    fusion_hidden: int = 64
-
-    def image_feature_size(self) -> int:
-        """Length of the flattened image branch output.
-
-        Raises:
-            ValueError: a configuration whose maps shrink to nothing.
-        """
-        side = self.image_size
-        for conv in range(2):
-            side = side + 2 * self.padding - self.kernel_size + 1
-            if self.pool_after_each_conv or conv == 1:
-                side //= self.pool_size
-        if side < 1:
-            raise ValueError(f"{self} leaves no image features (map side {side})")
-        return self.conv2_channels * side * side
-
-    def to_dict(self) -> dict:
-        """Plain types, for a checkpoint."""
-        return asdict(self)
-
-    @classmethod
-    def from_dict(cls, values: dict) -> "ModelConfig":
-        """The config of `to_dict`'s output.
-
-        Raises:
-            ValueError: unknown keys.
-        """
-        known = {f.name for f in fields(cls)}
-        unknown = set(values) - known
-        if unknown:
-            raise ValueError(f"unknown ModelConfig fields {sorted(unknown)}; expected some of {sorted(known)}")
-        return cls(**values)
 
 
 def _scalar_branch(size: int, config: ModelConfig) -> nn.Sequential:

@@ -19,11 +19,24 @@ and a fixed thread count for the run; the same data and config give the same wei
 Because each epoch is seeded on its own, a run resumed from its `.resume` file after
 epoch k continues exactly as the uninterrupted run would have.
 
-Files, when `output_path` is given: the best checkpoint so far at `output_path` (rewritten
-atomically whenever validation improves, and at the end with the final metrics), and the
-full training state after the last finished epoch at `output_path` + ".resume". Ctrl-C
-(KeyboardInterrupt) during the epochs ends training cleanly: the best weights so far are
-saved and returned with `interrupted=True`.
+Files, when `output_path` is given:
+
+- during training, only the full training state after the last finished epoch, at
+  `output_path` + ".resume" (`resume_path`; another schema, which `load_checkpoint`
+  refuses). Nothing is written at `output_path` before training ends: a run killed
+  outright (SIGKILL, a power cut) leaves the previous file there, or none, and never a
+  file that looks like a finished run; `resume=True` continues from the ".resume" file.
+- at a clean finish (all epochs, or early stopping): the checkpoint at `output_path`, and
+  the ".resume" file is removed (it is about 4 times the checkpoint's size).
+- Ctrl-C (KeyboardInterrupt) during the epochs ends training: with at least one finished
+  epoch (this run's or the resumed one's), the best weights so far are saved, marked
+  `interrupted`, at `output_path` if no file was there, else beside it at
+  `interrupted_path(output_path)` (`<stem>.interrupted.pt`), so an interrupted run never
+  replaces a checkpoint; with none, no checkpoint is written. The ".resume" file stays.
+  `TrainResult.output_path` says where the checkpoint went (None: nowhere).
+
+Every file is written by `save_payload`: a temporary file in the same folder, fsynced, then
+`os.replace`, so a reader sees the old file or the whole new one.
 
 Cost: a training step takes about 30 ms per sample on 2 shared CPU cores (the first
 convolution, 64 filters at full 128 x 128 resolution, dominates), so an epoch over one
@@ -34,7 +47,7 @@ import copy
 import os
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +57,8 @@ from tqdm import tqdm
 
 import ditch_drake
 from ditch_drake.actions import NUM_LABELS
-from ditch_drake.learning.balance import SmoteConfig, smote_samples
+from ditch_drake.errors import ConfigError
+from ditch_drake.learning.balance import smote_samples
 from ditch_drake.learning.checkpoint import (
     CheckpointError,
     PolicyCheckpoint,
@@ -54,6 +68,7 @@ from ditch_drake.learning.checkpoint import (
     save_payload,
     to_plain,
 )
+from ditch_drake.learning.config import PRECISIONS, ModelConfig, SmoteConfig, TrainConfig  # noqa: F401
 from ditch_drake.learning.data import (
     ArraySet,
     InputStats,
@@ -62,78 +77,14 @@ from ditch_drake.learning.data import (
     split_indices_by_demo,
 )
 from ditch_drake.learning.metrics import confusion_matrix, exact_accuracy, ordinal_accuracy
-from ditch_drake.learning.model import FourInputClassifier, ModelConfig, parameter_groups
+from ditch_drake.learning.model import FourInputClassifier, parameter_groups
 
 RESUME_SCHEMA = "ditch_drake.training_state"
 RESUME_SCHEMA_VERSION = 1
 RESUME_SUFFIX = ".resume"
 # Fields that may change between a run and its resumption; all others must match.
 _RESUMABLE_CHANGES = {"epochs", "patience", "num_threads", "device", "precision"}
-PRECISIONS = ("fp32", "bf16")
-
-
-@dataclass
-class TrainConfig:
-    """Training settings (paper 3.5, 3.6; values the paper does not give are the project's).
-
-    Attributes:
-        epochs: most epochs to run.
-        batch_size: samples per optimizer step.
-        lr: Adam learning rate of the image branch and the head.
-        scalar_lr_factor: the scalar branches' rate relative to `lr` (paper: 1/10).
-        patience: epochs without a better validation ordinal accuracy before stopping.
-        val_fraction: share of the demonstrations held out for validation (0: none; then
-            the last epoch's weights are kept and there is no early stopping).
-        seed: seeds the split, SMOTE, initialization, shuffling and dropout.
-        smote: class balancing of the training split (`SmoteConfig`).
-        max_demos: train on the demonstrations with the `max_demos` smallest ids (None: all).
-        ordinal_tolerance: labels of slack of the ordinal accuracy (paper: 1).
-        device: torch device ("cpu"; "cuda" works but is not bitwise reproducible).
-        precision: "fp32", or "bf16" to run the training steps' forward and backward passes
-            under bfloat16 autocast (weights, optimizer and validation stay fp32). On a CPU
-            with native bf16 (AVX512-BF16 or AMX) the steps ran 2.4x faster; on one without
-            it, 5x slower: `available_precision` picks.
-        num_threads: torch intra-op threads during training (None: leave torch's setting).
-            Results are reproducible for a given thread count.
-        eval_batch_size: samples per forward pass when evaluating.
-        max_batches_per_epoch: stop each epoch after this many batches (None: all). Each
-            epoch draws its batches from a fresh shuffle of the whole training set, so a
-            capped epoch is a random 96 x 64 = 6,144-sample subset; the defaults (8 such
-            epochs, SMOTE up to half the real samples) fit one environment's 40
-            demonstrations into the 15-minute training budget on 2 CPU cores (docs/learning.md).
-        model: the network's shape.
-    """
-
-    epochs: int = 8
-    batch_size: int = 64
-    lr: float = 1e-3
-    scalar_lr_factor: float = 0.1
-    patience: int = 4
-    val_fraction: float = 0.2
-    seed: int = 0
-    smote: SmoteConfig = field(default_factory=lambda: SmoteConfig(max_synthetic_fraction=0.5))
-    max_demos: int | None = None
-    ordinal_tolerance: int = 1
-    device: str = "cpu"
-    precision: str = "fp32"
-    num_threads: int | None = None
-    eval_batch_size: int = 256
-    max_batches_per_epoch: int | None = 96
-    model: ModelConfig = field(default_factory=ModelConfig)
-
-    def __post_init__(self):
-        if self.epochs < 1 or self.batch_size < 2 or self.eval_batch_size < 1 or self.patience < 1:
-            raise ValueError(f"{self}: epochs, patience >= 1, batch_size >= 2 and eval_batch_size >= 1 required")
-        if not (self.lr > 0 and self.scalar_lr_factor > 0):
-            raise ValueError(f"TrainConfig lr={self.lr} and scalar_lr_factor={self.scalar_lr_factor} must be positive")
-        if self.precision not in PRECISIONS:
-            raise ValueError(f"TrainConfig.precision={self.precision!r} must be one of {PRECISIONS}")
-        if self.seed < 0:
-            raise ValueError(f"TrainConfig.seed={self.seed} must be >= 0")
-        if self.num_threads is not None and self.num_threads < 1:
-            raise ValueError(f"TrainConfig.num_threads={self.num_threads} must be >= 1 or None")
-        if self.max_batches_per_epoch is not None and self.max_batches_per_epoch < 1:
-            raise ValueError(f"TrainConfig.max_batches_per_epoch={self.max_batches_per_epoch} must be >= 1 or None")
+INTERRUPTED_SUFFIX = ".interrupted"
 
 
 @dataclass
@@ -149,7 +100,11 @@ class TrainResult:
         best_epoch: the epoch whose weights were kept (-1 if none finished).
         stopped_early: patience ran out.
         interrupted: a KeyboardInterrupt ended training.
-        output_path: where the checkpoint was saved, if anywhere.
+        output_path: where the checkpoint was saved: the `output_path` asked for,
+            `interrupted_path` of it (interrupted, and a file was there), or None (none asked
+            for, or interrupted before any epoch finished).
+        resume_file: the training state kept for `resume=True` (after an interruption),
+            else None.
     """
 
     model: FourInputClassifier
@@ -159,6 +114,7 @@ class TrainResult:
     stopped_early: bool
     interrupted: bool
     output_path: Path | None = None
+    resume_file: Path | None = None
 
 
 class _TrainingSamples:
@@ -251,6 +207,13 @@ def resume_path(output_path: str | os.PathLike) -> Path:
     return output_path.with_name(output_path.name + RESUME_SUFFIX)
 
 
+def interrupted_path(output_path: str | os.PathLike) -> Path:
+    """Where an interrupted `train` saves its best weights when a file is already at
+    `output_path`: `<stem>.interrupted<suffix>` beside it (`policy.pt` -> `policy.interrupted.pt`)."""
+    output_path = Path(output_path)
+    return output_path.with_name(f"{output_path.stem}{INTERRUPTED_SUFFIX}{output_path.suffix or '.pt'}")
+
+
 def _torch_seed(seed: int, stream: int, epoch: int = 0) -> int:
     """A torch seed of its own for (seed, stream, epoch): stream 0 initializes, 1 drops out."""
     return int(np.random.default_rng([seed, stream, epoch]).integers(2**62))
@@ -286,27 +249,35 @@ def train(
             demonstrations are used.
         config: settings; default `TrainConfig()`.
         progress: show a tqdm bar per epoch and print one line per epoch (to stderr).
-        output_path: where to save the best checkpoint (and its ".resume" training state);
-            None saves nothing.
+        output_path: where to save the checkpoint when training ends (see the module
+            docstring for what an interruption saves where), with the ".resume" training
+            state beside it during training; None saves nothing.
         resume: continue from `resume_path(output_path)` if it exists (the data and every
-            config field but epochs, patience, num_threads and device must be the same).
+            config field but epochs, patience, num_threads, device and precision must be
+            the same).
 
     Returns:
-        The kept model, its checkpoint and the per-epoch history.
+        The kept model, its checkpoint, the per-epoch history and where it was saved.
 
     Raises:
-        ValueError: an unusable data set or config (too few demonstrations to split, no
-            training samples, `resume` without `output_path`).
-        CheckpointError: a resume file of another run or config.
+        ConfigError: an unusable data set for the config (too few demonstrations to
+            split, more asked for than there are, no training samples), or `resume`
+            without `output_path` (a ValueError, as before).
+        CheckpointError: `output_path` is a folder, or a resume file of another run or config.
     """
     config = config or TrainConfig()
     if resume and output_path is None:
-        raise ValueError("resume=True needs output_path (the resume file sits beside it)")
+        raise ConfigError("resume=True needs output_path (the .resume file sits beside it)")
     output_path = None if output_path is None else Path(output_path)
-    rows = first_demos_indices(arrays, config.max_demos)
-    train_rows, val_rows = split_indices_by_demo(arrays.demo_id, config.val_fraction, config.seed, rows)
+    if output_path is not None and output_path.is_dir():  # Found now, not after hours of training.
+        raise CheckpointError(f"{output_path} is a folder; expected the path of a .pt file to write (--out)")
+    try:
+        rows = first_demos_indices(arrays, config.max_demos)
+        train_rows, val_rows = split_indices_by_demo(arrays.demo_id, config.val_fraction, config.seed, rows)
+    except ValueError as error:  # Fewer demonstrations than max_demos, or too few to split.
+        raise ConfigError(str(error)) from error
     if len(train_rows) < 2:
-        raise ValueError(f"{len(train_rows)} training sample(s) after the split; need at least 2")
+        raise ConfigError(f"{len(train_rows)} training sample(s) after the validation split; expected at least 2")
     stats = InputStats.fit(arrays, train_rows)
     start = time.perf_counter()
     synthetic = smote_samples(arrays, config.smote, config.seed, train_rows, stats)
@@ -427,21 +398,32 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
                 run["bad_epochs"] += 1
             _log(progress, _epoch_line(record, improved))
             if output_path is not None:
-                if improved:
-                    save_checkpoint(_checkpoint(config, stats, summary, run, False, False), output_path)
+                # Only the resume file, never a checkpoint at output_path mid-run: a run killed
+                # between epochs must not leave a file there that reads as a finished one.
                 _save_state(state_file, config, summary, epoch, model, optimizer, run)
             if has_val and run["bad_epochs"] >= config.patience and epoch + 1 < config.epochs:
                 stopped_early = True
                 break
     except KeyboardInterrupt:
         interrupted = True
-        _log(progress, f"interrupted; keeping the weights of epoch {run['best_epoch']}")
-    if run["best_state"] is None:  # Interrupted before the first epoch ended: the initial weights.
+        if run["best_state"] is None:
+            _log(progress, "interrupted before the first epoch finished: no checkpoint is saved")
+        else:
+            _log(progress, f"interrupted; keeping the weights of epoch {run['best_epoch']}")
+    trained = run["best_state"] is not None
+    if not trained:  # Interrupted in the first epoch: the initial weights, returned but never saved.
         run["best_state"] = copy.deepcopy(model.state_dict())
     checkpoint = _checkpoint(config, stats, summary, run, stopped_early, interrupted)
-    if output_path is not None:
-        save_checkpoint(checkpoint, output_path)
-        _log(progress, f"saved {output_path} (weights of epoch {run['best_epoch']})")
+    saved_to = kept_state = None
+    if output_path is not None and trained:
+        saved_to = interrupted_path(output_path) if interrupted and output_path.exists() else output_path
+        save_checkpoint(checkpoint, saved_to)
+        _log(progress, f"saved {saved_to} (weights of epoch {run['best_epoch']})")
+    if state_file is not None:
+        if interrupted:
+            kept_state = state_file if state_file.exists() else None
+        else:  # Finished: the training state is of no more use.
+            state_file.unlink(missing_ok=True)
     return TrainResult(
         model=checkpoint.build_model(),
         checkpoint=checkpoint,
@@ -449,7 +431,8 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
         best_epoch=run["best_epoch"],
         stopped_early=stopped_early,
         interrupted=interrupted,
-        output_path=output_path,
+        output_path=saved_to,
+        resume_file=kept_state,
     )
 
 

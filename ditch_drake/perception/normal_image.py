@@ -26,6 +26,10 @@ Two normal estimators:
   depth image), from the cross product of differences to pixel neighbours.
 - `estimate_normals_pca`: the reference, principal component analysis of the k nearest
   neighbours (any cloud).
+
+NaN, inf, empty and one-point clouds give all-zero images. A cloud with coordinates beyond
+2^256 (squares of which would overflow) is scaled down by a power of two first, so it gives
+the image of the same cloud at a usable scale rather than overflowing.
 """
 
 import functools
@@ -50,6 +54,11 @@ _IDW_SOFTENING = 0.25
 # _SCRATCH_MAX_ELEMENTS (huge clouds) are not kept.
 _SCRATCH = threading.local()
 _SCRATCH_MAX_ELEMENTS = 1 << 22
+# Clouds with a finite coordinate beyond this are scaled down by a power of two before any
+# product: squared distances, covariances and cross products overflow near 1e154. Normals
+# and the image do not depend on the cloud's scale, and metric clouds never come close, so
+# their results are untouched (bit for bit).
+_LARGEST_UNSCALED = 2.0**256
 
 
 @dataclass
@@ -126,6 +135,20 @@ def _finite_rows(points: np.ndarray) -> np.ndarray:
         return np.isfinite(points @ np.ones(3))
 
 
+def _scaled_down(points: np.ndarray, extent: float) -> np.ndarray:
+    """`points` as they are if `extent` (their largest finite |coordinate|) is at most
+    `_LARGEST_UNSCALED`, else multiplied by the power of two that brings it into [0.5, 1)
+    (exact: only the exponents change)."""
+    if not extent > _LARGEST_UNSCALED:
+        return points
+    return np.ldexp(points, -math.frexp(extent)[1])
+
+
+def _extent(points: np.ndarray) -> float:
+    """The largest |coordinate| of finite points (0 for none)."""
+    return float(max(points.max(), -points.min())) if points.size else 0.0
+
+
 def normalize_to_unit_ball(points: np.ndarray) -> np.ndarray:
     """Moves a cloud's centroid to the origin and scales it to fit the unit ball.
 
@@ -145,7 +168,7 @@ def normalize_to_unit_ball(points: np.ndarray) -> np.ndarray:
     finite = _finite_rows(points)
     if not finite.any():
         return out
-    good = points[finite]
+    good = _scaled_down(points[finite], _extent(points[finite]))
     centered = good - good.mean(axis=0)
     scale = np.sqrt((centered * centered).sum(axis=1).max())
     out[finite] = centered / scale if scale > 0.0 else 0.0
@@ -183,6 +206,7 @@ def estimate_normals_pca(points: np.ndarray, k: int = DEFAULT_PCA_K) -> np.ndarr
     good = points[finite]
     if len(good) < 3:
         return normals
+    good = _scaled_down(good, _extent(good))
     _, index = cKDTree(good).query(good, k=min(k, len(good)))
     neighbours = good[index]
     centered = neighbours - neighbours.mean(axis=1, keepdims=True)
@@ -424,6 +448,7 @@ def normal_image(points: np.ndarray, normals_z: np.ndarray, config: NormalImageC
         points, normals_z = points[finite], normals_z[finite]
     if len(points) == 0:
         return np.zeros((config.rows, config.cols), dtype=np.float32)
+    points = _scaled_down(points, _extent(points))
     centroid = np.ones(len(points)) @ points / len(points)
     return _image_of_finite_points(points[:, 0], points[:, 1], points[:, 2], centroid, normals_z, config)
 
@@ -475,7 +500,8 @@ def organized_cloud_to_normal_image(
         raise ValueError(
             f"xyzs has shape {xyzs.shape}; expected (3, {height * width}) for organized_shape {tuple(organized_shape)}"
         )
-    finite = np.isfinite(xyzs[0] + xyzs[1] + xyzs[2])
+    with np.errstate(invalid="ignore", over="ignore"):  # inf - inf, or a sum past 1e308: not finite.
+        finite = np.isfinite(xyzs[0] + xyzs[1] + xyzs[2])
     returned_rows = np.flatnonzero(finite.reshape(height, width).any(axis=1))
     if len(returned_rows) == 0:
         return np.zeros((config.rows, config.cols), dtype=np.float32)
@@ -484,9 +510,11 @@ def organized_cloud_to_normal_image(
     band = slice(returned_rows[0] * width, (returned_rows[-1] + 1) * width)
     in_band = finite[band]
     grid = np.where(in_band, xyzs[:, band], np.nan).reshape(3, -1, width)
+    points = np.compress(in_band, grid.reshape(3, -1), axis=1)
+    extent = _extent(points)
+    grid, points = _scaled_down(grid, extent), _scaled_down(points, extent)
     normals, inverse_norm = _organized_normals_planar(grid, config.discontinuity_ratio)
     normals_z = np.multiply(normals[2], inverse_norm).ravel()
-    points = np.compress(in_band, grid.reshape(3, -1), axis=1)
     centroid = points @ np.ones(points.shape[1]) / points.shape[1]
     return _image_of_finite_points(points[0], points[1], points[2], centroid, normals_z[in_band], config)
 

@@ -1,0 +1,96 @@
+"""Writing files so that nothing half-written is ever mistaken for a result.
+
+`atomic_output(path)` opens a temporary file beside `path`, named with this process's id, and
+renames it over `path` only when the block finishes: a reader sees the old file or the new
+one, never part of one. The file and its folder are synced before and after the rename, so a
+crash or a power cut leaves the same choice. A process killed inside the block leaves its
+temporary behind; `remove_stale_temporaries` deletes those whose process is gone, so a rerun
+cleans up after a `kill -9` without touching the temporaries of a job still running in the
+same folder.
+"""
+
+import contextlib
+import os
+import re
+import secrets
+from pathlib import Path
+
+_TEMPORARY = re.compile(r"^\..+\.(\d+)\.[0-9a-f]{12}\.tmp$")
+
+
+@contextlib.contextmanager
+def atomic_output(path: str | os.PathLike):
+    """Yields a binary file to write `path`'s new contents into; a clean exit puts it in place.
+
+    The file gets the mode a plain `open()` gives (0666 less the umask): it is created with
+    `os.open(..., 0o666)`, which the kernel masks, not with `tempfile.mkstemp` (always 0600)
+    plus a chmod, whose umask lookup would briefly change the process-wide umask.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        temporary = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(6)}.tmp")
+        try:
+            descriptor = os.open(temporary, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+            break
+        except FileExistsError:
+            continue
+    try:
+        with os.fdopen(descriptor, "wb") as file:
+            yield file
+            file.flush()
+            os.fsync(file.fileno())
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
+    _fsync_folder(path.parent)
+
+
+def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Writes `data` to `path` atomically; returns `path`."""
+    with atomic_output(path) as file:
+        file.write(data)
+    return Path(path)
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Writes `text` (UTF-8) to `path` atomically; returns `path`."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def _fsync_folder(folder: Path) -> None:
+    """Makes a rename into `folder` durable (POSIX); a no-op where folders cannot be opened."""
+    try:
+        descriptor = os.open(folder, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)
+
+
+def _process_exists(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
+    """Deletes the `atomic_output` temporaries in `folder` whose writing process has died."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    removed = []
+    for candidate in folder.iterdir():
+        match = _TEMPORARY.match(candidate.name)
+        if match and candidate.is_file() and not _process_exists(int(match.group(1))):
+            candidate.unlink(missing_ok=True)
+            removed.append(candidate)
+    return removed

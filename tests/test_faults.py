@@ -1,0 +1,795 @@
+"""Fault injection: each defect of the reliability issue as a test that fails on the code before
+its fix. Signals to real `evaluate` and `collect` processes, erroneous and stale records,
+interrupted training, damaged files, bad arguments, and the report's outputs."""
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from ditch_drake import actions
+from ditch_drake.cli import main
+from ditch_drake.demos.dataset import (
+    DatasetError,
+    Demonstration,
+    dataset_summary,
+    load_dataset,
+    load_demonstration,
+    save_demonstration,
+    standard_metadata,
+)
+from ditch_drake.environments import ConfigError
+from ditch_drake.evaluation.batch import evaluate, make_specs
+from ditch_drake.evaluation.report import default_outputs, load_report_data, tracked_by_git, write_report
+from ditch_drake.evaluation.results import (
+    RecordWriter,
+    RolloutRecord,
+    current_records,
+    finished_keys,
+    read_records,
+    record_key,
+)
+from ditch_drake.evaluation.summary import wilson_interval
+from ditch_drake.learning import train as train_module
+from ditch_drake.learning.balance import SmoteConfig
+from ditch_drake.learning.checkpoint import (
+    SHIPPED_MODELS_DIR,
+    CheckpointError,
+    load_checkpoint,
+    make_checkpoint,
+    resolve_checkpoint_path,
+    save_checkpoint,
+)
+from ditch_drake.learning.data import ArraySet
+from ditch_drake.learning.model import FourInputClassifier
+from ditch_drake.learning.train import TrainConfig, interrupted_path, resume_path, train
+from ditch_drake.observation_spec import IMAGE_STACK_SHAPE
+from ditch_drake.perception.normal_image import NormalImageConfig, cloud_to_normal_image
+
+STOP_WITHIN_S = 5.0
+
+
+def _start(arguments: list[str]) -> subprocess.Popen:
+    """`ditch-drake ARGUMENTS` in a process group of its own, as a terminal would run it."""
+    return subprocess.Popen([sys.executable, "-m", "ditch_drake.cli", *arguments], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def _wait_for(condition, timeout_s: float = 240.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "timed out waiting for the job to make progress"
+        time.sleep(0.1)
+
+
+def _lines(path: Path) -> int:
+    return path.read_text().count("\n") if path.exists() else 0
+
+
+def _group_is_gone(group: int, timeout_s: float = 2.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(group, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def _stop(process: subprocess.Popen, signum: int, to_group: bool) -> tuple[float, str, str]:
+    start = time.monotonic()
+    if to_group:
+        os.killpg(process.pid, signum)
+    else:
+        process.send_signal(signum)
+    out, err = process.communicate(timeout=60)
+    return time.monotonic() - start, out, err
+
+
+@pytest.mark.parametrize("signum, to_group, code", [(signal.SIGINT, True, 130), (signal.SIGTERM, False, 143)])
+def test_a_signal_stops_evaluate_promptly_and_keeps_every_finished_rollout(tmp_path, signum, to_group, code):
+    results = tmp_path / "results.jsonl"
+    process = _start(["evaluate", "--controller", "head_on", "--env", "wide", "--task", "0", "--rollouts", "30",
+                      "--workers", "1", "--out", str(results)])
+    _wait_for(lambda: _lines(results) >= 1)
+    elapsed, out, err = _stop(process, signum, to_group)
+    assert process.returncode == code, err
+    assert elapsed < STOP_WITHIN_S
+    assert _group_is_gone(process.pid), "a worker process outlived the stop"
+    records, warnings = read_records(results)
+    summary = json.loads(out.strip().splitlines()[-1])
+    assert summary["interrupted"] and summary["recorded"] == len(records) >= 1
+    assert 1 <= len(records) < 30 and not warnings
+    assert f"{len(records)} rollouts recorded by this run" in err
+
+
+def test_ctrl_c_stops_collect_promptly_and_a_rerun_completes_the_set(tmp_path):
+    out = tmp_path / "demos"
+    process = _start(["collect", "--env", "wide", "--demos", "2", "--workers", "1", "--out", str(out)])
+    _wait_for(lambda: (out / "demo_000.npz").exists())
+    elapsed, _, err = _stop(process, signal.SIGINT, to_group=True)
+    assert process.returncode == 130, err
+    assert elapsed < STOP_WITHIN_S
+    assert _group_is_gone(process.pid)
+    assert "Traceback" not in err and "run the same command again" in err
+    assert main(["collect", "--env", "wide", "--demos", "2", "--workers", "0", "--out", str(out)]) == 0
+    assert sorted(path.name for path in out.glob("demo_*.npz")) == ["demo_000.npz", "demo_001.npz"]
+
+
+def test_workers_die_with_a_killed_main_process(tmp_path):
+    results = tmp_path / "results.jsonl"
+    process = _start(["evaluate", "--controller", "head_on", "--env", "wide", "--task", "0", "--rollouts", "30",
+                      "--workers", "1", "--out", str(results)])
+    _wait_for(lambda: _lines(results) >= 1)
+    process.kill()
+    process.communicate(timeout=30)
+    assert _group_is_gone(process.pid, timeout_s=5.0), "a worker kept running after its parent was killed"
+
+
+def _error_like(record: RolloutRecord) -> RolloutRecord:
+    nan = float("nan")
+    values = {**record.__dict__, "status": "error", "success": False, "error": "RuntimeError: injected"}
+    values.update({name: nan for name in ("time_s", "path_length_m", "final_x_m", "final_y_m")})
+    return RolloutRecord(**values)
+
+
+def test_error_records_are_retried_and_superseded(tmp_path):
+    results = tmp_path / "results.jsonl"
+    specs = make_specs("head_on", "", "wide", [0], rollouts=2, seed=5)
+    evaluate(specs[:1], results, workers=0, progress=False)
+    real = read_records(results)[0][0]
+    results.unlink()
+    with RecordWriter(results) as writer:
+        writer.append(_error_like(real))
+    assert finished_keys(read_records(results)[0]) == set()
+    report = evaluate(specs, results, workers=0, progress=False)
+    assert report.skipped == 0 and report.recorded == 2
+    records = read_records(results)[0]
+    assert [record.status for record in records[:1]] == ["error"]  # Kept as history.
+    current, _ = current_records(records)
+    assert len(current) == 2 and not any(record.is_error for record in current)
+    again = evaluate(specs, results, workers=0, progress=False)
+    assert again.skipped == 2 and again.recorded == 0
+
+
+def test_the_record_key_follows_the_checkpoint_contents(tmp_path):
+    checkpoint = tmp_path / "model.pt"
+    checkpoint.write_bytes((SHIPPED_MODELS_DIR / "wide.pt").read_bytes())
+    before = make_specs("learned", str(checkpoint), "wide", [0], rollouts=1)
+    checkpoint.write_bytes((SHIPPED_MODELS_DIR / "narrow.pt").read_bytes())
+    after = make_specs("learned", str(checkpoint), "wide", [0], rollouts=1)
+    assert before[0].checkpoint == after[0].checkpoint
+    assert before[0].checkpoint_sha256 != after[0].checkpoint_sha256
+    assert before[0].key != after[0].key
+
+
+def test_current_records_use_one_version_of_each_checkpoint():
+    def record(digest: str, seed: int, status: str = "reached_goal") -> RolloutRecord:
+        return RolloutRecord(
+            key=f"learned|m.pt@{digest}|wide|0|{seed}|120|1.5", controller="learned", checkpoint="m.pt",
+            environment="wide", task=0, seed=seed, time_limit_s=120.0, goal_radius_m=1.5, checkpoint_sha256=digest, status=status,
+            success=status == "reached_goal", time_s=1.0, path_length_m=1.0, peak_abs_roll_deg=0.0,
+            peak_abs_pitch_deg=0.0, peak_tilt_deg=30.0, min_stability_margin_deg=30.0, final_x_m=0.0, final_y_m=0.0,
+            failure_region="", wall_s=1.0)
+
+    records = [record("old", 0), record("old", 1), record("new", 0, "error"), record("new", 0)]
+    current, notes = current_records(records)
+    assert [(r.checkpoint_sha256, r.seed, r.status) for r in current] == [("new", 0, "reached_goal")]
+    assert len(notes) == 1 and "2 records" in notes[0]
+    pinned, _ = current_records(records, digests={"m.pt": "old"})
+    assert sorted(r.seed for r in pinned) == [0, 1]
+
+
+def test_schema_2_files_still_read_with_rebuilt_keys(tmp_path):
+    line = {"schema": "ditch_drake.rollout_record", "schema_version": 2, "key": "dwa||wide|0|3|120|1.5",
+            "controller": "dwa", "checkpoint": "", "environment": "wide", "task": 0, "seed": 3, "time_limit_s": 120.0,
+            "goal_radius_m": 1.5, "checkpoint_sha256": "", "status": "reached_goal", "success": True, "time_s": 50.0,
+            "path_length_m": 50.0, "peak_abs_roll_deg": 1.0, "peak_abs_pitch_deg": 1.0, "peak_tilt_deg": 1.0,
+            "min_stability_margin_deg": 60.0, "final_x_m": 0.0, "final_y_m": 10.0, "failure_region": "", "wall_s": 9.0,
+            "error": ""}
+    path = tmp_path / "old.jsonl"
+    path.write_text(json.dumps(line) + "\n")
+    (record,), _ = read_records(path)
+    assert record.key == make_specs("dwa", "", "wide", [0], rollouts=1, seed=3)[0].key
+
+
+def test_evaluate_checks_the_checkpoint_before_starting(tmp_path, capsys):
+    broken = tmp_path / "broken.pt"
+    broken.write_bytes((SHIPPED_MODELS_DIR / "wide.pt").read_bytes()[:5000])
+    results = tmp_path / "results.jsonl"
+    assert main(["evaluate", "--checkpoint", str(broken), "--env", "wide", "--rollouts", "1", "--out",
+                 str(results)]) == 2
+    assert str(broken) in capsys.readouterr().err
+    assert not results.exists()
+
+
+@pytest.mark.parametrize("arguments", [
+    ["evaluate", "--env", "wide", "--rollouts", "1"],
+    ["collect", "--env", "wide", "--demos", "1"],
+    ["calibrate", "--env", "wide"],
+])
+def test_negative_workers_are_refused(tmp_path, capsys, arguments):
+    assert main([*arguments, "--workers", "-1", "--out" if arguments[0] != "calibrate" else "--json",
+                 *([str(tmp_path / "out")] if arguments[0] != "calibrate" else [])]) == 2
+    assert "workers must be >= 0 (0: in this process)" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_negative_workers_in_an_experiment_file_are_refused(tmp_path, capsys):
+    experiment = tmp_path / "x.yaml"
+    experiment.write_text("workers: -2\n")
+    assert main(["experiment", str(experiment)]) == 2
+    assert "workers must be >= 0 (0: in this process)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("arguments, named", [
+    (["replay", "--seed", "-1"], "seed=-1"),
+    (["collect", "--seed", "-1", "--out", "{tmp}/demos"], "seed=-1"),
+    (["evaluate", "--seed", "-1", "--out", "{tmp}/r.jsonl"], "seed=-1"),
+    (["demo", "--task", "7"], "--task 7"),
+    (["calibrate", "--trials", "0"], "--trials 0"),
+    (["checkpoint-info", "{tmp}/no_such.pt"], "no_such.pt"),
+    (["checkpoint-info", "{tmp}"], "{tmp}"),
+    (["train", "--data", "{tmp}", "--out", "{tmp}/m.pt", "--epochs", "0"], "epochs"),
+    (["train", "--data", "{tmp}", "--out", "{tmp}/m.pt", "--batch-size", "0"], "batch_size"),
+    (["train", "--data", "{tmp}", "--out", "{tmp}/m.pt", "--threads", "0"], "threads"),
+    (["train", "--data", "{tmp}", "--out", "{tmp}/m.pt", "--batches-per-epoch", "0"], "batches_per_epoch"),
+    (["train", "--data", "{tmp}", "--out", "{tmp}/m.pt", "--synthetic-fraction", "-1"], "synthetic"),
+])
+def test_bad_arguments_give_a_message_not_a_traceback(tmp_path, capsys, arguments, named):
+    arguments = [argument.replace("{tmp}", str(tmp_path)) for argument in arguments]
+    assert main(arguments) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("ditch-drake: error: ") and named.replace("{tmp}", str(tmp_path)) in err
+    assert "Traceback" not in err
+
+
+@pytest.mark.parametrize("text, named", [
+    ("", "is empty"),
+    ("# only a comment\n", "is empty"),
+    ("rollouts: ten\n", "line 1: rollouts is 'ten'"),
+    ("training:\n  epochs: [1, 2]\n", "line 2: training.epochs is a list; expected int"),
+    ("studys: {}\n", "unknown key 'studys'"),
+])
+def test_experiment_files_name_the_bad_key(tmp_path, capsys, text, named):
+    experiment = tmp_path / "x.yaml"
+    experiment.write_text(text)
+    assert main(["experiment", str(experiment)]) == 2
+    assert named in capsys.readouterr().err
+
+
+def test_the_parser_imports_neither_torch_nor_the_simulator():
+    code = ("import sys; from ditch_drake.cli import build_parser; build_parser().format_help(); "
+            "print(sorted(m for m in ('torch', 'pydrake.systems', 'ditch_drake.learning.train') if m in sys.modules))")
+    loaded = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert loaded.strip() == "[]"
+
+
+def test_help_shows_defaults_and_task_names(capsys):
+    with pytest.raises(SystemExit):
+        main(["evaluate", "--help"])
+    text = capsys.readouterr().out
+    assert "wide: 0 straight_across, 1 across_to_the_east, 2 across_to_the_west" in text  # Not re-wrapped.
+    text = " ".join(text.split())
+    assert "(default: results/evaluate.jsonl)" in text and "rollouts per task" in text
+
+
+def test_replay_and_evaluate_default_to_the_environments_own_model():
+    from ditch_drake.cli import _checkpoint_for, build_parser
+
+    for command in (["replay", "--env", "narrow"], ["evaluate", "--env", "narrow"], ["demo", "--env", "narrow"]):
+        args = build_parser().parse_args(command)
+        assert _checkpoint_for(args, "narrow") == "narrow"
+    replay, demo = (build_parser().parse_args([name]) for name in ("replay", "demo"))
+    assert (replay.env, replay.task, replay.seed) == (demo.env, demo.task, demo.seed)
+
+
+# A small and fast training configuration, as in test_learning.py.
+TINY = TrainConfig(epochs=2, batch_size=8, max_batches_per_epoch=3, num_threads=1, val_fraction=0.25, seed=7)
+
+
+def _arrays(n: int = 40, demos: int = 4, seed: int = 2) -> ArraySet:
+    rng = np.random.default_rng(seed)
+    return ArraySet(
+        image=rng.integers(0, 256, (n, *IMAGE_STACK_SHAPE), dtype=np.uint8),
+        imu=rng.normal(0.0, 0.2, (n, 8)),
+        distance=rng.uniform(0.0, 20.0, (n, 4)),
+        bearing=rng.uniform(-3.0, 3.0, (n, 4)),
+        label=np.where(rng.random(n) < 0.6, actions.STRAIGHT_LABEL, rng.integers(0, actions.NUM_LABELS, n)),
+        demo_id=np.arange(n) * demos // n,
+    )
+
+
+class _Killed(BaseException):
+    """Stands for SIGKILL: no handler of the code under test catches it, so what is on disk
+    when it is raised is what a killed process leaves (only `finally` blocks still run)."""
+
+
+def _stop_at_evaluation(monkeypatch, call: int, error: type[BaseException]) -> None:
+    """Raises `error` from the `call`-th validation: call 1 is in epoch 0, call 2 after epoch 0 finished."""
+    calls = {"n": 0}
+    real_evaluate = train_module.evaluate
+
+    def evaluate(*args, **kwargs):
+        calls["n"] += 1
+        if calls["n"] == call:
+            raise error
+        return real_evaluate(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "evaluate", evaluate)
+
+
+def _good_checkpoint(path):
+    """A checkpoint file that passes for a trained one (stands for a previous good run)."""
+    torch.manual_seed(0)
+    metrics = {"epochs_run": 3, "best_epoch": 2, "interrupted": False}
+    return save_checkpoint(make_checkpoint(FourInputClassifier(), metrics=metrics), path)
+
+
+def _same_weights(a, b) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+# 1. Interrupted and killed training runs.
+
+
+def test_interrupt_in_the_first_epoch_writes_no_checkpoint(tmp_path, monkeypatch):
+    output = _good_checkpoint(tmp_path / "policy.pt")
+    before = output.read_bytes()
+    _stop_at_evaluation(monkeypatch, 1, KeyboardInterrupt)
+    result = train(_arrays(), TINY, progress=False, output_path=output)
+    assert result.interrupted and result.best_epoch == -1 and result.output_path is None
+    assert output.read_bytes() == before  # The good checkpoint is not replaced by untrained weights.
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["policy.pt"]
+
+    fresh = tmp_path / "fresh" / "policy.pt"
+    _stop_at_evaluation(monkeypatch, 1, KeyboardInterrupt)
+    assert train(_arrays(), TINY, progress=False, output_path=fresh).output_path is None
+    assert not fresh.exists()
+
+
+def test_interrupt_after_an_epoch_saves_beside_an_existing_checkpoint(tmp_path, monkeypatch):
+    output = _good_checkpoint(tmp_path / "policy.pt")
+    before = output.read_bytes()
+    _stop_at_evaluation(monkeypatch, 2, KeyboardInterrupt)
+    result = train(_arrays(), TINY, progress=False, output_path=output)
+    assert result.interrupted and result.best_epoch == 0
+    assert output.read_bytes() == before
+    assert result.output_path == interrupted_path(output) == tmp_path / "policy.interrupted.pt"
+    saved = load_checkpoint(result.output_path)
+    assert saved.metrics["interrupted"] and saved.metrics["epochs_run"] == 1
+    assert result.resume_file == resume_path(output) and result.resume_file.exists()  # For --resume.
+
+
+def test_a_killed_run_leaves_nothing_that_passes_for_a_checkpoint_and_resumes(tmp_path, monkeypatch):
+    arrays = _arrays()
+    reference = train(arrays, TINY, progress=False)
+    output = tmp_path / "policy.pt"
+    _stop_at_evaluation(monkeypatch, 2, _Killed)  # Killed after epoch 0 finished.
+    with pytest.raises(_Killed):
+        train(arrays, TINY, progress=False, output_path=output)
+    assert not output.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["policy.pt.resume"]  # No temporary files either.
+    with pytest.raises(CheckpointError, match="ditch_drake.training_state"):
+        load_checkpoint(resume_path(output))  # The training state is no checkpoint.
+
+    monkeypatch.undo()
+    resumed = train(arrays, TINY, progress=False, output_path=output, resume=True)
+    assert not resumed.interrupted and resumed.output_path == output
+    assert _same_weights(load_checkpoint(output).state_dict, reference.checkpoint.state_dict)
+    assert not resume_path(output).exists()  # Removed after a clean finish.
+
+
+def test_a_clean_finish_removes_the_resume_file(tmp_path):
+    output = tmp_path / "policy.pt"
+    result = train(_arrays(), TINY, progress=False, output_path=output)
+    assert result.output_path == output and result.resume_file is None
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["policy.pt"]
+    assert not load_checkpoint(output).metrics["interrupted"]
+
+
+def test_untrained_checkpoints_are_refused_unless_asked_for(tmp_path):
+    path = save_checkpoint(
+        make_checkpoint(FourInputClassifier(), metrics={"epochs_run": 0, "best_epoch": -1}), tmp_path / "untrained.pt"
+    )
+    with pytest.raises(CheckpointError, match=r"untrained.pt holds untrained weights.*epochs_run 0"):
+        load_checkpoint(path)
+    assert load_checkpoint(path, allow_untrained=True).metrics["epochs_run"] == 0
+
+
+def test_an_output_folder_is_refused_before_training(tmp_path):
+    with pytest.raises(CheckpointError, match="is a folder"):
+        train(_arrays(), TINY, progress=False, output_path=tmp_path)
+
+
+# 2. Training settings.
+
+
+@pytest.mark.parametrize(
+    "fields, message",
+    [
+        ({"epochs": 0}, r"epochs=0: expected an integer >= 1 \(--epochs\)"),
+        ({"batch_size": 0}, r"batch_size=0: expected an integer >= 2 .*\(--batch-size\)"),
+        ({"num_threads": 0}, r"num_threads=0: expected an integer >= 1, or None .*\(--threads\)"),
+        ({"max_batches_per_epoch": 0}, r"max_batches_per_epoch=0: expected .*\(--batches-per-epoch\)"),
+        ({"patience": -1}, r"patience=-1: expected an integer >= 1 \(--patience\)"),
+        ({"synthetic_fraction": -1.0}, r"smote.max_synthetic_fraction=-1.0: expected .*>= 0 \(--synthetic-fraction\)"),
+        ({"synthetic_fraction": math.nan}, r"smote.max_synthetic_fraction=nan"),
+        ({"smote": SmoteConfig(max_synthetic_fraction=math.inf)}, r"smote.max_synthetic_fraction=inf"),
+        ({"lr": 0.0}, r"lr=0.0: expected a finite number > 0"),
+        ({"precision": "fp16"}, r"precision='fp16': expected one of \('fp32', 'bf16'\) \(--precision\)"),
+        ({"device": "gpu0"}, r"device='gpu0': expected a torch device: 'cpu', 'cuda' or 'cuda:N' \(--device\)"),
+        ({"epochs": 2.5}, r"epochs=2.5: expected an integer"),
+    ],
+)
+def test_bad_settings_fail_when_the_config_is_made(fields, message):
+    with pytest.raises(ConfigError, match=message):
+        TrainConfig.from_options(**fields)
+
+
+def test_good_settings_and_the_cli_options_make_the_same_config():
+    assert TrainConfig.from_options(num_threads=None).num_threads is None  # None: all cores.
+    config = TrainConfig.from_options(epochs=3, synthetic_fraction=0.25)
+    assert config.epochs == 3 and config.smote == SmoteConfig(max_synthetic_fraction=0.25)
+    assert TrainConfig.from_options() == TrainConfig()
+
+
+def test_too_few_demonstrations_is_a_config_error():
+    with pytest.raises(ConfigError, match="only 1 demonstration"):
+        train(_arrays(demos=1), TINY, progress=False)
+    with pytest.raises(ConfigError, match="max_demos=9 must be in 1..4"):
+        train(_arrays(), TrainConfig(**{**vars(TINY), "max_demos": 9}), progress=False)
+
+
+def test_cli_train_with_zero_epochs_is_a_message(tmp_path, capsys):
+    save_demonstration(tmp_path / "demo_000.npz", _demonstration())
+    assert (
+        main(["train", "--data", str(tmp_path), "--out", str(tmp_path / "m.pt"), "--epochs", "0", "--device", "cpu"])
+        == 2
+    )
+    assert "ditch-drake: error: epochs=0: expected an integer >= 1 (--epochs)" in capsys.readouterr().err
+
+
+# 3. Missing checkpoints and folders.
+
+
+def test_a_missing_checkpoint_or_a_folder_is_a_checkpoint_error(tmp_path, capsys):
+    missing = tmp_path / "missing.pt"
+    for call in (resolve_checkpoint_path, load_checkpoint):
+        with pytest.raises(CheckpointError, match="missing.pt") as error:
+            call(missing)
+        assert isinstance(error.value, FileNotFoundError)  # What callers catch today still works.
+        with pytest.raises(CheckpointError, match=f"{tmp_path.name}.* is a folder"):
+            call(tmp_path)
+    with pytest.raises(
+        CheckpointError,
+        match=r"a .pt file written by `ditch-drake train`, or a shipped model name: "
+        r"\['crater'",
+    ):
+        resolve_checkpoint_path(missing)
+    assert main(["checkpoint-info", str(missing)]) == 2
+    assert main(["checkpoint-info", str(tmp_path)]) == 2
+    errors = capsys.readouterr().err.splitlines()
+    assert errors[0].startswith(f"ditch-drake: error: checkpoint '{missing}': no such file")
+    assert errors[1].startswith(f"ditch-drake: error: checkpoint '{tmp_path}' is a folder")
+
+
+# 4. Random bytes.
+
+
+def _demonstration(steps: int = 5) -> Demonstration:
+    arrays = {
+        "image": np.zeros((steps, 128, 128), np.uint8),
+        "imu_stack": np.zeros((steps, 8), np.float32),
+        "distance_stack": np.ones((steps, 4), np.float32),
+        "bearing_stack": np.zeros((steps, 4), np.float32),
+        "label": np.full(steps, 8, np.int16),
+        "time_s": np.arange(steps) * 0.1,
+        "pose": np.zeros((steps, 6), np.float32),
+        "raw_command": np.zeros((steps, 2), np.float32),
+    }
+    return Demonstration(arrays, standard_metadata(environment="wide", task={"index": 0, "name": "a"}, seed=1))
+
+
+def test_random_bytes_are_not_a_demonstration_and_no_unsafe_load_is_suggested(tmp_path):
+    rng = np.random.default_rng(0)
+    random_file = tmp_path / "demo_000.npz"
+    random_file.write_bytes(rng.bytes(4096))
+    npy_file = tmp_path / "demo_001.npz"
+    with open(npy_file, "wb") as file:
+        np.save(file, np.arange(3))
+    damaged = save_demonstration(tmp_path / "demo_002.npz", _demonstration(50))
+    data = bytearray(damaged.read_bytes())
+    data[300:400] = rng.bytes(100)  # Inside the compressed image: zlib or the CRC check fails.
+    damaged.write_bytes(bytes(data))
+    pickled = tmp_path / "demo_003.npz"
+    np.savez(pickled, metadata=np.array("{}"), image=np.array([object()], dtype=object))
+    for path in (random_file, npy_file, damaged, pickled):
+        with pytest.raises(
+            DatasetError, match=f"{path.name} is corrupt or not a demonstration file of this schema"
+        ) as error:
+            load_demonstration(path)
+        assert "allow_pickle" not in str(error.value) and "unsafe" not in str(error.value)
+    with pytest.raises(DatasetError, match="is a folder"):
+        load_demonstration(tmp_path)
+
+
+def test_random_bytes_are_not_a_checkpoint(tmp_path):
+    path = tmp_path / "random.pt"
+    for size in (0, 37, 4096):
+        path.write_bytes(np.random.default_rng(size).bytes(size))
+        with pytest.raises(CheckpointError, match="random.pt is not a readable checkpoint") as error:
+            load_checkpoint(path)
+        assert "weights_only" not in str(error.value)
+
+
+# 5. Demonstration metadata of the wrong JSON types.
+
+
+def _write_with_metadata(path, metadata) -> None:
+    np.savez(path, metadata=np.array(json.dumps(metadata)), **_demonstration().arrays)
+
+
+@pytest.mark.parametrize(
+    "change, message",
+    [
+        (lambda m: [m], r"the metadata is an array in JSON; expected an object"),
+        (lambda m: {**m, "task": "1"}, r"metadata key 'task' is a string \('1'\); expected an object"),
+        (lambda m: {**m, "task": {"name": 3}}, r"metadata key 'task'.'name' is an integer \(3\); expected a string"),
+        (
+            lambda m: {**m, "outcome": {"status": None}},
+            r"metadata key 'outcome'.'status' is null \(None\); expected a string",
+        ),
+        (lambda m: {**m, "learner": ["x"]}, r"metadata key 'learner' is an array .*expected a string or null"),
+        (lambda m: {**m, "seed": True}, r"metadata key 'seed' is a boolean .*expected an integer"),
+        (lambda m: {**m, "schema_version": "1"}, r"metadata key 'schema_version' is a string"),
+    ],
+)
+def test_metadata_of_the_wrong_type_is_named(tmp_path, change, message):
+    path = tmp_path / "demo_000.npz"
+    _write_with_metadata(path, change(_demonstration().metadata))
+    with pytest.raises(DatasetError, match=f"demo_000.npz: {message}"):
+        load_demonstration(path)
+    with pytest.raises(DatasetError, match="demo_000.npz"):
+        dataset_summary(load_dataset(tmp_path))
+
+
+def test_a_negative_max_demos_is_refused(tmp_path):
+    save_demonstration(tmp_path / "demo_000.npz", _demonstration())
+    with pytest.raises(ConfigError, match=r"max_demos=-1: expected an integer >= 1.*\(--max-demos\)"):
+        load_dataset(tmp_path, max_demos=-1)
+
+
+# 6. File modes.
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o027])
+def test_demonstration_files_get_the_mode_of_a_plain_open(tmp_path, umask):
+    previous = os.umask(umask)
+    try:
+        path = save_demonstration(tmp_path / "demo_000.npz", _demonstration())
+        with open(tmp_path / "plain", "w"):
+            pass
+    finally:
+        os.umask(previous)
+    assert path.stat().st_mode & 0o777 == 0o666 & ~umask == (tmp_path / "plain").stat().st_mode & 0o777
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["demo_000.npz", "plain"]
+
+
+# 7. Huge coordinates.
+
+
+@pytest.mark.parametrize("method", ["pca", "organized"])
+def test_huge_coordinates_give_the_image_of_the_same_cloud_at_metric_scale(method):
+    x, y = np.meshgrid(np.linspace(-1.0, 1.0, 24), np.linspace(-1.0, 1.0, 20))
+    grid = np.stack([x, y, 0.3 * x + 0.1 * np.sin(3 * y)], axis=-1)
+    points = grid.reshape(-1, 3)
+    config = NormalImageConfig(normal_method=method)
+    reference = cloud_to_normal_image(points, config, grid.shape[:2])
+    assert (reference > 0).mean() > 0.1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # Overflow warnings were the first sign of the fault.
+        for scale in (2.0**700, 1e200):
+            image = cloud_to_normal_image(points * scale, config, grid.shape[:2])
+            assert image.dtype == np.float32 and np.isfinite(image).all()
+            np.testing.assert_allclose(image, reference, atol=1e-5)
+        # Beyond float64's range in the sums the cloud is no longer usable: the documented zero image.
+        assert not cloud_to_normal_image(np.full_like(points, 1e308), config, grid.shape[:2]).any()
+
+
+def _record(controller: str, checkpoint: str, digest: str, seed: int, status: str, env: str = "wide",
+            peak_tilt_deg: float = 30.0) -> RolloutRecord:
+    return RolloutRecord(
+        key=record_key(controller, checkpoint, digest, env, 0, seed, 120.0, 1.5), controller=controller,
+        checkpoint=checkpoint, environment=env, task=0, seed=seed, time_limit_s=120.0, goal_radius_m=1.5,
+        checkpoint_sha256=digest, status=status, success=status == "reached_goal", time_s=50.0, path_length_m=20.0,
+        peak_abs_roll_deg=10.0, peak_abs_pitch_deg=peak_tilt_deg, peak_tilt_deg=peak_tilt_deg,
+        min_stability_margin_deg=20.0, final_x_m=0.0, final_y_m=0.0,
+        failure_region="" if status in ("reached_goal", "error") else "up_wall", wall_s=1.0,
+        error="RuntimeError: boom" if status == "error" else "")
+
+
+def _write(path, records: list[RolloutRecord]) -> None:
+    with RecordWriter(path) as writer:
+        for record in records:
+            writer.append(record)
+
+
+def test_wilson_interval_matches_published_values():
+    # Newcombe (1998), Stat. Med. 17:857, Table I, method 3 (Wilson score, no continuity correction).
+    for (successes, trials), expected in {(81, 263): (0.2553, 0.3662), (15, 148): (0.0624, 0.1605),
+                                          (0, 20): (0.0, 0.1611), (1, 29): (0.0061, 0.1718)}.items():
+        assert wilson_interval(successes, trials) == pytest.approx(expected, abs=1e-4)
+    assert wilson_interval(5, 10) == pytest.approx((0.2366, 0.7634), abs=1e-4)
+    assert wilson_interval(10, 10)[1] == 1.0 and wilson_interval(0, 10)[0] == 0.0
+    assert wilson_interval(5, 10, confidence=0.99)[0] < wilson_interval(5, 10)[0]
+    assert wilson_interval(0, 0) == (0.0, 1.0)
+    for bad in [(11, 10), (-1, 10), (0, -1)]:
+        with pytest.raises(ValueError):
+            wilson_interval(*bad)
+    with pytest.raises(ValueError):
+        wilson_interval(1, 2, confidence=1.0)
+
+
+def _mixed_history(checkpoint: str, now: str, old: str) -> list[RolloutRecord]:
+    """Records of the checkpoint's current file (an error superseded by a success among them),
+    then records of an older version of the same name written later in the file, and a DWA
+    error superseded by a success."""
+    return [_record("learned", checkpoint, now, 0, "error"), _record("learned", checkpoint, now, 0, "reached_goal"),
+            _record("learned", checkpoint, now, 1, "reached_goal"),
+            _record("learned", checkpoint, now, 2, "rolled_over"),
+            *(_record("learned", checkpoint, old, seed, "rolled_over") for seed in range(4)),
+            _record("dwa", "", "", 0, "error"), _record("dwa", "", "", 0, "reached_goal")]
+
+
+def test_the_report_counts_only_the_current_records(tmp_path, capsys):
+    model = tmp_path / "models" / "wide_dagger.pt"
+    model.parent.mkdir()
+    model.write_bytes(b"the file as it is now")
+    now = hashlib.sha256(model.read_bytes()).hexdigest()[:16]
+    results = tmp_path / "dagger.jsonl"
+    _write(results, _mixed_history(str(model), now, "0123456789abcdef"))
+
+    assert main(["report", str(results)]) == 0
+    captured = capsys.readouterr()
+    # The file's version counts, although the other is last in the file; the error is superseded.
+    assert "| wide_dagger | wide | 2/3 | 67% | 21%-94% | 0 | rolled_over@up_wall 1 | 0 |" in captured.out
+    assert "| dwa | wide | 1/1 | 100% | 21%-100% | 0 | - | 0 |" in captured.out
+    assert "4 records of checkpoint" in captured.err and "0123456789abcdef set aside" in captured.err
+    page = (tmp_path / "dagger_report.md").read_text()
+    assert "## Records not counted" in page and "0123456789abcdef set aside" in page
+    assert "2 records of rollouts recorded more than once left out" in page
+    assert "| wide_dagger | wide | 2/3 | 67% |" in page and "| dwa | wide | 1/1 | 100% |" in page
+    assert f"ditch-drake report {results} --out {tmp_path / 'dagger_report.md'}" in page  # How it was made.
+
+
+def test_without_the_file_the_latest_version_of_a_checkpoint_counts(tmp_path):
+    results = tmp_path / "dagger.jsonl"
+    _write(results, _mixed_history(str(tmp_path / "gone.pt"), "aaaaaaaaaaaaaaaa", "0123456789abcdef"))
+    data = load_report_data([results])
+    assert data.tables["dagger"][2].startswith("| dwa | wide | 1/1 |")
+    assert data.tables["dagger"][3].startswith("| gone | wide | 0/4 | 0% |")
+    assert any("3 records of checkpoint" in note and "aaaaaaaaaaaaaaaa set aside" in note for note in data.notes)
+
+
+def test_the_default_outputs_go_beside_the_results(tmp_path):
+    folder = tmp_path / "results" / "paper"
+    folder.mkdir(parents=True)
+    assert default_outputs([folder]) == (folder / "report.md", folder / "report_img")
+    assert default_outputs([tmp_path / "results" / "x.jsonl"]) == (tmp_path / "results" / "x_report.md",
+                                                                   tmp_path / "results" / "x_report_img")
+    assert main(["report", str(tmp_path / "no_such.jsonl")]) == 2
+
+
+def test_a_tracked_default_output_is_refused_and_an_explicit_out_overwrites_it(tmp_path, capsys, monkeypatch):
+    if shutil.which("git") is None:
+        pytest.skip("no git on this machine")
+    results = tmp_path / "results"
+    results.mkdir()
+    _write(results / "x.jsonl", [_record("dwa", "", "", 0, "reached_goal")])
+    assert not tracked_by_git(results / "x_report.md")  # Not a git checkout.
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    (results / "x_report.md").write_text("tracked page\n")
+    subprocess.run(["git", "-C", str(tmp_path), "add", "results/x_report.md"], check=True)
+    assert tracked_by_git(results / "x_report.md") and not tracked_by_git(results / "x.jsonl")
+    assert tracked_by_git(results) and not tracked_by_git(tmp_path / "not" / "there.md")
+
+    assert main(["report", str(results / "x.jsonl")]) == 2
+    assert "is tracked by git" in capsys.readouterr().err
+    assert (results / "x_report.md").read_text() == "tracked page\n" and not (results / "x_report_img").exists()
+    assert main(["report", str(results / "x.jsonl"), "--out", str(results / "x_report.md")]) == 0
+    assert "| dwa | wide | 1/1 |" in (results / "x_report.md").read_text()
+    assert (results / "x_report_img" / "fig_x.png").stat().st_size > 1000
+
+    monkeypatch.setenv("PATH", str(tmp_path / "empty"))  # No git: untracked.
+    assert not tracked_by_git(results / "x_report.md")
+
+
+def test_every_figure_is_captioned_with_counts_from_the_data(tmp_path):
+    results = tmp_path / "results"
+    results.mkdir()
+    scalability = [_record("learned", f"m/wide_{n}.pt", "d", seed, "reached_goal" if seed % 2 else "rolled_over")
+                   for n, trials in ((10, 4), (40, 6)) for seed in range(trials)]
+    _write(results / "scalability.jsonl", scalability)
+    _write(results / "generalization.jsonl",
+           [_record("learned", "m/crater_40.pt", "d", seed, "reached_goal") for seed in range(5)])
+    _write(results / "baseline.jsonl", [_record("dwa", "", "", seed, "reached_goal", peak_tilt_deg=tilt)
+                                         for seed, tilt in enumerate([5.0, 5.0, 30.0])])
+    _write(results / "amalgam.jsonl",
+           [_record("learned", "m/crater+narrow+sine_40.pt", "d", seed, "reached_goal") for seed in range(7)])
+    _write(results / "other.jsonl", [_record("expert", "", "", seed, "reached_goal", env) for seed in range(2)
+                                     for env in ("wide", "narrow")])
+    _write(results / "broken.jsonl", [_record("dwa", "", "", 0, "error")])
+    text = write_report([results], results / "report.md", results / "report_img").read_text()
+    figures = [line for line in text.splitlines() if line.startswith("![")]
+    assert [line.split("]")[0] for line in figures] == ["![fig5_wide", "![fig5_baseline", "![fig5_amalgam",
+                                                        "![fig_other"]
+    for name in ("fig5_wide", "fig5_baseline", "fig5_amalgam", "fig_other"):
+        assert (results / "report_img" / f"{name}.png").stat().st_size > 1000
+        caption = text.split(f"({name.join(['report_img/', '.png'])})")[1].split("\n")[2]
+        assert caption.startswith("*Figure") and "95 % Wilson" in caption, caption
+    assert "n = wide_10: 4, wide_40: 6" in text  # Counted, not typed.
+    assert "DWA in wide: 2 of its 3 successes" in text  # Around the ditch, from the peak tilt.
+    assert "the amalgam model (orange, cross-hatched)" in text and "crater+narrow+sine_40: 7" in text
+    assert "No figure for broken: it holds no trials" in text
+
+
+def test_the_replay_page_has_a_title_and_a_legend():
+    from ditch_drake.diagrams.ditch_scene import SceneConfig
+    from ditch_drake.diagrams.replay import ReplayConfig, replay_fields, replay_title, with_legend
+    from ditch_drake.diagrams.rollout import LearnedPolicyConfig, RolloutConfig
+    from ditch_drake.environments import get_environment
+    from ditch_drake.systems.episode_monitor import EpisodeConfig, EpisodeOutcome
+
+    config = ReplayConfig(rollout=RolloutConfig(scene=SceneConfig(environment="wide", task=1),
+                                                controller=LearnedPolicyConfig(checkpoint="wide")), seed=7)
+
+    class Scene:  # What the legend reads of a built scene.
+        task = get_environment("wide").tasks[1]
+        episode = EpisodeConfig(time_limit_s=60.0)
+
+    outcome = EpisodeOutcome(status="reached_goal", time_s=41.25, path_length_m=23.46, peak_abs_roll_deg=5.0,
+                             peak_abs_pitch_deg=30.0, peak_tilt_deg=31.0, min_stability_margin_deg=9.0,
+                             final_xy=(1.0, 2.0))
+    page = with_legend("<html><head><title>Drake MeshCat</title></head><body><div></div></body></html>",
+                       replay_title(config, outcome), replay_fields(config, Scene, outcome))
+    assert "<title>Learned policy in wide, task 1, seed 7: reached_goal</title>" in page
+    for field in ("<th>environment</th><td>wide</td>", f"<th>task</th><td>1 ({Scene.task.name})</td>",
+                  "<th>seed</th><td>7</td>",
+                  '<th>controller</th><td colspan="3">learned policy, checkpoint wide, sha256 ',
+                  "<th>outcome</th><td>reached_goal</td>", "<th>simulated time</th><td>41.2 s",
+                  "<th>path length</th><td>23.5 m</td>", "driven path", "lidar returns"):
+        assert field in page, field
+    assert page.endswith("</body></html>") and "http" not in page  # Still one offline page.
+
+
+def test_a_recorded_replay_page_carries_its_legend(tmp_path):
+    from ditch_drake.diagrams.ditch_scene import SceneConfig
+    from ditch_drake.diagrams.replay import ReplayConfig, record_replay
+    from ditch_drake.diagrams.rollout import ExpertConfig, RolloutConfig
+    from ditch_drake.systems.episode_monitor import EpisodeConfig
+
+    scene = SceneConfig(environment="narrow", task=0, episode=EpisodeConfig(time_limit_s=1.0))
+    result = record_replay(ReplayConfig(rollout=RolloutConfig(scene=scene, controller=ExpertConfig(style_seed=3)),
+                                        seed=5, out=str(tmp_path / "replay.html")))
+    page = result.html_path.read_text()
+    assert f"<title>Scripted expert in narrow, task 0, seed 5: {result.outcome.status}</title>" in page
+    for field in ("<th>environment</th><td>narrow</td>", "<th>task</th><td>0 (", "<th>seed</th><td>5</td>",
+                  "scripted expert (style seed 3)", f"<th>outcome</th><td>{result.outcome.status}</td>",
+                  f"<th>simulated time</th><td>{result.outcome.time_s:.1f} s (limit 1 s)</td>",
+                  f"<th>path length</th><td>{result.outcome.path_length_m:.1f} m</td>", "driven path",
+                  "lidar returns"):
+        assert field in page, field
+    assert page.rstrip().endswith("</html>")
