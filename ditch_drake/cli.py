@@ -603,7 +603,7 @@ def build_parser() -> argparse.ArgumentParser:
                              "<file stem>_report.md; a default path that git tracks is refused, name it to overwrite)")
     report.add_argument("--figures", default=None,
                         help="folder of the PNG figures (default: <page stem>_img beside the page)")
-    report.add_argument("--title", default="Results")
+    report.add_argument("--title", default="Results", help="the page's title")
     report.set_defaults(run=cmd_report)
 
     defaults = TrainConfig()

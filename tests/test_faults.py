@@ -793,3 +793,44 @@ def test_a_recorded_replay_page_carries_its_legend(tmp_path):
                   "lidar returns"):
         assert field in page, field
     assert page.rstrip().endswith("</html>")
+
+
+def test_every_option_of_every_command_has_a_help_text():
+    import argparse
+
+    from ditch_drake.cli import build_parser
+
+    parser = build_parser()
+    commands = next(action for action in parser._actions if isinstance(action, argparse._SubParsersAction))
+    missing = [f"{name} {'/'.join(action.option_strings) or action.dest}"
+               for name, sub in commands.choices.items() for action in sub._actions
+               if not isinstance(action, argparse._HelpAction) and not action.help]
+    assert missing == []
+
+
+def test_stale_temporaries_of_dead_processes_are_removed_and_live_ones_kept(tmp_path):
+    from ditch_drake.files import atomic_write_text, remove_stale_temporaries
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True,
+                          check=True).stdout.strip()
+    stale = tmp_path / f".demo_003.npz.{dead}.0123456789ab.tmp"
+    live = tmp_path / f".demo_004.npz.{os.getpid()}.0123456789ab.tmp"
+    stale.write_bytes(b"half")
+    live.write_bytes(b"half")
+    assert remove_stale_temporaries(tmp_path) == [stale]
+    assert live.exists() and not stale.exists()
+    atomic_write_text(tmp_path / "page.md", "whole")
+    assert sorted(path.name for path in tmp_path.iterdir()) == [live.name, "page.md"]
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_two_worker_evaluation_of_the_learned_policy(tmp_path):
+    results = tmp_path / "results.jsonl"
+    process = _start(["evaluate", "--env", "wide", "--task", "1", "--rollouts", "6", "--workers", "2", "--out",
+                      str(results)])
+    _wait_for(lambda: _lines(results) >= 2)
+    elapsed, out, err = _stop(process, signal.SIGINT, to_group=True)
+    records, warnings = read_records(results)
+    assert process.returncode == 130 and elapsed < STOP_WITHIN_S, err
+    assert _group_is_gone(process.pid) and not warnings
+    assert json.loads(out.strip().splitlines()[-1])["recorded"] == len(records) >= 2

@@ -38,7 +38,7 @@ from ditch_drake.diagrams.rollout import (
     LearnedPolicyConfig,
     RolloutConfig,
 )
-from ditch_drake.files import atomic_output
+from ditch_drake.files import atomic_output, remove_stale_temporaries
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
 from ditch_drake.systems.lidar import AddLidar, LidarConfig, LidarHandles
 
@@ -128,6 +128,7 @@ def record_replay(config: ReplayConfig, meshcat: Meshcat | None = None, progress
     diagram = builder.Build()
     # After the builders (which validate the environment and controller) and before minutes of
     # simulation: an unwritable path fails fast, and a bad config leaves no file behind.
+    remove_stale_temporaries(out.parent)
     with _output(out) as file:
         outcome, snapshots = _record_episode(config, meshcat, diagram, scene, lidar, progress)
         file.write(with_legend(meshcat.StaticHtml(), replay_title(config, outcome),

@@ -49,7 +49,14 @@ from ditch_drake.environments import get_environment
 from ditch_drake.errors import ConfigError
 from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, finished_keys, read_records
 from ditch_drake.learning.checkpoint import checkpoint_digest, load_checkpoint, resolve_checkpoint_path
-from ditch_drake.parallel import WorkerPool, check_workers, interrupt_exit_code, terminate_as_interrupt, worker_count
+from ditch_drake.parallel import (
+    WorkerPool,
+    check_workers,
+    deferred_interrupts,
+    interrupt_exit_code,
+    terminate_as_interrupt,
+    worker_count,
+)
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 
 BACKENDS = ("local", "ray")
@@ -262,10 +269,11 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
     bar = tqdm(total=len(pending), desc="rollouts", disable=not progress, file=sys.stderr)
 
     def keep(writer: RecordWriter, record: RolloutRecord) -> None:
-        writer.append(record)
-        report.recorded += 1
-        report.successes += record.success
-        report.errors += record.status == "error"
+        with deferred_interrupts():
+            writer.append(record)
+            report.recorded += 1
+            report.successes += record.success
+            report.errors += record.status == "error"
         bar.update(1)
         bar.set_postfix(success=f"{report.successes}/{report.recorded}", errors=report.errors)
 

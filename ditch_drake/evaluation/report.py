@@ -43,7 +43,7 @@ import matplotlib.pyplot as plt
 
 from ditch_drake.evaluation.results import RolloutRecord, current_records, read_records
 from ditch_drake.evaluation.summary import AROUND_TILT_DEG, GroupSummary, summarize
-from ditch_drake.files import atomic_output, atomic_write_text
+from ditch_drake.files import atomic_output, atomic_write_text, remove_stale_temporaries
 
 STUDIES = ("scalability", "generalization", "baseline", "amalgam")
 # What each kind of bar is drawn as (colour, hatch), so the figures agree with each other.
@@ -541,6 +541,8 @@ def write_report(results: list[str | os.PathLike], out: str | os.PathLike, figur
         ResultsError: a line that is not a record (from `read_records`).
     """
     out, figures_dir = Path(out), Path(figures_dir)
+    for folder in (out.parent, figures_dir):
+        remove_stale_temporaries(folder)
     data = data if data is not None else load_report_data(results)
     lines = [f"# {title}", ""]
     if command:

@@ -58,6 +58,7 @@ from tqdm import tqdm
 import ditch_drake
 from ditch_drake.actions import NUM_LABELS
 from ditch_drake.errors import ConfigError
+from ditch_drake.files import remove_stale_temporaries
 from ditch_drake.learning.balance import smote_samples
 from ditch_drake.learning.checkpoint import (
     CheckpointError,
@@ -271,6 +272,8 @@ def train(
     output_path = None if output_path is None else Path(output_path)
     if output_path is not None and output_path.is_dir():  # Found now, not after hours of training.
         raise CheckpointError(f"{output_path} is a folder; expected the path of a .pt file to write (--out)")
+    if output_path is not None:
+        remove_stale_temporaries(output_path.parent)
     try:
         rows = first_demos_indices(arrays, config.max_demos)
         train_rows, val_rows = split_indices_by_demo(arrays.demo_id, config.val_fraction, config.seed, rows)
