@@ -13,9 +13,9 @@ import shlex
 import sys
 import time
 
-from ditch_drake.diagrams.controllers import CONTROLLERS
-from ditch_drake.errors import ConfigError, ResultsError, TerrainError
-from ditch_drake.parallel import check_workers, interrupt_exit_code, terminate_as_interrupt
+from ditch_drake.common.errors import ConfigError, ResultsError, TerrainError
+from ditch_drake.common.parallel import check_workers, interrupt_exit_code, terminate_as_interrupt
+from ditch_drake.diagrams.controllers import controller_descriptions, controller_names
 
 # The single-episode commands (demo, replay, view, teleop) share these defaults. Seed 0 of the
 # wide ditch's task 1 is the one evaluation rollout (of 30) in which the shipped Wide policy
@@ -57,19 +57,68 @@ def _check_seed(seed: int, count: int = 1) -> None:
     check_seed(seed, count)
 
 
-def _check_task(environment: str, task: int) -> None:
-    from ditch_drake.environments import get_environment
+def _check_task(environment: str, task: int, environments_file: str = "") -> None:
+    from ditch_drake.world.environments import get_environment
 
-    tasks = get_environment(environment).tasks
+    tasks = get_environment(environment, environments_file or None).tasks
     if not 0 <= task < len(tasks):
         raise ConfigError(f"--task {task}: {environment!r} has tasks 0..{len(tasks) - 1} "
                           f"({', '.join(f'{i} {t.name}' for i, t in enumerate(tasks))})")
 
 
+def _scenario(args, default_controller: str = "learned"):
+    """The Scenario of a single-episode command: the defaults, then --scenario FILE (and
+    --scenario-name), then the options given on the command line, then --override."""
+    from dataclasses import replace
+
+    from ditch_drake.diagrams.controllers import controller_config
+    from ditch_drake.diagrams.scenario import Scenario, check_scenario, load_scenario
+
+    scenario = load_scenario(args.scenario, args.scenario_name) if args.scenario else Scenario(
+        controller=controller_config(default_controller))
+    for option, name in (("env", "environment"), ("task", "task"), ("seed", "seed"),
+                         ("environments", "environments_file")):
+        value = getattr(args, option, None)
+        if value is not None:  # evaluate's --env and --task repeat: the scenario takes the first.
+            scenario = replace(scenario, **{name: value[0] if isinstance(value, list) else value})
+    if getattr(args, "controller", None) is not None:
+        scenario = replace(scenario, controller=controller_config(args.controller))
+    if getattr(args, "checkpoint", None) and hasattr(scenario.controller, "checkpoint"):
+        scenario = replace(scenario, controller=replace(scenario.controller, checkpoint=args.checkpoint))
+    if getattr(args, "time_limit", None) is not None:
+        scenario = replace(scenario, episode=replace(scenario.episode, time_limit_s=args.time_limit))
+    if args.override:
+        scenario = load_scenario(override=args.override, defaults=scenario)
+    check_scenario(scenario)
+    if getattr(scenario.controller, "checkpoint", None) == "":  # Named, so that records and pages say which.
+        from ditch_drake.learning.checkpoint import environment_model
+
+        scenario = replace(scenario, controller=replace(scenario.controller,
+                                                        checkpoint=environment_model(scenario.environment)))
+    return scenario
+
+
+def _controller_label(scenario, name: str | None = None) -> str:
+    """The controller's registered name (the one asked for, where several share a config type)."""
+    from ditch_drake.diagrams.controllers import entry_for_config
+
+    name = name or entry_for_config(scenario.controller).name
+    checkpoint = getattr(scenario.controller, "checkpoint", None)
+    return name if checkpoint is None else f"{name} ({checkpoint or scenario.environment + ' model'})"
+
+
+def cmd_scenario(args) -> int:
+    """Prints a Scenario as YAML: the default one (a template), or the one the options make."""
+    from ditch_drake.diagrams.scenario import scenario_yaml
+
+    print(scenario_yaml(_scenario(args)), end="")
+    return 0
+
+
 def cmd_demo(args) -> int:
     """The main job: the shipped policy, the DWA baseline and a head-on driver through one ditch;
     an outcome table and the policy's rollout as a standalone HTML page."""
-    _check_task(args.env, args.task)
+    _check_task(args.env, args.task, args.environments)
     _check_seed(args.seed)
     checkpoint = _checkpoint_for(args, args.env)
     from pydrake.systems.analysis import Simulator
@@ -79,7 +128,7 @@ def cmd_demo(args) -> int:
     from ditch_drake.diagrams.replay import ReplayConfig, record_replay
     from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
 
-    scene = SceneConfig(environment=args.env, task=args.task)
+    scene = SceneConfig(environment=args.env, task=args.task, environments_file=args.environments or "")
     rows = []
 
     def row(name, outcome, wall_s):
@@ -108,22 +157,21 @@ def cmd_demo(args) -> int:
 
 
 def cmd_view(args) -> int:
-    """Opens the scene in meshcat and drives it with the scripted driver in real time."""
-    _check_task(args.env, args.task)
-    _check_seed(args.seed)
+    """Opens the scene in meshcat and drives it in real time (the scripted driver unless told otherwise)."""
+    scenario = _scenario(args, default_controller="edge_angle")
     from pydrake.geometry import StartMeshcat
-    from pydrake.systems.analysis import Simulator
+    from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 
-    from ditch_drake.diagrams.ditch_scene import SceneConfig
-    from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+    from ditch_drake.diagrams.rollout import RunEpisode
+    from ditch_drake.diagrams.scenario import MakeScenarioDiagram
 
     meshcat = StartMeshcat()
-    diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=args.env, task=args.task)),
-                                        meshcat=meshcat)
+    diagram, scene = MakeScenarioDiagram(scenario, meshcat=meshcat)
     simulator = Simulator(diagram)
+    ApplySimulatorConfig(scenario.simulator, simulator)
     simulator.set_target_realtime_rate(args.realtime_rate)
     print(f"meshcat: open {meshcat.web_url()} to watch  (Ctrl-C to stop)", flush=True)
-    outcome = RunEpisode(simulator, diagram, scene, args.seed)
+    outcome = RunEpisode(simulator, diagram, scene, scenario.seed)
     print(f"outcome: {outcome.status} after {outcome.time_s:.1f} s")
     if args.wait:
         input("press Enter to close")
@@ -135,9 +183,10 @@ def cmd_calibrate(args) -> int:
     if args.trials < 1:
         raise ConfigError(f"--trials {args.trials}: expected >= 1 (seeded trials per driven case)")
     _check_seed(args.seed, args.trials)
-    from ditch_drake.calibration import CalibrationConfig, run_calibration
+    from ditch_drake.benchmarks.calibration import CalibrationConfig, run_calibration
 
-    config = CalibrationConfig(trials=args.trials, seed=args.seed, workers=args.workers)
+    config = CalibrationConfig(trials=args.trials, seed=args.seed, workers=args.workers,
+                               environments_file=args.environments or "")
     if args.time_step is not None:
         if not args.time_step > 0:
             raise ConfigError(f"--time-step {args.time_step}: expected a positive plant step in s")
@@ -151,9 +200,9 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from ditch_drake.bench import run_bench
+    from ditch_drake.benchmarks.bench import run_bench
 
-    figures = run_bench(args.env or None, training=args.training)
+    figures = run_bench(args.env or None, training=args.training, environments_file=args.environments or "")
     if args.json:
         print(json.dumps(figures))
     else:
@@ -170,7 +219,8 @@ def cmd_collect(args) -> int:
 
     from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect
 
-    config = CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out, workers=args.workers)
+    config = CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out, workers=args.workers,
+                           environments_file=args.environments or "")
     config = replace(config, variation=replace(config.variation, lead_in=args.lead_in))
     if args.learner is not None:
         config = replace(config, learner=args.learner, variation=replace(
@@ -187,7 +237,7 @@ def cmd_collect(args) -> int:
 
 def cmd_teleop(args) -> int:
     """A person drives (arrow keys or gamepad in the meshcat page); a success is kept."""
-    _check_task(args.env, args.task)
+    _check_task(args.env, args.task, args.environments)
     _check_seed(args.seed)
     from pydrake.geometry import StartMeshcat
 
@@ -196,7 +246,8 @@ def cmd_teleop(args) -> int:
 
     meshcat = StartMeshcat()
     print(f"meshcat: open {meshcat.web_url()} and steer with the arrow keys (or a gamepad) in that tab", flush=True)
-    demonstration = record_person_demonstration(args.env, args.task, meshcat, args.seed, args.realtime_rate)
+    demonstration = record_person_demonstration(args.env, args.task, meshcat, args.seed, args.realtime_rate,
+                                                args.environments or "")
     status = demonstration.metadata["outcome"]["status"]
     if status != "reached_goal":
         print(f"outcome: {status}; not kept")
@@ -206,8 +257,8 @@ def cmd_teleop(args) -> int:
 
 
 def cmd_dataset_info(args) -> int:
-    from ditch_drake.actions import ANGULAR_RATES_RADPS
     from ditch_drake.demos.dataset import dataset_summary, load_dataset
+    from ditch_drake.spec.actions import ANGULAR_RATES_RADPS
 
     summary = dataset_summary(load_dataset(args.path))
     if args.json:
@@ -275,27 +326,22 @@ def _training_device(requested: str) -> str:
 
 def cmd_replay(args) -> int:
     """One seeded rollout recorded as a standalone HTML page (opens offline in any browser)."""
-    _check_task(args.env, args.task)
-    _check_seed(args.seed)
-    if not args.time_limit > 0:
+    if args.time_limit is not None and not args.time_limit > 0:
         raise ConfigError(f"--time-limit {args.time_limit}: expected a positive episode timeout in s")
-    checkpoint = _checkpoint_for(args, args.env) if args.controller == "learned" else ""
-    from ditch_drake.diagrams.controllers import controller_config
-    from ditch_drake.diagrams.ditch_scene import SceneConfig
+    if args.seed is not None:
+        _check_seed(args.seed)
+    scenario = _scenario(args)
     from ditch_drake.diagrams.replay import ReplayConfig, record_replay
-    from ditch_drake.diagrams.rollout import RolloutConfig
-    from ditch_drake.systems.episode_monitor import EpisodeConfig
 
-    scene = SceneConfig(environment=args.env, task=args.task, episode=EpisodeConfig(time_limit_s=args.time_limit))
-    config = ReplayConfig(rollout=RolloutConfig(scene=scene, controller=controller_config(
-        args.controller, checkpoint, args.seed)), seed=args.seed, out=args.out)
+    label = _controller_label(scenario, args.controller)
+    config = ReplayConfig(rollout=scenario.rollout_config(), seed=scenario.seed, out=args.out)
     try:
-        result = record_replay(config, progress=args.controller)
+        result = record_replay(config, progress=label.split(" ")[0])
     except OSError as error:  # An unwritable output (ReplayOutputError) or no such checkpoint file.
         print(f"ditch-drake: error: {error}", file=sys.stderr)
         return 2
     outcome = result.outcome
-    print(f"{args.controller} in {args.env} task {args.task} seed {args.seed}: {outcome.status} after "
+    print(f"{label} in {scenario.environment} task {scenario.task} seed {scenario.seed}: {outcome.status} after "
           f"{outcome.time_s:.1f} s, {outcome.path_length_m:.1f} m; wrote {result.html_path} "
           f"({result.html_bytes / 2**20:.1f} MiB, {result.snapshots} lidar snapshots)")
     return 0
@@ -321,19 +367,38 @@ def cmd_checkpoint_info(args) -> int:
 def cmd_evaluate(args) -> int:
     """Seeded rollouts of one controller in one or more environments, appended to a results file."""
     check_workers(args.workers, "--workers")
-    from ditch_drake.environments import environment_names, get_environment
     from ditch_drake.evaluation.batch import evaluate, load_results, make_specs
     from ditch_drake.evaluation.results import current_records
     from ditch_drake.evaluation.summary import group_by, summarize
+    from ditch_drake.world.environments import environment_names, get_environment
 
+    controller, environments_file, time_limit_s = args.controller or "learned", args.environments or "", 120.0
+    if args.scenario or args.override:
+        # The scenario gives the controller's full config, the environments file and the episode's limit.
+        scenario = _scenario(args)
+        if scenario.environments and not args.env:
+            raise ConfigError("evaluate runs environments from a file: put the scenario's inline environments in a "
+                              "YAML file and pass --environments FILE --env NAME")
+        controller, environments_file = scenario.controller, scenario.environments_file
+        time_limit_s = scenario.episode.time_limit_s
+        environments = args.env or [scenario.environment]
+    else:
+        environments = args.env or ([] if environments_file else environment_names())
+        if not environments:
+            from ditch_drake.world.environments import load_environments
+
+            environments = list(load_environments(environments_file))
+    if args.time_limit is not None:
+        time_limit_s = args.time_limit
     specs, plan = [], []
-    for environment in args.env or environment_names():
-        checkpoint = _checkpoint_for(args, environment) if args.controller == "learned" else ""
-        specs += make_specs(args.controller, checkpoint, environment, args.task, args.rollouts, args.seed,
-                            args.time_limit)
-        tasks = len(args.task) if args.task else len(get_environment(environment).tasks)
+    for environment in environments:
+        get_environment(environment, environments_file or None)  # A bad file or name first, before its model.
+        checkpoint = _checkpoint_for(args, environment) if controller == "learned" else ""
+        specs += make_specs(controller, checkpoint, environment, args.task, args.rollouts, args.seed, time_limit_s,
+                            environments_file)
+        tasks = len(args.task) if args.task else len(get_environment(environment, environments_file or None).tasks)
         plan.append(f"{environment}: {tasks} tasks x {args.rollouts} rollouts = {tasks * args.rollouts}")
-    print(f"{args.controller}: " + "; ".join(plan) + f" (seeds {args.seed}..{args.seed + args.rollouts - 1})",
+    print(f"{specs[0].controller}: " + "; ".join(plan) + f" (seeds {args.seed}..{args.seed + args.rollouts - 1})",
           file=sys.stderr, flush=True)
     report = evaluate(specs, args.out, workers=args.workers, backend=args.backend, address=args.address)
     for warning in report.warnings:
@@ -418,8 +483,8 @@ def cmd_report(args) -> int:
 
 
 def cmd_figure(args) -> int:
-    from ditch_drake.environments import environment_names
-    from ditch_drake.figures import diagram_figure, normal_image_figure
+    from ditch_drake.docs_tools.figures import diagram_figure, normal_image_figure
+    from ditch_drake.world.environments import environment_names
 
     if args.kind == "diagram":
         print(diagram_figure(args.out))
@@ -427,12 +492,12 @@ def cmd_figure(args) -> int:
     if args.kind == "screenshot":
         from pathlib import Path
 
-        from ditch_drake.browser import screenshot
+        from ditch_drake.docs_tools.browser import screenshot
 
         print(screenshot(args.html, Path(args.out) / f"{Path(args.html).stem}.png"))
         return 0
     if args.kind == "dwa":
-        from ditch_drake.baseline import dwa_figure
+        from ditch_drake.docs_tools.baseline_page import dwa_figure
 
         for name in environment_names() if not args.env or "all" in args.env else args.env:
             print(dwa_figure(name, args.out, task=0, seed=args.seed))
@@ -460,7 +525,7 @@ class _Parser(argparse.ArgumentParser):
 
 def _environments_epilog() -> str:
     """The packaged environments and their tasks, by index and name."""
-    from ditch_drake.environments import environment_names, get_environment
+    from ditch_drake.world.environments import environment_names, get_environment
 
     lines = ["environments and their tasks (--env NAME --task INDEX):"]
     for name in environment_names():
@@ -470,12 +535,15 @@ def _environments_epilog() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ditch_drake.environments import environment_names
     from ditch_drake.learning.config import TrainConfig
+    from ditch_drake.world.environments import environment_names
 
     environments = environment_names()
     epilog = _environments_epilog()
     parser = _Parser(prog="ditch-drake", description=__doc__.split("\n\n")[0], epilog=epilog)
+    parser.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE_OR_FILE",
+                        help="a module or .py file that registers controllers of your own (repeatable; "
+                             "docs/extending.md), imported before anything else (default: none)")
     commands = parser.add_subparsers(dest="command", required=True, parser_class=_Parser, metavar="COMMAND")
 
     def add(name: str, help: str, with_environments: bool = False) -> argparse.ArgumentParser:
@@ -495,28 +563,68 @@ def build_parser() -> argparse.ArgumentParser:
         sub.add_argument("--seed", type=int, default=DEFAULT_SEED,
                          help="the episode's seed (start jitter, sensor noise, expert style)")
 
+    def add_environments_file(sub):
+        sub.add_argument("--environments", default=None, metavar="FILE",
+                         help="a YAML file of environments in the packaged schema (ditch_drake/world/environments.yaml; "
+                              "docs/extending.md); --env names one of them (default: the packaged environments)")
+
+    def add_scenario(sub, controller_default: str):
+        """The single-episode options of a Scenario: each one given overrides the scenario's."""
+        sub.add_argument("--scenario", default=None, metavar="FILE",
+                         help="a Scenario YAML file (`ditch-drake scenario --print` writes a template); the options "
+                              "below override it (default: none, the built-in scenario)")
+        sub.add_argument("--scenario-name", default=None, metavar="NAME",
+                         help="the scenario of that name within --scenario's file (default: the whole file)")
+        sub.add_argument("--override", default=None, metavar="YAML",
+                         help="YAML in the Scenario schema applied last, e.g. \"{controller: !DwaBaselineConfig "
+                              "{planner: {costmap: {lethal_slope_deg: 60}}}}\" (default: none)")
+        add_environments_file(sub)
+        sub.add_argument("--env", default=None, metavar="NAME",
+                         help=f"environment (default: the scenario's; built in: {DEFAULT_ENVIRONMENT}; packaged: "
+                              f"{environments})")
+        sub.add_argument("--task", type=int, default=None,
+                         help=f"task index, the list below (default: the scenario's; built in: {DEFAULT_TASK})")
+        sub.add_argument("--seed", type=int, default=None,
+                         help=f"the episode's seed (start jitter, sensor noise, expert style; default: the "
+                              f"scenario's; built in: {DEFAULT_SEED})")
+        sub.add_argument("--controller", default=None, choices=controller_names(),
+                         help=f"{controllers_help} (default: the scenario's; built in: {controller_default})")
+        sub.add_argument("--checkpoint", default=None,
+                         help="the learned policy, a shipped name or a .pt file (default: the scenario's, else the "
+                              "environment's shipped model)")
+        sub.add_argument("--time-limit", type=float, default=None,
+                         help="episode timeout in s (default: the scenario's; built in: 120)")
+
     def add_workers(sub, what: str):
         sub.add_argument("--workers", type=int, default=None,
                          help=f"worker processes for the {what} (default None: one per core; 0: in this process)")
 
-    controllers_help = "; ".join(f"{name}: {text}" for name, text in CONTROLLERS.items())
+    controllers_help = "; ".join(f"{name}: {text}" for name, text in controller_descriptions().items())
+
+    scenario = add("scenario", "print a Scenario as YAML: the default one (a template to edit), or the one the "
+                               "options make", with_environments=True)
+    scenario.add_argument("--print", action="store_true", help="print it (the only action; kept for clarity)")
+    add_scenario(scenario, "learned")
+    scenario.set_defaults(run=cmd_scenario)
 
     demo = add("demo", "the main job: shipped policy, DWA baseline and a head-on driver through a ditch; outcome "
                        "table and an HTML recording", with_environments=True)
     add_episode(demo)
+    add_environments_file(demo)
     demo.add_argument("--checkpoint", default=None,
                       help="the learned policy, a shipped name or a .pt file (default: the environment's shipped model)")
     demo.add_argument("--html", default="results/demo.html", help="where the recording goes")
     demo.set_defaults(run=cmd_demo)
 
     view = add("view", "open the scene in meshcat and drive through it in real time", with_environments=True)
-    add_episode(view)
+    add_scenario(view, "edge_angle")
     view.add_argument("--realtime-rate", type=float, default=1.0, help="simulated seconds per wall-clock second")
     view.add_argument("--wait", action="store_true", help="keep meshcat open until Enter")
     view.set_defaults(run=cmd_view)
 
     calibrate = add("calibrate", "the physics calibration benchmark (exit 1 if it falls short)")
     add_env(calibrate, many=True)
+    add_environments_file(calibrate)
     calibrate.add_argument("--json", action="store_true", help="one JSON object on stdout")
     calibrate.add_argument("--trials", type=int, default=10, help="seeded trials per driven case")
     calibrate.add_argument("--seed", type=int, default=0, help="first seed; trial i uses seed + i")
@@ -527,6 +635,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     collect = add("collect", "record expert demonstrations (resumable; Ctrl-C keeps what finished)")
     add_env(collect)
+    add_environments_file(collect)
     collect.add_argument("--demos", type=int, default=40, help="successful demonstrations, spread over the tasks")
     collect.add_argument("--seed", type=int, default=0, help="demonstration i's first attempt uses seed + i")
     collect.add_argument("--out", required=True, help="directory of demo_NNN.npz files")
@@ -544,6 +653,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     teleop = add("teleop", "record your own demonstration: steer in meshcat", with_environments=True)
     add_episode(teleop)
+    add_environments_file(teleop)
     teleop.add_argument("--out", required=True, help="directory of demo_NNN.npz files")
     teleop.add_argument("--realtime-rate", type=float, default=1.0, help="simulated seconds per wall-clock second")
     teleop.set_defaults(run=cmd_teleop)
@@ -554,12 +664,7 @@ def build_parser() -> argparse.ArgumentParser:
     info.set_defaults(run=cmd_dataset_info)
 
     replay = add("replay", "record one rollout as a standalone HTML page (meshcat animation)", with_environments=True)
-    replay.add_argument("--controller", default="learned", choices=list(CONTROLLERS), help=controllers_help)
-    replay.add_argument("--checkpoint", default=None,
-                        help="the learned policy, a shipped name or a .pt file (default: the environment's shipped "
-                             "model)")
-    add_episode(replay)
-    replay.add_argument("--time-limit", type=float, default=120.0, help="episode timeout (s)")
+    add_scenario(replay, "learned")
     replay.add_argument("--out", default="results/replay.html", help="the HTML page to write")
     replay.set_defaults(run=cmd_replay)
 
@@ -570,7 +675,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     evaluation = add("evaluate", "seeded rollouts in parallel, appended to a results file (rerun to resume; "
                                  "Ctrl-C keeps what finished)", with_environments=True)
-    evaluation.add_argument("--controller", default="learned", choices=list(CONTROLLERS), help=controllers_help)
+    evaluation.add_argument("--controller", default=None, choices=controller_names(),
+                            help=f"{controllers_help} (default: the scenario's, else learned)")
+    evaluation.add_argument("--scenario", default=None, metavar="FILE",
+                            help="a Scenario YAML file: its controller (with all its parameters), environment, "
+                                 "environments file and time limit (default: none)")
+    evaluation.add_argument("--scenario-name", default=None, metavar="NAME",
+                            help="the scenario of that name within --scenario's file (default: the whole file)")
+    evaluation.add_argument("--override", default=None, metavar="YAML",
+                            help="YAML in the Scenario schema applied last, e.g. \"{controller: !DwaBaselineConfig "
+                                 "{}}\" (default: none)")
+    add_environments_file(evaluation)
     evaluation.add_argument("--checkpoint", default=None,
                             help="the learned policy, a shipped name or a .pt file (default: each environment's "
                                  "shipped model)")
@@ -580,7 +695,8 @@ def build_parser() -> argparse.ArgumentParser:
     evaluation.add_argument("--rollouts", type=int, default=10,
                             help="seeded rollouts per task (3 tasks x 10 rollouts = 30 per environment)")
     evaluation.add_argument("--seed", type=int, default=0, help="first seed; rollout i of each task uses seed + i")
-    evaluation.add_argument("--time-limit", type=float, default=120.0, help="episode timeout (s)")
+    evaluation.add_argument("--time-limit", type=float, default=None,
+                            help="episode timeout in s (default: the scenario's; built in: 120)")
     evaluation.add_argument("--out", default="results/evaluate.jsonl", help="results file (JSON Lines), appended")
     add_workers(evaluation, "rollouts")
     evaluation.add_argument("--backend", default="local", choices=["local", "ray"],
@@ -645,6 +761,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     bench = add("bench", "speed and memory figures as one JSON object (--json)")
     add_env(bench, many=True)
+    add_environments_file(bench)
     bench.add_argument("--json", action="store_true", help="one JSON object on stdout")
     bench.add_argument("--training", action="store_true",
                        help="also the training pipeline's peak memory on a synthetic 40-demo set (minutes)")
@@ -652,7 +769,42 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def import_extensions(references: list[str]) -> None:
+    """Imports each module or .py file of `--import`, so that the controllers it registers
+    are choices of every command. A file's folder joins `sys.path`, so that the worker
+    processes of a batch evaluation import it too.
+
+    Raises:
+        ConfigError: a module or file that cannot be imported, with the reason.
+    """
+    import importlib
+    from pathlib import Path
+
+    for reference in references:
+        try:
+            if reference.endswith(".py"):
+                path = Path(reference).resolve()
+                if not path.is_file():
+                    raise FileNotFoundError(f"no such file {path}")
+                sys.path.insert(0, str(path.parent))
+                importlib.import_module(path.stem)
+            else:
+                importlib.import_module(reference)
+        except (ImportError, FileNotFoundError, SyntaxError) as error:
+            raise ConfigError(f"--import {reference}: {type(error).__name__}: {error}; expected an importable "
+                              "module or .py file that registers controllers") from error
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    extensions = argparse.ArgumentParser(add_help=False)
+    extensions.add_argument("--import", dest="imports", action="append", default=[])
+    known, _ = extensions.parse_known_args(argv)
+    try:
+        import_extensions(known.imports)
+    except ConfigError as error:
+        print(f"ditch-drake: error: {error}", file=sys.stderr)
+        return 2
     args = build_parser().parse_args(argv)
     try:
         with terminate_as_interrupt():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from ditch_drake import actions
+from ditch_drake.spec import actions
 from ditch_drake.systems.teleop import ActionQuantizer
 
 

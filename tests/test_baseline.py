@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 
-from ditch_drake.baseline import (
+from ditch_drake.docs_tools.baseline_page import (
     BEGIN_MARK,
     END_MARK,
     DwaEpisode,
@@ -15,10 +15,10 @@ from ditch_drake.baseline import (
     replace_generated_section,
     save_snapshot_figure,
 )
-from ditch_drake.environments import get_environment
 from ditch_drake.planning.costmap import FREE_SPACE, LETHAL_OBSTACLE, NO_INFORMATION
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
-from ditch_drake.terrain import DitchTerrain, TerrainParams
+from ditch_drake.world.environments import get_environment
+from ditch_drake.world.terrain import DitchTerrain, TerrainParams
 
 
 def small_ditch() -> DitchTerrain:
@@ -83,7 +83,7 @@ def test_the_page_reports_the_measured_pieces():
     notes = {"machine": "2 cores", "load": "1.0, 1.0, 1.0", "approach_m": 1.0, "time_limit_s": 120.0,
              "clearance_m": 0.34, "speed_mps": 1.0, "wall_deg": "55"}
     page = baseline_page([fake_episode()], speed, geometry, {"narrow": "img/dwa_narrow.png"}, "img/dwa_episodes.png",
-                         "python -m ditch_drake.baseline", notes)
+                         "python -m ditch_drake.docs_tools.baseline_page", notes)
     assert "| costmap update + DWA local plan, median wall | `dwa_update_ms` | 7.50 |" in page
     assert "1 of 1 episodes reached the goal; 0 went over a ditch's edge" in page
     assert "| narrow | reached_goal | 50.0 | 48.0 | 5.0 | 1.50 | (0.0, -5.8) | drove around the east end |" in page

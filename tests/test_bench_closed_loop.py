@@ -42,7 +42,7 @@ def test_bad_arguments_are_named():
 
 
 def test_environments_take_turns_episode_by_episode(monkeypatch):
-    from ditch_drake import bench
+    from ditch_drake.benchmarks import bench
 
     runs = []
 

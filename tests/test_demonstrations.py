@@ -9,7 +9,6 @@ import pytest
 from pydrake.common import RandomGenerator
 from pydrake.systems.analysis import Simulator
 
-from ditch_drake import actions
 from ditch_drake.demos.collect import CollectConfig, MakeDemonstrationDiagram, collect, demo_path
 from ditch_drake.demos.dataset import (
     DatasetError,
@@ -24,6 +23,7 @@ from ditch_drake.demos.dataset import (
 )
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.learning.checkpoint import resolve_checkpoint_path
+from ditch_drake.spec import actions
 from ditch_drake.systems.expert import draw_expert_style
 
 
@@ -143,7 +143,7 @@ def test_collect_resumes_keeping_what_is_written(tmp_path):
 
 
 def test_collect_refuses_bad_arguments(tmp_path):
-    from ditch_drake.environments import ConfigError
+    from ditch_drake.world.environments import ConfigError
 
     with pytest.raises(ConfigError, match="unknown environment 'moat'"):
         collect(CollectConfig(environment="moat", out=str(tmp_path)))

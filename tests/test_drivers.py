@@ -5,7 +5,7 @@ The 10-trial calibration is `ditch-drake calibrate` / `pytest -m slow`.
 
 import pytest
 
-from ditch_drake.calibration import driven_trials
+from ditch_drake.benchmarks.calibration import driven_trials
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
 
 HEAD_ON = EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None)
@@ -28,9 +28,9 @@ def test_shallow_angle_gets_through(environment):
 def narrow_driver(replan: bool):
     import numpy as np
 
-    from ditch_drake.environments import get_environment
     from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver
-    from ditch_drake.terrain import DitchTerrain
+    from ditch_drake.world.environments import get_environment
+    from ditch_drake.world.terrain import DitchTerrain
 
     environment = get_environment("narrow")  # Course along x at y = 0; goal (5, 9) across.
     terrain = DitchTerrain(environment.terrain)
@@ -42,7 +42,7 @@ def test_a_replanning_labeller_answers_from_the_current_pose_not_the_latched_pla
 
     import numpy as np
 
-    from ditch_drake.planar import wrap_to_pi
+    from ditch_drake.spec.planar import wrap_to_pi
     from ditch_drake.systems.edge_angle_driver import CLIMB, DESCEND
 
     latched, terrain = narrow_driver(False)
@@ -74,9 +74,9 @@ def test_lead_in_heads_away_along_the_rim_only_when_the_ditch_is_too_short_ahead
 
     import numpy as np
 
-    from ditch_drake.environments import get_environment
     from ditch_drake.systems.edge_angle_driver import DESCEND, EdgeAngleDriver
-    from ditch_drake.terrain import DitchTerrain
+    from ditch_drake.world.environments import get_environment
+    from ditch_drake.world.terrain import DitchTerrain
 
     terrain = DitchTerrain(get_environment("narrow").terrain)  # Course from x = -15 to 15 at y = 0.
     def heading(goal, lead_in, start=(0.0, -9.0)):
@@ -106,8 +106,8 @@ def test_lead_in_heads_away_along_the_rim_only_when_the_ditch_is_too_short_ahead
 def test_course_left_ahead_counts_to_the_end_it_points_at():
     import math
 
-    from ditch_drake.environments import get_environment
-    from ditch_drake.terrain import DitchTerrain
+    from ditch_drake.world.environments import get_environment
+    from ditch_drake.world.terrain import DitchTerrain
 
     line = DitchTerrain(get_environment("narrow").terrain)
     assert line.course_left_ahead([-5.0, -9.0], [1.0, 0.0]) == 20.0

@@ -17,7 +17,6 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from ditch_drake import robot
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig, chassis_pose
 from ditch_drake.diagrams.rollout import DwaBaselineConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
 from ditch_drake.perception.normal_image import estimate_normals_pca
@@ -33,8 +32,9 @@ from ditch_drake.planning.costmap import (
     slope_cost,
 )
 from ditch_drake.planning.dwa import DwaPlannerConfig, find_best_trajectory, footprint_costs, footprint_outline
-from ditch_drake.systems.dwa import DwaConfig, DwaController, DwaMode
-from ditch_drake.terrain import DitchTerrain
+from ditch_drake.spec import robot
+from ditch_drake.systems.dwa_controller import DwaConfig, DwaController, DwaMode
+from ditch_drake.world.terrain import DitchTerrain
 
 X_BL = RigidTransform(robot.LIDAR_MOUNT_XYZ_M)
 CHASSIS = 1  # Body index of the chassis in the hand-made pose lists below.

@@ -2,7 +2,7 @@
 
 import pytest
 
-from ditch_drake.environments import (
+from ditch_drake.world.environments import (
     ConfigError,
     environment_names,
     get_environment,

@@ -6,13 +6,15 @@ import json
 import pytest
 import torch
 
-from ditch_drake.environments import ConfigError
-from ditch_drake.evaluation import batch
+from ditch_drake.common.config_yaml import config_digest, config_to_yaml, type_path
+from ditch_drake.diagrams.rollout import LearnedPolicyConfig
+from ditch_drake.evaluation import batch, rollout_worker
 from ditch_drake.evaluation.batch import evaluate, make_specs, run_rollout
-from ditch_drake.evaluation.results import RecordWriter, ResultsError, RolloutSpec, read_records
+from ditch_drake.evaluation.results import RecordWriter, ResultsError, read_records
 from ditch_drake.evaluation.summary import group_by, summarize, wilson_interval
 from ditch_drake.learning.checkpoint import CheckpointError, checkpoint_digest, make_checkpoint, save_checkpoint
 from ditch_drake.learning.model import FourInputClassifier
+from ditch_drake.world.environments import ConfigError
 
 # Short episodes: the expert is still on its approach when they time out.
 SPECS = make_specs("expert", "", "wide", tasks=[0], rollouts=2, seed=3, time_limit_s=1.5)
@@ -80,7 +82,7 @@ def test_pending_rollouts_run_in_fresh_pools_of_workers_times_rollouts_per_worke
     def fake_pool(specs, workers, keep):
         pools.append((len(specs), workers))
         for spec in specs:
-            keep(batch._error_record(spec, "not run", 0.0))
+            keep(rollout_worker.error_record(spec, "not run", 0.0))
         return []
 
     monkeypatch.setattr(batch, "_run_pool", fake_pool)
@@ -96,8 +98,10 @@ def test_a_rollout_that_raises_is_recorded_as_an_error_and_the_run_goes_on(tmp_p
     with pytest.raises(CheckpointError, match="broken.pt"):  # `make_specs` checks the checkpoint up front.
         make_specs("learned", str(broken), "wide", tasks=[0], rollouts=1, time_limit_s=1.0)
     # A spec made by other means still fails inside its rollout, and the run goes on.
-    bad = [dataclasses.replace(SPECS[0], controller="learned", checkpoint=str(broken),
-                               checkpoint_sha256=checkpoint_digest(str(broken)))]
+    learned = LearnedPolicyConfig(checkpoint=str(broken))
+    bad = [dataclasses.replace(SPECS[0], controller="learned", controller_type=type_path(LearnedPolicyConfig),
+                               controller_config=config_to_yaml(learned), controller_sha256=config_digest(learned),
+                               checkpoint=str(broken), checkpoint_sha256=checkpoint_digest(str(broken)))]
     report = evaluate(bad + SPECS[:1], tmp_path / "results.jsonl", workers=0, progress=False)
     assert (report.recorded, report.errors, report.successes) == (2, 1, 0)
     errors = [r for r in read_records(tmp_path / "results.jsonl")[0] if r.status == "error"]
@@ -150,33 +154,48 @@ def test_summaries_count_successes_failures_and_errors(tmp_path):
 
 def test_a_worker_keeps_only_its_most_recently_used_rigs(monkeypatch):
     built = []
-    monkeypatch.setattr(batch, "MakeRolloutDiagram", lambda config: built.append(config) or (object(), object()))
-    monkeypatch.setattr(batch, "Simulator", lambda diagram: object())
-    monkeypatch.setattr(batch, "_WORKER_RIGS", type(batch._WORKER_RIGS)())
-    specs = [RolloutSpec("edge_angle", "", "", env, task, 0, 120.0, 1.5) for env in ("wide", "sine") for task in (0, 1, 2)]
-    first = batch._rig(specs[0])
-    assert batch._rig(dataclasses.replace(specs[0], seed=9)) is first and len(built) == 1  # Reused across seeds.
+    monkeypatch.setattr(rollout_worker, "MakeRolloutDiagram",
+                        lambda config: built.append(config) or (object(), object()))
+    monkeypatch.setattr(rollout_worker, "Simulator", lambda diagram: object())
+    monkeypatch.setattr(rollout_worker, "_WORKER_RIGS", type(rollout_worker._WORKER_RIGS)())
+    specs = [spec for env in ("wide", "sine") for spec in make_specs("edge_angle", "", env, rollouts=1)]
+    first = rollout_worker._rig(specs[0])
+    assert rollout_worker._rig(dataclasses.replace(specs[0], seed=9)) is first and len(built) == 1  # Reused.
     for spec in specs[1:]:
-        batch._rig(spec)
-    assert len(batch._WORKER_RIGS) == batch.MAX_WORKER_RIGS < len(specs)
-    assert batch._rig(specs[-1]) is batch._WORKER_RIGS[next(reversed(batch._WORKER_RIGS))]
-    batch._rig(specs[0])  # Evicted long ago: built again.
+        rollout_worker._rig(spec)
+    assert len(rollout_worker._WORKER_RIGS) == rollout_worker.MAX_WORKER_RIGS < len(specs)
+    assert rollout_worker._rig(specs[-1]) is rollout_worker._WORKER_RIGS[next(reversed(rollout_worker._WORKER_RIGS))]
+    rollout_worker._rig(specs[0])  # Evicted long ago: built again.
     assert len(built) == len(specs) + 1
 
 
+def test_the_expert_builds_a_rig_per_seed_and_other_controllers_share_one(monkeypatch):
+    built = []
+    monkeypatch.setattr(rollout_worker, "MakeRolloutDiagram",
+                        lambda config: built.append(config) or (object(), object()))
+    monkeypatch.setattr(rollout_worker, "Simulator", lambda diagram: object())
+    monkeypatch.setattr(rollout_worker, "_WORKER_RIGS", type(rollout_worker._WORKER_RIGS)())
+    for spec in make_specs("expert", "", "wide", [0], rollouts=2) + make_specs("dwa", "", "wide", [0], rollouts=2):
+        rollout_worker._rig(spec)
+    assert [type(config.controller).__name__ for config in built] == ["ExpertConfig", "ExpertConfig",
+                                                                        "DwaBaselineConfig"]
+    assert [config.controller.style_seed for config in built[:2]] == [0, 1]
+
+
 def test_spec_keys_identify_rollouts():
-    a = RolloutSpec("learned", "wide", "0123456789abcdef", "narrow", 1, 4, 120.0, 1.5)
-    assert a.key == "learned|wide@0123456789abcdef|narrow|1|4|120|1.5"
+    (a,) = make_specs("learned", "wide", "narrow", [1], rollouts=1, seed=4)
+    assert a.key == f"learned#{a.controller_sha256}|wide@{a.checkpoint_sha256}|narrow|1|4|120|1.5"
     assert a.key != dataclasses.replace(a, seed=5).key
     assert a.key != dataclasses.replace(a, checkpoint_sha256="fedcba9876543210").key
+    assert a.key != make_specs("learned", "narrow", "narrow", [1], rollouts=1, seed=4)[0].key
 
 
 def test_checkpoints_of_another_action_table_or_input_shape_are_refused(tmp_path):
-    from ditch_drake import actions
     from ditch_drake.diagrams.ditch_scene import SceneConfig
     from ditch_drake.diagrams.rollout import LearnedPolicyConfig, MakeRolloutDiagram, RolloutConfig
     from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
     from ditch_drake.learning.model import ModelConfig
+    from ditch_drake.spec import actions
 
     other_table = tmp_path / "other_table.pt"
     checkpoint = make_checkpoint(FourInputClassifier())

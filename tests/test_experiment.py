@@ -4,10 +4,11 @@ import json
 
 import pytest
 
-from ditch_drake.environments import ConfigError
-from ditch_drake.evaluation.experiment import code_revision, load_experiment, plan, read_runs, run_experiment
+from ditch_drake.evaluation.experiment import code_revision, load_experiment, plan, run_experiment
 from ditch_drake.evaluation.report import write_report
 from ditch_drake.evaluation.results import read_records
+from ditch_drake.evaluation.runs import read_runs
+from ditch_drake.world.environments import ConfigError
 
 TINY = """
 name: tiny

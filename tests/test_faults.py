@@ -18,7 +18,6 @@ import numpy as np
 import pytest
 import torch
 
-from ditch_drake import actions
 from ditch_drake.cli import main
 from ditch_drake.demos.dataset import (
     DatasetError,
@@ -29,7 +28,6 @@ from ditch_drake.demos.dataset import (
     save_demonstration,
     standard_metadata,
 )
-from ditch_drake.environments import ConfigError
 from ditch_drake.evaluation.batch import evaluate, make_specs
 from ditch_drake.evaluation.report import default_outputs, load_report_data, tracked_by_git, write_report
 from ditch_drake.evaluation.results import (
@@ -54,8 +52,10 @@ from ditch_drake.learning.checkpoint import (
 from ditch_drake.learning.data import ArraySet
 from ditch_drake.learning.model import FourInputClassifier
 from ditch_drake.learning.train import TrainConfig, interrupted_path, resume_path, train
-from ditch_drake.observation_spec import IMAGE_STACK_SHAPE
 from ditch_drake.perception.normal_image import NormalImageConfig, cloud_to_normal_image
+from ditch_drake.spec import actions
+from ditch_drake.spec.observation_layout import IMAGE_STACK_SHAPE
+from ditch_drake.world.environments import ConfigError
 
 STOP_WITHIN_S = 5.0
 
@@ -292,8 +292,12 @@ def test_replay_and_evaluate_default_to_the_environments_own_model():
     for command in (["replay", "--env", "narrow"], ["evaluate", "--env", "narrow"], ["demo", "--env", "narrow"]):
         args = build_parser().parse_args(command)
         assert _checkpoint_for(args, "narrow") == "narrow"
-    replay, demo = (build_parser().parse_args([name]) for name in ("replay", "demo"))
-    assert (replay.env, replay.task, replay.seed) == (demo.env, demo.task, demo.seed)
+    from ditch_drake.cli import _scenario
+
+    replay = _scenario(build_parser().parse_args(["replay"]))
+    demo = build_parser().parse_args(["demo"])
+    assert (replay.environment, replay.task, replay.seed) == (demo.env, demo.task, demo.seed)
+    assert replay.controller.checkpoint == demo.env
 
 
 # A small and fast training configuration, as in test_learning.py.
@@ -611,14 +615,16 @@ def test_huge_coordinates_give_the_image_of_the_same_cloud_at_metric_scale(metho
 
 def _record(controller: str, checkpoint: str, digest: str, seed: int, status: str, env: str = "wide",
             peak_tilt_deg: float = 30.0) -> RolloutRecord:
-    return RolloutRecord(
-        key=record_key(controller, checkpoint, digest, env, 0, seed, 120.0, 1.5), controller=controller,
+    record = RolloutRecord(
+        key="", controller=controller,
         checkpoint=checkpoint, environment=env, task=0, seed=seed, time_limit_s=120.0, goal_radius_m=1.5,
         checkpoint_sha256=digest, status=status, success=status == "reached_goal", time_s=50.0, path_length_m=20.0,
         peak_abs_roll_deg=10.0, peak_abs_pitch_deg=peak_tilt_deg, peak_tilt_deg=peak_tilt_deg,
         min_stability_margin_deg=20.0, final_x_m=0.0, final_y_m=0.0,
         failure_region="" if status in ("reached_goal", "error") else "up_wall", wall_s=1.0,
         error="RuntimeError: boom" if status == "error" else "")
+    record.key = record_key(record)
+    return record
 
 
 def _write(path, records: list[RolloutRecord]) -> None:
@@ -750,8 +756,8 @@ def test_the_replay_page_has_a_title_and_a_legend():
     from ditch_drake.diagrams.ditch_scene import SceneConfig
     from ditch_drake.diagrams.replay import ReplayConfig, replay_fields, replay_title, with_legend
     from ditch_drake.diagrams.rollout import LearnedPolicyConfig, RolloutConfig
-    from ditch_drake.environments import get_environment
     from ditch_drake.systems.episode_monitor import EpisodeConfig, EpisodeOutcome
+    from ditch_drake.world.environments import get_environment
 
     config = ReplayConfig(rollout=RolloutConfig(scene=SceneConfig(environment="wide", task=1),
                                                 controller=LearnedPolicyConfig(checkpoint="wide")), seed=7)
@@ -809,7 +815,7 @@ def test_every_option_of_every_command_has_a_help_text():
 
 
 def test_stale_temporaries_of_dead_processes_are_removed_and_live_ones_kept(tmp_path):
-    from ditch_drake.files import atomic_write_text, remove_stale_temporaries
+    from ditch_drake.common.files import atomic_write_text, remove_stale_temporaries
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True,
                           check=True).stdout.strip()

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 import torch
 
-from ditch_drake import actions
 from ditch_drake.learning import train as train_module
 from ditch_drake.learning.balance import SmoteConfig, balance, smote_samples, synthetic_counts
 from ditch_drake.learning.checkpoint import (
@@ -26,7 +25,8 @@ from ditch_drake.learning.data import (
 from ditch_drake.learning.metrics import confusion_matrix, exact_accuracy, ordinal_accuracy
 from ditch_drake.learning.model import FourInputClassifier, ModelConfig, parameter_count, parameter_groups
 from ditch_drake.learning.train import TrainConfig, available_precision, resume_path, train
-from ditch_drake.observation_spec import IMAGE_STACK_SHAPE, IMAGE_STACK_SIZE
+from ditch_drake.spec import actions
+from ditch_drake.spec.observation_layout import IMAGE_STACK_SHAPE, IMAGE_STACK_SIZE
 
 
 def make_arrays(labels, demos: int, seed: int = 0, image_dtype=np.uint8) -> ArraySet:

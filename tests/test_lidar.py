@@ -14,17 +14,11 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import CacheIndex, Diagram, DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F
 
-from ditch_drake import robot
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
-from ditch_drake.systems.lidar import (
-    AddLidar,
-    DepthImagesToLidarCloud,
-    LidarConfig,
-    LidarHandles,
-    MergeAnchoredPerceptionBoxes,
-    lidar_camera_info,
-    lidar_camera_poses,
-)
+from ditch_drake.diagrams.lidar_rig import AddLidar, LidarHandles, MergeAnchoredPerceptionBoxes
+from ditch_drake.perception.lidar_model import LidarConfig, lidar_camera_info, lidar_camera_poses
+from ditch_drake.spec import robot
+from ditch_drake.systems.lidar import DepthImagesToLidarCloud
 
 
 @dataclass
@@ -293,7 +287,7 @@ _RENDER_ONE_CLOUD = """
 import sys, numpy as np
 from pydrake.systems.framework import DiagramBuilder
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig
-from ditch_drake.systems.lidar import AddLidar
+from ditch_drake.diagrams.lidar_rig import AddLidar
 builder = DiagramBuilder()
 lidar = AddLidar(builder, AddDitchScene(builder, SceneConfig(environment="sine", task=1)))
 diagram = builder.Build()

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from ditch_drake.browser import find_chromium, screenshot
 from ditch_drake.cli import main
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.diagrams.replay import ReplayConfig, ReplayOutputError, record_replay
 from ditch_drake.diagrams.rollout import ExpertConfig, RolloutConfig
-from ditch_drake.environments import ConfigError
+from ditch_drake.docs_tools.browser import find_chromium, screenshot
 from ditch_drake.systems.episode_monitor import EpisodeConfig
+from ditch_drake.world.environments import ConfigError
 
 
 @pytest.fixture(scope="module")

@@ -1,12 +1,12 @@
-"""The Husky model agrees with the SPEC numbers in ditch_drake/robot.py."""
+"""The Husky model agrees with the SPEC numbers in ditch_drake/spec/robot.py."""
 
 import numpy as np
 import pytest
 from pydrake.multibody.plant import MultibodyPlant
 from pydrake.multibody.tree import RevoluteJoint
 
-from ditch_drake import robot
 from ditch_drake.diagrams.ditch_scene import AddHusky, MakeParser
+from ditch_drake.spec import robot
 
 
 @pytest.fixture(scope="module")

@@ -8,11 +8,11 @@ from pydrake.common import RandomGenerator
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.analysis import Simulator
 
-from ditch_drake import robot
 from ditch_drake.diagrams.ditch_scene import MakeDitchDiagram, SceneConfig, chassis_pose
 from ditch_drake.diagrams.rollout import ConstantCommandConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
-from ditch_drake.environments import ConfigError
+from ditch_drake.spec import robot
 from ditch_drake.systems.episode_monitor import EpisodeConfig, stability_margins_rad
+from ditch_drake.world.environments import ConfigError
 
 ENVIRONMENTS = ["crater", "wide", "narrow", "sine"]
 

@@ -11,10 +11,10 @@ from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantValueSource, ConstantVectorSource
 
-from ditch_drake import observation_spec as spec
-from ditch_drake import robot
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig
-from ditch_drake.planar import wrap_to_pi
+from ditch_drake.spec import observation_layout as spec
+from ditch_drake.spec import robot
+from ditch_drake.spec.planar import wrap_to_pi
 from ditch_drake.systems.frame_stacker import FrameStacker
 from ditch_drake.systems.goal import GoalSensor
 from ditch_drake.systems.imu import AddImu, Imu, ImuConfig

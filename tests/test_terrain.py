@@ -5,8 +5,8 @@ import math
 import numpy as np
 import pytest
 
-from ditch_drake.environments import get_environment
-from ditch_drake.terrain import DitchTerrain, TerrainError, TerrainParams
+from ditch_drake.world.environments import get_environment
+from ditch_drake.world.terrain import DitchTerrain, TerrainError, TerrainParams
 
 ENVIRONMENTS = ["crater", "wide", "narrow", "sine"]
 

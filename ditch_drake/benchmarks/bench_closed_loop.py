@@ -17,8 +17,8 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from ditch_drake.bench import measure_closed_loops, measure_host_reference_ms
-from ditch_drake.environments import environment_names
+from ditch_drake.benchmarks.bench import measure_closed_loops, measure_host_reference_ms
+from ditch_drake.world.environments import environment_names
 
 # The perception issue's targets.
 OBSERVATION_TARGET_MS = 3.0

@@ -1,4 +1,4 @@
-"""Times the move_base baseline (`ditch_drake.systems.dwa.DwaController`) on the real lidar.
+"""Times the move_base baseline (`ditch_drake.systems.dwa_controller.DwaController`) on the real lidar.
 
 Run: `python -m ditch_drake.benchmarks.bench_dwa [environment] [seconds]`. A closed-loop drive
 of the DWA through the environment's first task (seed 0) records what the controller saw at
@@ -21,16 +21,15 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
-from pydrake.common import RandomGenerator
 from pydrake.math import RigidTransform
 from pydrake.perception import BaseField, Fields, PointCloud
 from pydrake.systems.analysis import Simulator
 
-from ditch_drake import robot, schedule
 from ditch_drake.diagrams.ditch_scene import SceneConfig
-from ditch_drake.diagrams.rollout import DwaBaselineConfig, MakeRolloutDiagram, RolloutConfig
+from ditch_drake.diagrams.rollout import DwaBaselineConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
 from ditch_drake.planning.global_planner import plan
-from ditch_drake.systems.dwa import DwaController
+from ditch_drake.spec import robot
+from ditch_drake.systems.dwa_controller import DwaController
 
 
 @dataclass
@@ -53,26 +52,32 @@ class LidarDrive:
 
 
 def record_lidar_drive(environment: str = "wide", task: int = 0, seed: int = 0, duration_s: float = 10.0) -> LidarDrive:
-    """Drives the DWA baseline for `duration_s` (s) and records its inputs at each control step.
+    """Drives the DWA baseline for `duration_s` (s), or until the episode ends, and records its
+    inputs at each control step.
 
-    The recording reads the controller's input ports just after its update in each step
-    (`schedule.CONTROLLER_OFFSET_S`), so they are the values that update used.
+    The recording reads the controller's input ports once per control step, at the first
+    simulator step that ends 0.1 ms or more after the controller's update
+    (`controller_offset_s`): every block is discrete, so they hold the values that update
+    used until the next event.
     """
     config = DwaBaselineConfig()
     diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment, task=task),
                                                       controller=config))
     controller = diagram.GetSubsystemByName("dwa")
     chassis_index = scene.plant.GetBodyByName("chassis", scene.husky).index()
-    simulator = Simulator(diagram)
-    context = simulator.get_mutable_context()
-    diagram.SetRandomContext(context, RandomGenerator(seed))
-    simulator.Initialize()
+    steps = round(duration_s / scene.schedule.control_period_s)
     clouds, poses = [], []
-    for step in range(round(duration_s / robot.CONTROL_PERIOD_S)):
-        simulator.AdvanceTo(step * robot.CONTROL_PERIOD_S + schedule.CONTROLLER_OFFSET_S + 1e-4)
-        controller_context = controller.GetMyContextFromRoot(context)
-        clouds.append(controller.GetInputPort("point_cloud").Eval(controller_context).xyzs().T.copy())
-        poses.append(controller.GetInputPort("body_poses").Eval(controller_context)[chassis_index].GetAsMatrix4())
+
+    def read_after_update(step: int) -> float:
+        return step * scene.schedule.control_period_s + scene.schedule.controller_offset_s + 1e-4
+
+    def record(root_context) -> None:
+        if len(clouds) < steps and root_context.get_time() >= read_after_update(len(clouds)):
+            controller_context = controller.GetMyContextFromRoot(root_context)
+            clouds.append(controller.GetInputPort("point_cloud").Eval(controller_context).xyzs().T.copy())
+            poses.append(controller.GetInputPort("body_poses").Eval(controller_context)[chassis_index].GetAsMatrix4())
+
+    RunEpisode(Simulator(diagram), diagram, scene, seed, watch=record, end_time_s=read_after_update(steps - 1))
     lidar = diagram.GetSubsystemByName("lidar")
     return LidarDrive(np.array(clouds), np.array(poses), np.asarray(lidar.ray_directions_L, dtype=float),
                       controller.X_BL.GetAsMatrix4(), np.asarray(scene.task.goal, dtype=float)[:2])

@@ -20,7 +20,8 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import DiagramBuilder
 
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig
-from ditch_drake.systems.lidar import AddLidar, LidarConfig
+from ditch_drake.diagrams.lidar_rig import AddLidar
+from ditch_drake.perception.lidar_model import LidarConfig
 
 
 def measure_lidar_ms(env: str = "wide", repeats: int = 20, config: LidarConfig | None = None) -> dict:

@@ -12,8 +12,8 @@ import time
 
 import numpy as np
 
-from ditch_drake import robot
 from ditch_drake.perception.normal_image import NormalImageConfig, cloud_to_normal_image
+from ditch_drake.spec import robot
 
 
 def ditch_height(

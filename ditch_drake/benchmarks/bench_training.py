@@ -22,8 +22,8 @@ import time
 
 import numpy as np
 
-from ditch_drake.actions import NUM_LABELS, STRAIGHT_LABEL
-from ditch_drake.observation_spec import (
+from ditch_drake.spec.actions import NUM_LABELS, STRAIGHT_LABEL
+from ditch_drake.spec.observation_layout import (
     BEARING_STACK_SIZE,
     DISTANCE_STACK_SIZE,
     IMAGE_STACK_SHAPE,

@@ -1,7 +1,7 @@
 """Collecting demonstrations with the scripted expert, resumably and in parallel.
 
 Each demonstration is written by its worker, atomically, the moment it ends; Ctrl-C or
-SIGTERM kills the workers at once (`ditch_drake.parallel`) and the report says how many were
+SIGTERM kills the workers at once (`ditch_drake.common.parallel`) and the report says how many were
 kept, so the same command run again records only the missing ones.
 """
 
@@ -10,13 +10,20 @@ from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from pydrake.common import RandomGenerator
 from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder, System
 from tqdm import tqdm
 
-from ditch_drake import robot
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.files import remove_stale_temporaries
+from ditch_drake.common.parallel import (
+    WorkerPool,
+    check_workers,
+    interrupt_exit_code,
+    terminate_as_interrupt,
+    worker_count,
+)
 from ditch_drake.demos.dataset import (
     DatasetError,
     Demonstration,
@@ -25,23 +32,22 @@ from ditch_drake.demos.dataset import (
     save_demonstration,
     standard_metadata,
 )
+from ditch_drake.diagrams.controllers import get_controller
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
-from ditch_drake.diagrams.rollout import AddLearnedPolicy
-from ditch_drake.environments import get_environment
-from ditch_drake.errors import ConfigError
-from ditch_drake.files import remove_stale_temporaries
+from ditch_drake.diagrams.rollout import AddLearnedPolicy, ExpertConfig, RunEpisode
 from ditch_drake.learning.checkpoint import checkpoint_digest, load_checkpoint, resolve_checkpoint_path
-from ditch_drake.parallel import WorkerPool, check_workers, interrupt_exit_code, terminate_as_interrupt, worker_count
+from ditch_drake.spec import robot
 from ditch_drake.systems.demo_recorder import DemoRecorder
-from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
+from ditch_drake.systems.expert import ExpertVariation, draw_expert_style
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
 from ditch_drake.systems.teleop import ActionQuantizer
+from ditch_drake.world.environments import get_environment
 
 ATTEMPTS_PER_DEMO = 5
 
-LABELLER_VARIATION = ExpertVariation(wall_angle_deg=(20.0, 20.0), climb_angle_deg=(35.0, 35.0),
-                                     approach_margin_m=(2.5, 2.5), reaction_delay_steps=0, steering_noise_radps=0.0)
+LABELLER_VARIATION = ExpertVariation(wall_angle_deg=[20.0, 20.0], climb_angle_deg=[35.0, 35.0],
+                                     approach_margin_m=[2.5, 2.5], reaction_delay_steps=0, steering_noise_radps=0.0)
 """The expert as a DAgger labeller: the middle of the demonstrators' style, with no delay
 and no noise, so that a label is the expert's answer to exactly the recorded observation."""
 
@@ -69,6 +75,7 @@ class CollectConfig:
             policy drives, the expert only labels what it sees (use `LABELLER_VARIATION`),
             and every rollout is kept, one per seed, whatever its outcome (a rollover's
             last `ROLLOVER_TRIM_S` dropped).
+        environments_file: a YAML file of environments that `environment` may name ("": packaged).
     """
 
     environment: str = "wide"
@@ -79,6 +86,7 @@ class CollectConfig:
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     variation: ExpertVariation = field(default_factory=ExpertVariation)
     learner: str | None = None
+    environments_file: str = ""
 
 
 @dataclass
@@ -107,22 +115,27 @@ def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
         raise ConfigError("a person drives through meshcat: pass a Meshcat")
     builder = DiagramBuilder()
     scene = AddDitchScene(builder, scene_config, meshcat)
+    schedule = scene.schedule
     observation = AddObservation(builder, scene, observation_config)
     chassis = scene.plant.GetBodyByName("chassis", scene.husky)
     if person_drives:
-        source = builder.AddNamedSystem("meshcat_teleop", MeshcatTeleop(meshcat))
+        source = builder.AddNamedSystem("meshcat_teleop", MeshcatTeleop(
+            meshcat, period_s=schedule.control_period_s, offset_s=schedule.controller_offset_s))
+        quantizer = builder.AddNamedSystem("action_quantizer", ActionQuantizer())
+        builder.Connect(source.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
     else:
-        source = builder.AddNamedSystem("expert", ExpertDriver(
-            scene.terrain, scene.task.goal, chassis.index(), draw_expert_style(style_seed, variation)))
-        builder.Connect(scene.plant.get_body_poses_output_port(), source.GetInputPort("body_poses"))
-    quantizer = builder.AddNamedSystem("action_quantizer", ActionQuantizer())
-    builder.Connect(source.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
+        # The registry's expert: `ExpertDriver` ("expert") through the action quantizer.
+        command = get_controller("expert").add(builder, scene, ExpertConfig(
+            style_seed=style_seed, variation=variation or ExpertVariation()))
+        quantizer = command.get_system()
+        source = builder.GetSubsystemByName("expert")
     if learner is None:
         builder.Connect(quantizer.GetOutputPort("command"), scene.drive.GetInputPort("command"))
     else:
         policy = AddLearnedPolicy(builder, observation, learner)
         builder.Connect(policy.GetOutputPort("command"), scene.drive.GetInputPort("command"))
-    recorder = builder.AddNamedSystem("demo_recorder", DemoRecorder(chassis.index()))
+    recorder = builder.AddNamedSystem("demo_recorder", DemoRecorder(
+        chassis.index(), period_s=schedule.control_period_s, offset_s=schedule.recorder_offset_s))
     ConnectObservation(builder, observation, recorder)
     builder.Connect(quantizer.GetOutputPort("label"), recorder.GetInputPort("label"))
     builder.Connect(source.GetOutputPort("raw_command"), recorder.GetInputPort("raw_command"))
@@ -140,19 +153,19 @@ def _run_and_record(rig: DemonstrationRig, environment: str, task: int, seed: in
     """
     simulator = Simulator(rig.diagram)
     simulator.set_target_realtime_rate(realtime_rate)
-    context = simulator.get_mutable_context()
-    rig.diagram.SetRandomContext(context, RandomGenerator(seed))
-    if "expert_style" in metadata:
-        rig.source.set_style(context, metadata["expert_style"])
-        metadata["expert_style"] = asdict(metadata["expert_style"])
-    simulator.Initialize()
-    simulator.AdvanceTo(rig.scene.episode.time_limit_s + 1.0)
-    outcome = rig.scene.monitor.outcome(rig.scene.monitor.GetMyContextFromRoot(context))
-    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(context))
+    style = metadata.get("expert_style")
+
+    def set_style(root_context) -> None:
+        rig.source.set_style(root_context, style)
+
+    outcome = RunEpisode(simulator, rig.diagram, rig.scene, seed, before_start=None if style is None else set_style)
+    if style is not None:
+        metadata["expert_style"] = asdict(style)
+    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(simulator.get_context()))
     task_info = {"index": task, "name": rig.scene.task.name, "start": rig.scene.task.start, "goal": rig.scene.task.goal}
     return Demonstration(log_to_arrays(log), standard_metadata(
         environment=environment, task=task_info, seed=seed, outcome=asdict(outcome),
-        control_period_s=robot.CONTROL_PERIOD_S, **metadata))
+        control_period_s=rig.scene.schedule.control_period_s, **metadata))
 
 
 def record_demonstration(environment: str, task: int, seed: int,
@@ -174,10 +187,10 @@ def record_demonstration(environment: str, task: int, seed: int,
 
 
 def record_person_demonstration(environment: str, task: int, meshcat: Meshcat, seed: int = 0,
-                                realtime_rate: float = 1.0) -> Demonstration:
+                                realtime_rate: float = 1.0, environments_file: str = "") -> Demonstration:
     """A person steers with the arrow keys or a gamepad in the meshcat page, in real time."""
-    rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task), seed, meshcat=meshcat,
-                                   person_drives=True)
+    rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task, environments_file=environments_file),
+                                   seed, meshcat=meshcat, person_drives=True)
     return _run_and_record(rig, environment, task, seed, realtime_rate, driver="person (meshcat teleop)")
 
 
@@ -202,12 +215,14 @@ _WORKER_RIGS: dict[tuple, DemonstrationRig] = {}
 
 def _worker_rig(config: CollectConfig, task: int, reaction_delay_steps: int) -> DemonstrationRig:
     key = (config.environment, task, reaction_delay_steps, repr(config.observation), repr(config.variation),
-           config.learner)
+           config.learner,
+           config.environments_file)
     if key not in _WORKER_RIGS:
         # Any seed with this delay builds the same diagram; each demonstration sets its own style.
         style_seed = next(seed for seed in range(10_000)
                           if draw_expert_style(seed, config.variation).reaction_delay_steps == reaction_delay_steps)
-        _WORKER_RIGS[key] = MakeDemonstrationDiagram(SceneConfig(environment=config.environment, task=task),
+        _WORKER_RIGS[key] = MakeDemonstrationDiagram(SceneConfig(environment=config.environment, task=task,
+                                                                 environments_file=config.environments_file),
                                                      style_seed, config.observation, config.variation,
                                                      learner=config.learner)
     return _WORKER_RIGS[key]
@@ -223,7 +238,7 @@ def trim_rollover(demonstration: Demonstration) -> Demonstration:
 
 
 def _collect_slot(config: CollectConfig, index: int) -> dict:
-    tasks = len(get_environment(config.environment).tasks)
+    tasks = len(get_environment(config.environment, config.environments_file or None).tasks)
     if config.learner is not None:
         seed = config.seed + index
         rig = _worker_rig(config, index % tasks, draw_expert_style(seed, config.variation).reaction_delay_steps)
@@ -277,7 +292,7 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     (KeyboardInterrupt) or SIGTERM stops it within a second or two: the report then has
     `interrupted` True and the shell's `exit_code` (130 or 143), and is not re-raised.
     """
-    get_environment(config.environment)
+    get_environment(config.environment, config.environments_file or None)
     if not isinstance(config.demos, int) or config.demos <= 0:
         raise ConfigError(f"demos={config.demos!r} must be a positive integer")
     check_workers(config.workers)

@@ -34,10 +34,11 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ditch_drake import __version__, actions
-from ditch_drake.errors import ConfigError, DatasetError
-from ditch_drake.files import atomic_output
-from ditch_drake.observation_spec import IMAGE_SHAPE, STACK_DEPTH
+from ditch_drake import __version__
+from ditch_drake.common.errors import ConfigError, DatasetError
+from ditch_drake.common.files import atomic_output
+from ditch_drake.spec import actions
+from ditch_drake.spec.observation_layout import IMAGE_SHAPE, STACK_DEPTH
 
 if TYPE_CHECKING:  # Reading and training need no Drake: a GPU box without pydrake can train.
     from ditch_drake.systems.demo_recorder import DemoLog
@@ -132,7 +133,7 @@ def save_demonstration(path: str | Path, demonstration: Demonstration) -> Path:
     """Validates and writes one demonstration atomically; returns the path.
 
     The file gets the mode a plain `open()` would give (0666 less the umask; see
-    `ditch_drake.files.atomic_output`).
+    `ditch_drake.common.files.atomic_output`).
     """
     path = Path(path)
     _validate(demonstration.arrays, demonstration.metadata, path)

@@ -21,11 +21,12 @@ from pydrake.symbolic import Expression, Variable, cos, sin
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.visualization import ApplyVisualizationConfig, VisualizationConfig
 
-from ditch_drake import robot
-from ditch_drake.environments import ConfigError, Environment, Task, get_environment, get_task
+from ditch_drake.spec import robot
+from ditch_drake.spec.schedule import ScheduleConfig
 from ditch_drake.systems.episode_monitor import EpisodeConfig, EpisodeMonitor
 from ditch_drake.systems.skid_steer_drive import SkidSteerDrive
-from ditch_drake.terrain import DitchTerrain
+from ditch_drake.world.environments import ConfigError, Environment, Task, get_environment, get_task
+from ditch_drake.world.terrain import DitchTerrain
 
 TERRAIN_COLORS = {
     "ground": np.array([0.45, 0.62, 0.33, 1.0]),
@@ -55,17 +56,22 @@ class SceneConfig:
         environment: a name from the environments file.
         task: index of the environment's start/goal task.
         environments_file: a YAML file of environments; empty for the packaged one.
+        environments: environments defined inline, in the schema of one entry of the
+            environments file; `environment` may name one of them.
         plant: Drake's own plant configuration.
         start_jitter: seeded start perturbation (see `SetEpisodeSeed`).
         episode: when the episode ends.
+        schedule: the control period and each stage's offset, passed down to every block.
     """
 
     environment: str = "wide"
     task: int = 0
     environments_file: str = ""
+    environments: dict[str, Environment] = field(default_factory=dict)
     plant: MultibodyPlantConfig = field(default_factory=DefaultPlantConfig)
     start_jitter: StartJitter = field(default_factory=StartJitter)
     episode: EpisodeConfig = field(default_factory=EpisodeConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
 
 
 @dataclass
@@ -81,6 +87,8 @@ class DitchScene:
     environment: Environment
     task: Task
     episode: EpisodeConfig
+    schedule: ScheduleConfig
+    environment_name: str = ""
 
 
 def models_package_xml() -> Path:
@@ -171,7 +179,7 @@ def AddDitchScene(builder: DiagramBuilder, config: SceneConfig, meshcat: Meshcat
 
     The drive's `command` input is left for the caller to connect or export.
     """
-    environment = get_environment(config.environment, config.environments_file or None)
+    environment = get_environment(config.environment, config.environments_file or None, config.environments)
     task = get_task(environment, config.task)
     if config.plant.time_step <= 0:
         raise ConfigError(f"plant.time_step={config.plant.time_step} must be > 0: the scene needs a discrete plant")
@@ -190,12 +198,14 @@ def AddDitchScene(builder: DiagramBuilder, config: SceneConfig, meshcat: Meshcat
     builder.Connect(drive.GetOutputPort("wheel_desired_state"), plant.get_desired_state_input_port(husky))
 
     chassis = plant.GetBodyByName("chassis", husky)
-    monitor = builder.AddNamedSystem("episode_monitor", EpisodeMonitor(chassis.index(), task.goal, config.episode))
+    monitor = builder.AddNamedSystem("episode_monitor", EpisodeMonitor(
+        chassis.index(), task.goal, config.episode, period_s=config.schedule.control_period_s))
     builder.Connect(plant.get_body_poses_output_port(), monitor.GetInputPort("body_poses"))
 
     if meshcat is not None:
         ApplyVisualizationConfig(VisualizationConfig(publish_contacts=False), builder, meshcat=meshcat)
-    return DitchScene(plant, scene_graph, husky, drive, monitor, terrain, environment, task, config.episode)
+    return DitchScene(plant, scene_graph, husky, drive, monitor, terrain, environment, task, config.episode,
+                      config.schedule, config.environment)
 
 
 def MakeDitchDiagram(config: SceneConfig, meshcat: Meshcat | None = None) -> tuple[Diagram, DitchScene]:

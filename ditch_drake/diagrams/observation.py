@@ -9,14 +9,15 @@ from dataclasses import dataclass, field
 
 from pydrake.systems.framework import DiagramBuilder, OutputPort, System
 
-from ditch_drake import schedule
 from ditch_drake.diagrams.ditch_scene import DitchScene
+from ditch_drake.diagrams.lidar_rig import AddLidar, LidarHandles
+from ditch_drake.perception.lidar_model import LidarConfig
 from ditch_drake.perception.normal_image import NormalImageConfig
+from ditch_drake.spec.schedule import ScheduleConfig
 from ditch_drake.systems.frame_stacker import FrameStacker
 from ditch_drake.systems.goal import GoalSensor
 from ditch_drake.systems.imu import AddImu, Imu, ImuConfig
-from ditch_drake.systems.lidar import AddLidar, LidarConfig, LidarHandles
-from ditch_drake.systems.normal_image import NormalImageConverter
+from ditch_drake.systems.normal_image_converter import NormalImageConverter
 
 OBSERVATION_PORTS = ("image_stack", "imu_stack", "distance_stack", "bearing_stack")
 
@@ -40,12 +41,13 @@ class Observation:
     goal: GoalSensor
     stacker: FrameStacker
     ports: dict[str, OutputPort]
+    schedule: ScheduleConfig
 
 
 def AddObservation(builder: DiagramBuilder, scene: DitchScene, config: ObservationConfig | None = None) -> Observation:
     """Adds lidar, normal-image converter, IMU, goal sensor and frame stacker to a scene.
 
-    The stages run in order within each control step (`ditch_drake.schedule`).
+    The stages run in order within each control step (`scene.schedule`, `ditch_drake.spec.schedule`).
     """
     config = config or ObservationConfig()
     plant = scene.plant
@@ -55,16 +57,18 @@ def AddObservation(builder: DiagramBuilder, scene: DitchScene, config: Observati
     normal_image = builder.AddNamedSystem("normal_image", NormalImageConverter(
         config.normal_image, organized_shape=lidar.converter.organized_shape, R_BS=lidar.X_BL.rotation()))
     builder.Connect(lidar.converter.GetOutputPort("organized_points"), normal_image.GetInputPort("point_cloud"))
-    imu = AddImu(builder, plant.get_body_poses_output_port(), chassis.index(), config.imu)
+    imu = AddImu(builder, plant.get_body_poses_output_port(), chassis.index(), config.imu,
+                 noise_period_s=scene.schedule.control_period_s)
     goal = builder.AddNamedSystem("goal_sensor", GoalSensor(chassis.index(), scene.task.goal))
     builder.Connect(plant.get_body_poses_output_port(), goal.GetInputPort("body_poses"))
-    stacker = builder.AddNamedSystem("frame_stacker", FrameStacker(offset_s=schedule.STACKER_OFFSET_S))
+    stacker = builder.AddNamedSystem("frame_stacker", FrameStacker(
+        period_s=scene.schedule.control_period_s, offset_s=scene.schedule.stacker_offset_s))
     builder.Connect(normal_image.GetOutputPort("normal_image"), stacker.GetInputPort("normal_image"))
     builder.Connect(imu.GetOutputPort("roll_pitch"), stacker.GetInputPort("roll_pitch"))
     builder.Connect(goal.GetOutputPort("distance"), stacker.GetInputPort("distance"))
     builder.Connect(goal.GetOutputPort("bearing"), stacker.GetInputPort("bearing"))
     ports = {name: stacker.GetOutputPort(name) for name in OBSERVATION_PORTS}
-    return Observation(lidar, normal_image, imu, goal, stacker, ports)
+    return Observation(lidar, normal_image, imu, goal, stacker, ports, scene.schedule)
 
 
 def ConnectObservation(builder: DiagramBuilder, observation: Observation, system: System) -> None:

@@ -16,31 +16,31 @@ made visible only during its own interval of the animation.
 import contextlib
 import html
 import logging
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from pydrake.common import RandomGenerator
 from pydrake.geometry import Meshcat, Rgba
 from pydrake.perception import BaseField, Fields, PointCloud
-from pydrake.systems.analysis import Simulator, SimulatorStatus
+from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder
-from tqdm import tqdm
 
+from ditch_drake.common.files import atomic_output, remove_stale_temporaries
+from ditch_drake.diagrams.controllers import entry_for_config
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene
+from ditch_drake.diagrams.lidar_rig import AddLidar, LidarHandles
 from ditch_drake.diagrams.rollout import (
     AddController,
     ConstantCommandConfig,
-    ControllerConfig,
     DwaBaselineConfig,
     ExpertConfig,
     LearnedPolicyConfig,
     RolloutConfig,
+    RunEpisode,
 )
-from ditch_drake.files import atomic_output, remove_stale_temporaries
+from ditch_drake.perception.lidar_model import LidarConfig
+from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
-from ditch_drake.systems.lidar import AddLidar, LidarConfig, LidarHandles
 
 _PREFIX = "/replay"
 _LIDAR_RGBA = Rgba(1.0, 0.35, 0.0, 1.0)
@@ -136,7 +136,7 @@ def record_replay(config: ReplayConfig, meshcat: Meshcat | None = None, progress
     return ReplayResult(outcome=outcome, html_path=out, html_bytes=out.stat().st_size, snapshots=snapshots)
 
 
-def controller_description(config: ControllerConfig) -> str:
+def controller_description(config) -> str:
     """The controller in words, with the learned policy's checkpoint and its file's digest."""
     if isinstance(config, LearnedPolicyConfig):
         from ditch_drake.learning.checkpoint import checkpoint_digest
@@ -152,13 +152,16 @@ def controller_description(config: ControllerConfig) -> str:
         return "DWA baseline (move_base)"
     if isinstance(config, ConstantCommandConfig):
         return f"constant command {config.command} [m/s, rad/s]"
-    return f"edge-angle driver (wall angle {config.wall_angle_deg:g} deg)"
+    if isinstance(config, EdgeAngleDriverConfig):
+        return f"edge-angle driver (wall angle {config.wall_angle_deg:g} deg)"
+    return f"{entry_for_config(config).name} ({type(config).__name__})"  # A controller registered by a user.
 
 
 def replay_title(config: ReplayConfig, outcome: EpisodeOutcome) -> str:
     """The page's title: the controller, the environment and task, the seed, the outcome."""
     short = {LearnedPolicyConfig: "Learned policy", ExpertConfig: "Scripted expert", DwaBaselineConfig: "DWA baseline",
-             ConstantCommandConfig: "Constant command"}.get(type(config.rollout.controller), "Edge-angle driver")
+             ConstantCommandConfig: "Constant command", EdgeAngleDriverConfig: "Edge-angle driver"}.get(
+        type(config.rollout.controller)) or entry_for_config(config.rollout.controller).name
     scene = config.rollout.scene
     return f"{short} in {scene.environment}, task {scene.task}, seed {config.seed}: {outcome.status}"
 
@@ -257,40 +260,34 @@ def _output(out: Path):
 
 def _record_episode(config: ReplayConfig, meshcat: Meshcat, diagram: Diagram, scene: DitchScene,
                     lidar: LidarHandles, progress: str | None = None) -> tuple[EpisodeOutcome, int]:
-    """Runs the seeded episode while meshcat records; returns its outcome and the snapshot count."""
-    _frame_the_task(meshcat, scene)
+    """Runs the seeded episode while meshcat records; returns its outcome and the snapshot count.
 
-    simulator = Simulator(diagram)
-    context = simulator.get_mutable_context()
-    diagram.SetRandomContext(context, RandomGenerator(config.seed))
-    simulator.Initialize()
-    meshcat.StartRecording(frames_per_second=config.frames_per_second, set_visualizations_while_recording=False)
-    plant_context = scene.plant.GetMyContextFromRoot(context)
-    lidar_context = lidar.converter.GetMyContextFromRoot(context)
+    Every `snapshot_period_s` of simulated time (`RunEpisode`'s watch) adds a path point and
+    a lidar snapshot, shown from the previous snapshot's time to this one's.
+    """
+    _frame_the_task(meshcat, scene)
     chassis = scene.plant.GetBodyByName("chassis", scene.husky)
-    end_time = scene.episode.time_limit_s + 1.0
-    path_W, snapshots, previous_t = [], 0, 0.0
-    bar = None if progress is None else tqdm(total=round(scene.episode.time_limit_s), desc=progress, unit="sim s",
-                                             file=sys.stderr, leave=False)
-    with bar if bar is not None else contextlib.nullcontext():
-        while True:
-            status = simulator.AdvanceTo(min(context.get_time() + config.snapshot_period_s, end_time))
-            now = context.get_time()
-            X_WB = scene.plant.EvalBodyPoseInWorld(plant_context, chassis)
-            path_W.append(X_WB.translation())
-            cloud_L = lidar.converter.GetOutputPort("point_cloud").Eval(lidar_context)
-            _add_snapshot(meshcat, snapshots, X_WB.multiply(lidar.X_BL), cloud_L, previous_t, now,
-                          config.max_points_per_snapshot)
-            snapshots += 1
-            previous_t = now
-            if bar is not None:
-                bar.update(min(int(now), bar.total) - bar.n)
-            if status.reason() == SimulatorStatus.ReturnReason.kReachedTerminationCondition or now >= end_time:
-                break
+    path_W, shown_from = [], 0.0
+
+    def snapshot(root_context) -> None:
+        nonlocal shown_from
+        now = root_context.get_time()
+        X_WB = scene.plant.EvalBodyPoseInWorld(scene.plant.GetMyContextFromRoot(root_context), chassis)
+        cloud_L = lidar.converter.GetOutputPort("point_cloud").Eval(lidar.converter.GetMyContextFromRoot(root_context))
+        _add_snapshot(meshcat, len(path_W), X_WB.multiply(lidar.X_BL), cloud_L, shown_from, now,
+                      config.max_points_per_snapshot)
+        path_W.append(X_WB.translation())
+        shown_from = now
+
+    def start_recording(root_context) -> None:
+        meshcat.StartRecording(frames_per_second=config.frames_per_second, set_visualizations_while_recording=False)
+
+    outcome = RunEpisode(Simulator(diagram), diagram, scene, config.seed, progress, after_start=start_recording,
+                         watch=snapshot, watch_period_s=config.snapshot_period_s)
     meshcat.StopRecording()
     meshcat.SetLine(f"{_PREFIX}/path", np.asfortranarray(np.array(path_W).T), line_width=3.0, rgba=_PATH_RGBA)
     meshcat.PublishRecording()
-    return scene.monitor.outcome(scene.monitor.GetMyContextFromRoot(context)), snapshots
+    return outcome, len(path_W)
 
 
 def _frame_the_task(meshcat: Meshcat, scene: DitchScene) -> None:

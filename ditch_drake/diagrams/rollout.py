@@ -1,27 +1,29 @@
 """A scene plus a controller, and running seeded episodes on it."""
 
+import contextlib
 import math
 import sys
 import typing
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from pydrake.common import RandomGenerator
 from pydrake.geometry import Meshcat
-from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus, System
+from pydrake.systems.analysis import Simulator, SimulatorStatus
+from pydrake.systems.framework import Context, Diagram, DiagramBuilder, EventStatus, OutputPort, System
 from pydrake.systems.primitives import ConstantVectorSource
 from tqdm import tqdm
 
-from ditch_drake import schedule
+from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
+from ditch_drake.diagrams.lidar_rig import AddLidar
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
-from ditch_drake.errors import ConfigError
-from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint_path
-from ditch_drake.systems.dwa import DwaConfig, DwaController
+from ditch_drake.learning.checkpoint import CheckpointError, environment_model, load_checkpoint, resolve_checkpoint_path
+from ditch_drake.perception.lidar_model import LidarConfig
+from ditch_drake.systems.dwa_controller import DwaConfig, DwaController
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
-from ditch_drake.systems.lidar import AddLidar, LidarConfig
 from ditch_drake.systems.policy import LearnedPolicy
 from ditch_drake.systems.teleop import ActionQuantizer
 
@@ -35,9 +37,15 @@ class ConstantCommandConfig:
 
 @dataclass
 class ExpertConfig:
-    """The scripted expert with the variation drawn from `style_seed`, through the action quantizer."""
+    """The scripted expert with the variation drawn from `style_seed`, through the action quantizer.
 
-    style_seed: int = 0
+    Attributes:
+        style_seed: seeds the expert's style; None: the episode's seed (a batch evaluation
+            builds the expert of each seed), or 0 where no episode seed is known.
+        variation: the ranges the style is drawn from.
+    """
+
+    style_seed: int | None = None
     variation: ExpertVariation = field(default_factory=ExpertVariation)
 
 
@@ -47,11 +55,12 @@ class LearnedPolicyConfig:
 
     Attributes:
         checkpoint: a shipped model's name (`ditch_drake.learning.checkpoint.SHIPPED_MODELS`,
-            e.g. "wide") or the path of a checkpoint file.
+            e.g. "wide"), the path of a checkpoint file, or "" for the shipped model of the
+            environment it drives in.
         observation: the perception blocks feeding it (their defaults match the demonstrations').
     """
 
-    checkpoint: str = "wide"
+    checkpoint: str = ""
     observation: ObservationConfig = field(default_factory=ObservationConfig)
 
 
@@ -68,60 +77,82 @@ class DwaBaselineConfig:
     lidar: LidarConfig = field(default_factory=LidarConfig)
 
 
-ControllerConfig = EdgeAngleDriverConfig | ConstantCommandConfig | ExpertConfig | LearnedPolicyConfig | DwaBaselineConfig
-
-
 @dataclass
 class RolloutConfig:
-    """A scene and the controller that drives it."""
+    """A scene and the controller that drives it (any registered controller's config)."""
 
     scene: SceneConfig = field(default_factory=SceneConfig)
-    controller: ControllerConfig = field(default_factory=EdgeAngleDriverConfig)
+    controller: typing.Any = field(default_factory=EdgeAngleDriverConfig)
 
 
-def AddController(builder: DiagramBuilder, scene: DitchScene, config: ControllerConfig) -> System:
-    """Adds the controller that `config` names and connects its command to the drive.
+def head_on_config() -> EdgeAngleDriverConfig:
+    """The scripted driver straight into the ditch, perpendicular to its edge: the rollover reference."""
+    return EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None)
 
-    Every controller's command output is [v m/s, w rad/s]; the learned policy and
-    the DWA baseline plug in here the same way.
+
+def AddController(builder: DiagramBuilder, scene: DitchScene, config) -> System:
+    """Adds the registered controller whose config `config` is, and connects its command to the drive.
+
+    Every controller's command output is [v m/s, w rad/s]; the learned policy, the DWA
+    baseline and the scripted drivers plug in here the same way (`ditch_drake.diagrams.controllers`).
+
+    Raises:
+        ConfigError: a config of no registered controller.
     """
-    if isinstance(config, EdgeAngleDriverConfig):
-        chassis = scene.plant.GetBodyByName("chassis", scene.husky)
-        controller = builder.AddNamedSystem(
-            "edge_angle_driver", EdgeAngleDriver(scene.terrain, scene.task.goal, chassis.index(), config))
-        builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
-        command = controller.GetOutputPort("command")
-    elif isinstance(config, ConstantCommandConfig):
-        if len(config.command) != 2 or not all(math.isfinite(value) for value in config.command):
-            raise ConfigError(f"constant command {config.command} must be finite [v m/s, w rad/s]")
-        controller = builder.AddNamedSystem("constant_command", ConstantVectorSource(config.command))
-        command = controller.get_output_port()
-    elif isinstance(config, ExpertConfig):
-        chassis = scene.plant.GetBodyByName("chassis", scene.husky)
-        style = draw_expert_style(config.style_seed, config.variation)
-        controller = builder.AddNamedSystem(
-            "expert", ExpertDriver(scene.terrain, scene.task.goal, chassis.index(), style))
-        builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
-        quantizer = builder.AddNamedSystem("action_quantizer", ActionQuantizer())
-        builder.Connect(controller.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
-        command = quantizer.GetOutputPort("command")
-    elif isinstance(config, LearnedPolicyConfig):
-        controller = AddLearnedPolicy(builder, AddObservation(builder, scene, config.observation), config.checkpoint)
-        command = controller.GetOutputPort("command")
-    elif isinstance(config, DwaBaselineConfig):
-        chassis = scene.plant.GetBodyByName("chassis", scene.husky)
-        lidar = AddLidar(builder, scene, config.lidar)
-        controller = builder.AddNamedSystem("dwa", DwaController(
-            scene.task.goal, chassis.index(), lidar.X_BL, config.planner, offset_s=schedule.CONTROLLER_OFFSET_S,
-            ray_directions_L=lidar.converter.ray_directions_L))
-        builder.Connect(lidar.converter.GetOutputPort("organized_points"), controller.GetInputPort("point_cloud"))
-        builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
-        command = controller.GetOutputPort("command")
-    else:
-        raise ConfigError(f"unknown controller config {type(config).__name__}: expected one of "
-                          f"{[kind.__name__ for kind in typing.get_args(ControllerConfig)]}")
+    from ditch_drake.diagrams.controllers import entry_for_config
+
+    command = entry_for_config(config).add(builder, scene, config)
     builder.Connect(command, scene.drive.GetInputPort("command"))
-    return controller
+    return command.get_system()
+
+
+# Each controller's builder adds its blocks to a scene and returns the command output port
+# ([v m/s, w rad/s]); `AddController` connects it to the drive.
+
+
+def AddEdgeAngleDriver(builder: DiagramBuilder, scene: DitchScene, config: EdgeAngleDriverConfig) -> OutputPort:
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    # It reads only the chassis pose, so it acts at the tick itself (offset 0).
+    controller = builder.AddNamedSystem("edge_angle_driver", EdgeAngleDriver(
+        scene.terrain, scene.task.goal, chassis.index(), config, period_s=scene.schedule.control_period_s))
+    builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
+    return controller.GetOutputPort("command")
+
+
+def AddConstantCommand(builder: DiagramBuilder, scene: DitchScene, config: ConstantCommandConfig) -> OutputPort:
+    if len(config.command) != 2 or not all(math.isfinite(value) for value in config.command):
+        raise ConfigError(f"constant command {config.command} must be finite [v m/s, w rad/s]")
+    return builder.AddNamedSystem("constant_command", ConstantVectorSource(config.command)).get_output_port()
+
+
+def AddExpert(builder: DiagramBuilder, scene: DitchScene, config: ExpertConfig) -> OutputPort:
+    """The scripted expert through the action quantizer; the quantizer's `command` drives."""
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    style = draw_expert_style(0 if config.style_seed is None else config.style_seed, config.variation)
+    expert = builder.AddNamedSystem("expert", ExpertDriver(
+        scene.terrain, scene.task.goal, chassis.index(), style, period_s=scene.schedule.control_period_s,
+        offset_s=scene.schedule.controller_offset_s))
+    builder.Connect(scene.plant.get_body_poses_output_port(), expert.GetInputPort("body_poses"))
+    quantizer = builder.AddNamedSystem("action_quantizer", ActionQuantizer())
+    builder.Connect(expert.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
+    return quantizer.GetOutputPort("command")
+
+
+def AddLearnedController(builder: DiagramBuilder, scene: DitchScene, config: LearnedPolicyConfig) -> OutputPort:
+    checkpoint = config.checkpoint or environment_model(scene.environment_name)
+    observation = AddObservation(builder, scene, config.observation)
+    return AddLearnedPolicy(builder, observation, checkpoint).GetOutputPort("command")
+
+
+def AddDwaController(builder: DiagramBuilder, scene: DitchScene, config: DwaBaselineConfig) -> OutputPort:
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    lidar = AddLidar(builder, scene, config.lidar)
+    controller = builder.AddNamedSystem("dwa", DwaController(
+        scene.task.goal, chassis.index(), lidar.X_BL, config.planner, period_s=scene.schedule.control_period_s,
+        offset_s=scene.schedule.controller_offset_s, ray_directions_L=lidar.converter.ray_directions_L))
+    builder.Connect(lidar.converter.GetOutputPort("organized_points"), controller.GetInputPort("point_cloud"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
+    return controller.GetOutputPort("command")
 
 
 def AddLearnedPolicy(builder: DiagramBuilder, observation: Observation, checkpoint: str) -> LearnedPolicy:
@@ -130,9 +161,10 @@ def AddLearnedPolicy(builder: DiagramBuilder, observation: Observation, checkpoi
     Raises:
         CheckpointError: the checkpoint expects other input sizes than the blocks give.
     """
+    schedule = observation.schedule
     policy = builder.AddNamedSystem(
         "learned_policy", LearnedPolicy(load_checkpoint(resolve_checkpoint_path(checkpoint)),
-                                        offset_s=schedule.CONTROLLER_OFFSET_S))
+                                        offset_s=schedule.controller_offset_s, period_s=schedule.control_period_s))
     for name, port in observation.ports.items():
         expected = policy.GetInputPort(name).size()
         if port.size() != expected:
@@ -153,33 +185,105 @@ def MakeRolloutDiagram(config: RolloutConfig, meshcat: Meshcat | None = None) ->
     return diagram, scene
 
 
-def RunEpisode(simulator: Simulator, diagram: Diagram, scene: DitchScene, seed: int,
-               progress: str | None = None) -> EpisodeOutcome:
-    """Runs one episode from a seeded random start until the monitor ends it.
+def StartEpisode(simulator: Simulator, diagram: Diagram, seed: int,
+                 before_start: Callable[[Context], None] | None = None,
+                 after_start: Callable[[Context], None] | None = None) -> None:
+    """Puts `simulator` at the seeded random start of an episode: time 0, `SetRandomContext(seed)`,
+    `before_start`, `Initialize`, `after_start`.
+
+    `RunEpisode`'s first half, on its own for the measurements that advance the simulator
+    themselves (the bench's timed runs, the calibration's flat-ground tracking).
 
     Args:
-        progress: a description for a progress bar of simulated time on stderr (None: none).
-            It watches the steps through the Simulator's monitor and changes nothing.
+        simulator: a Simulator of `diagram`; one serves many episodes, each from a fresh start.
+        diagram: the diagram whose random context (start jitter, sensor noise) `seed` draws.
+        seed: seeds Drake's `RandomGenerator`.
+        before_start: called with the root Context after the random draw and before
+            `Initialize`, to change the start (the expert's style, the robot's pose).
+        after_start: called with the root Context after `Initialize` (and its publishes),
+            before the first step (the replay starts Meshcat's recording there).
     """
     context = simulator.get_mutable_context()
     context.SetTime(0.0)
     diagram.SetRandomContext(context, RandomGenerator(seed))
+    if before_start is not None:
+        before_start(context)
     simulator.Initialize()
-    # The monitor terminates the simulation; the bound is only a backstop.
-    end_s = scene.episode.time_limit_s + 1.0
-    if progress is None:
-        simulator.AdvanceTo(end_s)
-    else:
-        with tqdm(total=round(scene.episode.time_limit_s), desc=progress, unit="sim s", file=sys.stderr,
-                  leave=False) as bar:
+    if after_start is not None:
+        after_start(context)
 
-            def show(root_context) -> EventStatus:
-                bar.update(int(root_context.get_time()) - bar.n)
+
+def RunEpisode(simulator: Simulator, diagram: Diagram, scene: DitchScene, seed: int,
+               progress: str | None = None, before_start: Callable[[Context], None] | None = None,
+               after_start: Callable[[Context], None] | None = None,
+               watch: Callable[[Context], bool | None] | None = None, watch_period_s: float | None = None,
+               end_time_s: float | None = None) -> EpisodeOutcome:
+    """Runs one episode from a seeded random start until the monitor ends it: the one episode
+    sequence of every path that runs one (evaluation, replay, demonstrations and DAgger, the
+    benchmarks, the calibration, the DWA page).
+
+    `StartEpisode` (time 0, `SetRandomContext(seed)`, `before_start`, `Initialize`,
+    `after_start`), then `AdvanceTo` until the scene's episode monitor terminates the
+    simulation, `watch` asks to stop, or the end time. The Simulator's monitor, where
+    `progress` or `watch` uses it, is cleared afterwards.
+
+    Args:
+        simulator: a Simulator of `diagram`; one serves many episodes, each from a fresh start.
+        diagram: the diagram whose random context (start jitter, sensor noise) `seed` draws.
+        scene: the scene whose episode monitor ends and judges the episode.
+        seed: seeds Drake's `RandomGenerator`.
+        progress: a description for a progress bar of simulated time on stderr (None: none).
+            It watches the steps through the Simulator's monitor and changes nothing.
+        before_start: called with the root Context after the random draw and before
+            `Initialize`, to change the start (the expert's style, the robot's pose).
+        after_start: called with the root Context after `Initialize` (and its publishes),
+            before the first step (the replay starts Meshcat's recording there).
+        watch: called with the root Context as the episode runs, to look at it; returning True
+            ends the episode there (its outcome then says "running" unless the monitor had
+            ended it). When it is called is up to `watch_period_s`.
+        watch_period_s: with `watch`, advance in chunks of this many simulated seconds (the
+            last one cut at the end time) and call `watch` after each. None: call `watch` after
+            `Initialize` and after every simulator step, as the Simulator's monitor.
+        end_time_s: advance at most to this time (s); None: the time limit + 1 s, a backstop,
+            since the monitor ends every episode at its time limit.
+
+    Returns:
+        The episode monitor's outcome when the run stopped.
+
+    Raises:
+        ValueError: a `watch_period_s` that is not positive, or one without `watch`.
+    """
+    if watch_period_s is not None and (watch is None or not watch_period_s > 0):
+        raise ValueError(f"watch_period_s={watch_period_s!r} needs a watch and must be positive")
+    end_s = scene.episode.time_limit_s + 1.0 if end_time_s is None else end_time_s
+    bar = None if progress is None else tqdm(total=round(scene.episode.time_limit_s), desc=progress,
+                                             unit="sim s", file=sys.stderr, leave=False)
+    step_watch = watch if watch_period_s is None else None
+    context = simulator.get_mutable_context()
+    with bar if bar is not None else contextlib.nullcontext():
+        if bar is not None or step_watch is not None:
+
+            def monitor(root_context: Context) -> EventStatus:
+                if bar is not None:
+                    bar.update(int(root_context.get_time()) - bar.n)
+                if step_watch is not None and step_watch(root_context):
+                    return EventStatus.ReachedTermination(diagram, "the episode's watch ended it")
                 return EventStatus.DidNothing()
 
-            simulator.set_monitor(show)
-            try:
+            # Set before `Initialize`, which calls the monitor too.
+            simulator.set_monitor(monitor)
+        try:
+            StartEpisode(simulator, diagram, seed, before_start, after_start)
+            if watch_period_s is None:
                 simulator.AdvanceTo(end_s)
-            finally:
+            else:
+                while True:
+                    status = simulator.AdvanceTo(min(context.get_time() + watch_period_s, end_s))
+                    stop = watch(context)
+                    if (stop or status.reason() == SimulatorStatus.ReturnReason.kReachedTerminationCondition
+                            or context.get_time() >= end_s):
+                        break
+        finally:
+            if bar is not None or step_watch is not None:
                 simulator.clear_monitor()
     return scene.monitor.outcome(scene.monitor.GetMyContextFromRoot(context))

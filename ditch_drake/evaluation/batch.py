@@ -12,44 +12,30 @@ record does not finish its rollout: the next run of the same specs runs it again
 
 Ctrl-C or SIGTERM stops a run within a second or two: the workers are killed (what they
 were running is lost and runs again next time), every rollout that had ended is already in
-the file, and the report says the run was interrupted (see `ditch_drake.parallel`).
+the file, and the report says the run was interrupted (see `ditch_drake.common.parallel`).
 
-Each worker builds a diagram once per (controller, checkpoint, environment, task, time
-limit) and reuses it for every seed: building the sine ditch costs seconds, more than some
-rollouts. It keeps the `MAX_WORKER_RIGS` most recently used: each holds a scene, a
-renderer and a network (about 100 MB), and a study of 12 models x 3 environments x 3 tasks
-kept them all until the out-of-memory killer stopped the run (7 GB per worker). Every
-rollout starts from a fresh random Context (`RunEpisode`), so its record depends only on
-its spec, not on what the worker ran before. Even so a worker's memory grows by tens of MB
-per diagram it has built and dropped (about 5 GB after 210 rollouts of the generalization
-study with 4 kept), so a pool's worker processes are replaced after about
+Each worker keeps a few built diagrams (`rollout_worker`), and even so its memory grows by
+tens of MB per diagram it has built and dropped (about 5 GB after 210 rollouts of the
+generalization study with 4 kept), so a pool's worker processes are replaced after about
 `ROLLOUTS_PER_WORKER` rollouts each, which bounds them whatever leaks: the pending rollouts
 run in chunks of workers x `ROLLOUTS_PER_WORKER`, each chunk in a fresh pool. (Not with the
 executor's own `max_tasks_per_child`: on Python 3.11 a pool whose two workers reached that
 limit together stopped starting new ones, and the run hung with no process left working.)
 """
 
-import collections
 import os
 import sys
 import time
 from concurrent.futures import as_completed
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-import numpy as np
-from pydrake.systems.analysis import Simulator
 from tqdm import tqdm
 
-from ditch_drake.diagrams.controllers import CONTROLLERS, controller_config
-from ditch_drake.diagrams.ditch_scene import SceneConfig
-from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
-from ditch_drake.environments import get_environment
-from ditch_drake.errors import ConfigError
-from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, finished_keys, read_records
-from ditch_drake.learning.checkpoint import checkpoint_digest, load_checkpoint, resolve_checkpoint_path
-from ditch_drake.parallel import (
+from ditch_drake.common.config_yaml import config_digest, config_to_yaml, type_path
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.parallel import (
     WorkerPool,
     check_workers,
     deferred_interrupts,
@@ -57,9 +43,21 @@ from ditch_drake.parallel import (
     terminate_as_interrupt,
     worker_count,
 )
+from ditch_drake.diagrams.controllers import config_checkpoint, controller_config, entry_for_config
+from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, finished_keys, read_records
+from ditch_drake.evaluation.rollout_worker import error_record, initialize_worker, run_rollout
+from ditch_drake.learning.checkpoint import (
+    checkpoint_digest,
+    environment_model,
+    load_checkpoint,
+    resolve_checkpoint_path,
+)
 from ditch_drake.systems.episode_monitor import EpisodeConfig
+from ditch_drake.world.environments import get_environment
 
 BACKENDS = ("local", "ray")
+# About how many rollouts a worker process runs before a fresh pool replaces it (see the module docstring).
+ROLLOUTS_PER_WORKER = 100
 # Pools broken by a dying worker before each remaining rollout runs in a process of its own.
 _ATTEMPTS = 2
 
@@ -97,20 +95,35 @@ class EvaluationReport:
         return 60.0 * self.recorded / self.wall_s if self.wall_s > 0 else 0.0
 
 
-def make_specs(controller: str, checkpoint: str, environment: str, tasks: list[int] | None = None,
-               rollouts: int = 10, seed: int = 0, time_limit_s: float = EpisodeConfig.time_limit_s) -> list[RolloutSpec]:
+def make_specs(controller, checkpoint: str, environment: str, tasks: list[int] | None = None,
+               rollouts: int = 10, seed: int = 0, time_limit_s: float = EpisodeConfig.time_limit_s,
+               environments_file: str = "") -> list[RolloutSpec]:
     """`rollouts` seeded rollouts (seeds seed, seed + 1, ...) for each task of `environment`.
 
+    Args:
+        controller: a registered controller's name (its default config, with `checkpoint`
+            for the learned policy), or a controller config (`checkpoint` is then ignored:
+            the config names its own).
+        environments_file: the YAML file defining `environment` ("" for the packaged one).
+
     The learned policy's checkpoint is loaded and checked here, once, and its contents'
-    digest goes into every spec (and so into the record keys).
+    digest goes into every spec (and so into the record keys), as does the digest of the
+    controller's config.
 
     Raises:
         ConfigError: an unknown controller, environment or task, a missing checkpoint,
             non-positive counts or a negative seed, each named.
         CheckpointError: a checkpoint that does not load, with the loader's message.
     """
-    digest = check_controller(controller, checkpoint)
-    task_count = len(get_environment(environment).tasks)
+    if isinstance(controller, str):
+        name, config = controller, controller_config(controller, checkpoint)
+    else:
+        name, config = entry_for_config(controller).name, controller
+    if hasattr(config, "checkpoint") and not config.checkpoint:  # The learned policy's default: the environment's.
+        config = replace(config, checkpoint=environment_model(environment))
+    checkpoint = config_checkpoint(config)
+    digest = check_checkpoint(checkpoint)
+    task_count = len(get_environment(environment, environments_file or None).tasks)
     tasks = list(range(task_count)) if tasks is None else list(tasks)
     bad = [task for task in tasks if not 0 <= task < task_count]
     if bad:
@@ -118,8 +131,11 @@ def make_specs(controller: str, checkpoint: str, environment: str, tasks: list[i
     if rollouts < 1 or not time_limit_s > 0:
         raise ConfigError(f"rollouts={rollouts} must be >= 1 and time_limit_s={time_limit_s} positive")
     check_seed(seed, rollouts)
-    return [RolloutSpec(controller, checkpoint if controller == "learned" else "", digest, environment, task,
-                        seed + i, float(time_limit_s), float(EpisodeConfig.goal_radius_m))
+    fields = {"controller": name, "controller_type": type_path(type(config)),
+              "controller_config": config_to_yaml(config), "controller_sha256": config_digest(config), "checkpoint": checkpoint, "checkpoint_sha256": digest,
+              "environment": environment, "environments_file": str(environments_file or "")}
+    return [RolloutSpec(**fields, task=task, seed=seed + i, time_limit_s=float(time_limit_s),
+                        goal_radius_m=float(EpisodeConfig.goal_radius_m))
             for task in tasks for i in range(rollouts)]
 
 
@@ -130,107 +146,20 @@ def check_seed(seed: int, count: int = 1) -> None:
                           "seed Drake's RandomGenerator)")
 
 
-def check_controller(controller: str, checkpoint: str) -> str:
-    """The checkpoint's digest ("" for a controller without one), after loading it once.
+def check_checkpoint(checkpoint: str) -> str:
+    """The checkpoint's digest ("" for none), after loading it once.
 
     Raises:
-        ConfigError: an unknown controller, or a learned one without a checkpoint file.
+        ConfigError: no such checkpoint file.
         CheckpointError: a checkpoint file that does not load.
     """
-    if controller not in CONTROLLERS:
-        raise ConfigError(f"unknown controller {controller!r}; expected one of {list(CONTROLLERS)}")
-    if controller != "learned":
+    if not checkpoint:
         return ""
     try:
         load_checkpoint(resolve_checkpoint_path(checkpoint))
     except FileNotFoundError as error:
         raise ConfigError(str(error)) from error
     return checkpoint_digest(checkpoint)
-
-
-def rollout_config(spec: RolloutSpec) -> RolloutConfig:
-    """The diagram configuration of a spec (the expert's style comes from the seed at run time)."""
-    controller = controller_config(spec.controller, spec.checkpoint, spec.seed)
-    scene = SceneConfig(environment=spec.environment, task=spec.task,
-                        episode=replace(EpisodeConfig(), time_limit_s=spec.time_limit_s,
-                                                goal_radius_m=spec.goal_radius_m))
-    return RolloutConfig(scene=scene, controller=controller)
-
-
-def failure_region(terrain, start_xy, final_xy) -> str:
-    """Where a rollout ended relative to the ditch (see `RolloutRecord.failure_region`)."""
-    distance, away = terrain.distance_and_away(np.asarray([start_xy, final_xy], dtype=float))
-    same_side = float(np.dot(away[0], away[1])) > 0.0
-    if distance[1] < terrain.toe_distance_m:
-        return "floor"
-    if distance[1] <= terrain.hinge_distance_m:
-        return "down_wall" if same_side else "up_wall"
-    return "approach" if same_side else "beyond"
-
-
-# A worker process's built rollout diagrams, most recently used last, by everything they are
-# built from; see the module docstring. Specs are handed out in order, so a worker meets
-# the same rig for the seeds of one task in a row.
-MAX_WORKER_RIGS = 4
-# About how many rollouts a worker process runs before a fresh pool replaces it (see the module docstring).
-ROLLOUTS_PER_WORKER = 100
-_WORKER_RIGS: collections.OrderedDict[tuple, tuple] = collections.OrderedDict()
-
-
-def _rig(spec: RolloutSpec):
-    # The expert's style (drawn from the seed) is part of its diagram's structure.
-    seed = spec.seed if spec.controller == "expert" else None
-    key = (spec.controller, spec.checkpoint, spec.environment, spec.task, spec.time_limit_s, spec.goal_radius_m, seed)
-    if key in _WORKER_RIGS:
-        _WORKER_RIGS.move_to_end(key)
-    else:
-        while len(_WORKER_RIGS) >= MAX_WORKER_RIGS:
-            _WORKER_RIGS.popitem(last=False)
-        diagram, scene = MakeRolloutDiagram(rollout_config(spec))
-        _WORKER_RIGS[key] = (diagram, scene, Simulator(diagram))
-    return _WORKER_RIGS[key]
-
-
-def run_rollout(spec: RolloutSpec) -> RolloutRecord:
-    """Runs one rollout; an exception becomes a record with status "error"."""
-    common = _spec_fields(spec)
-    start = time.perf_counter()
-    try:
-        digest = checkpoint_digest(spec.checkpoint)
-        if digest != spec.checkpoint_sha256:
-            raise ConfigError(f"checkpoint {spec.checkpoint!r} has digest {digest}, not {spec.checkpoint_sha256} as "
-                              "when the evaluation started: the file changed during the run")
-        diagram, scene, simulator = _rig(spec)
-        outcome = RunEpisode(simulator, diagram, scene, spec.seed)
-    except Exception as error:
-        return _error_record(spec, f"{type(error).__name__}: {error}", time.perf_counter() - start)
-    region = "" if outcome.success else failure_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
-    return RolloutRecord(
-        **common, status=outcome.status, success=outcome.success, time_s=outcome.time_s,
-        path_length_m=outcome.path_length_m, peak_abs_roll_deg=outcome.peak_abs_roll_deg,
-        peak_abs_pitch_deg=outcome.peak_abs_pitch_deg, peak_tilt_deg=outcome.peak_tilt_deg,
-        min_stability_margin_deg=outcome.min_stability_margin_deg, final_x_m=float(outcome.final_xy[0]),
-        final_y_m=float(outcome.final_xy[1]), failure_region=region, wall_s=time.perf_counter() - start)
-
-
-def _worker_init() -> None:
-    # Each worker is one of `workers` processes sharing the cores: one thread each.
-    import torch
-
-    torch.set_num_threads(1)
-
-
-def _spec_fields(spec: RolloutSpec) -> dict:
-    """The record fields that repeat the spec."""
-    return {"key": spec.key, **asdict(spec)}
-
-
-def _error_record(spec: RolloutSpec, message: str, wall_s: float = float("nan")) -> RolloutRecord:
-    nan = float("nan")
-    return RolloutRecord(**_spec_fields(spec), status="error", success=False, time_s=nan,
-                         path_length_m=nan, peak_abs_roll_deg=nan, peak_abs_pitch_deg=nan, peak_tilt_deg=nan,
-                         min_stability_margin_deg=nan, final_x_m=nan, final_y_m=nan, failure_region="",
-                         wall_s=wall_s, error=message)
 
 
 def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers: int | None = None,
@@ -317,7 +246,7 @@ def _run_in_pools(pending: list[RolloutSpec], workers: int, keep) -> None:
         for batch in batches:
             died = _run_pool(batch, 1 if isolated else workers, keep)
             if died and isolated:
-                keep(_error_record(died[0], f"the worker process running it died ({broken_pools} pools broke before)"))
+                keep(error_record(died[0], f"the worker process running it died ({broken_pools} pools broke before)"))
             elif died:
                 pending += died
         broken_pools += bool(pending)
@@ -326,7 +255,7 @@ def _run_in_pools(pending: list[RolloutSpec], workers: int, keep) -> None:
 def _run_pool(specs: list[RolloutSpec], workers: int, keep) -> list[RolloutSpec]:
     """Runs `specs` in one pool, passing each record to `keep`; returns the specs a dead worker took down."""
     died = []
-    with WorkerPool(min(workers, len(specs)), initializer=_worker_init) as pool:
+    with WorkerPool(min(workers, len(specs)), initializer=initialize_worker) as pool:
         futures = {pool.submit(run_rollout, spec): spec for spec in specs}
         for future in as_completed(futures):
             try:

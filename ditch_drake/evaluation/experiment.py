@@ -25,13 +25,16 @@ import os
 import platform
 import sys
 import time
+import typing
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from ditch_drake.environments import ConfigError, environment_names, load_typed_yaml
+from ditch_drake.common.config_yaml import load_typed_yaml
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.parallel import Terminated, check_workers
 from ditch_drake.evaluation.results import RolloutSpec
-from ditch_drake.files import atomic_write_text
-from ditch_drake.parallel import Terminated, check_workers
+from ditch_drake.evaluation.runs import record_run
+from ditch_drake.world.environments import environment_names, load_environments
 
 
 @dataclass
@@ -67,9 +70,16 @@ class GeneralizationStudy:
 
 @dataclass
 class BaselineStudy:
-    """The DWA controller in each environment."""
+    """A classical controller in each environment.
+
+    Attributes:
+        environments: where it runs.
+        controller: its config with all its parameters, written with its YAML tag (e.g.
+            `!DwaBaselineConfig {planner: {costmap: {lethal_slope_deg: 60}}}`); None: the DWA baseline's defaults.
+    """
 
     environments: list[str] = field(default_factory=list)
+    controller: typing.Any = None
 
 
 @dataclass
@@ -95,6 +105,8 @@ class ExperimentConfig:
 
     Attributes:
         name: names the report.
+        environments_file: a YAML file of environments (packaged schema) that the studies may name
+            besides the packaged ones ("": the packaged ones only).
         seed: the seed of collection, training and the first rollout.
         demos_dir: demonstrations, one folder per environment.
         models_dir: trained checkpoints.
@@ -111,6 +123,7 @@ class ExperimentConfig:
     """
 
     name: str = "experiment"
+    environments_file: str = ""
     seed: int = 0
     demos_dir: str = "data/demos"
     models_dir: str = "models"
@@ -144,9 +157,16 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
         ConfigError: unreadable or malformed YAML, an unknown key (a typo), or an unknown
             environment, naming the file and the value.
     """
+    from ditch_drake.diagrams.controllers import controller_config_types
+
     path = Path(path)
+    # The baseline may be any registered controller: its config is one of theirs, by YAML tag.
+    options = typing.Union[controller_config_types()]  # noqa: UP007  (built from the registry at run time)
+    BaselineStudy.__dataclass_fields__["controller"].type = typing.Optional[options]  # noqa: UP045
     config = load_typed_yaml(path, ExperimentConfig, "experiment file")
     known = set(environment_names())
+    if config.environments_file:
+        known |= set(load_environments(config.environments_file))
     named = list(_study_environments(config))
     unknown = sorted({env for env in named if env not in known})
     if unknown:
@@ -223,41 +243,12 @@ def evaluation_specs(config: ExperimentConfig, evaluation: Evaluation) -> list[R
     from ditch_drake.evaluation.batch import make_specs
 
     checkpoint = str(model_path(config, evaluation.model)) if evaluation.model else ""
-    return make_specs(evaluation.controller, checkpoint, evaluation.environment, config.tasks or None,
-                      config.rollouts, config.seed,
-                      config.time_limit_s) if evaluation.controller != "learned" or Path(checkpoint).exists() else []
-
-
-RUNS_FILE = "experiment_runs.json"
-"""In the results folder: one entry per `run_experiment` call, its stages' wall times (s)."""
-
-
-def record_run(results_dir: str | os.PathLike, run: dict) -> Path:
-    """Adds or updates `run` (matched by its "started_utc") in the results folder's RUNS_FILE, atomically."""
-    path = Path(results_dir) / RUNS_FILE
-    runs = read_runs(results_dir)
-    runs = [entry for entry in runs if entry.get("started_utc") != run.get("started_utc")] + [run]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(runs, indent=1) + "\n")
-    return path
-
-
-def read_runs(results_dir: str | os.PathLike) -> list[dict]:
-    """The runs recorded in the results folder's RUNS_FILE ([] if none).
-
-    Raises:
-        ConfigError: the file is not a JSON list of objects.
-    """
-    path = Path(results_dir) / RUNS_FILE
-    if not path.exists():
+    if evaluation.controller == "learned" and not Path(checkpoint).exists():
         return []
-    try:
-        runs = json.loads(path.read_text())
-    except json.JSONDecodeError as error:
-        raise ConfigError(f"{path}: not JSON ({error}); expected a list of experiment runs") from error
-    if not isinstance(runs, list) or not all(isinstance(run, dict) for run in runs):
-        raise ConfigError(f"{path}: expected a JSON list of experiment runs (objects)")
-    return runs
+    baseline = config.studies.baseline
+    controller = baseline.controller if evaluation.study == "baseline" and baseline.controller else evaluation.controller
+    return make_specs(controller, checkpoint, evaluation.environment, config.tasks or None, config.rollouts,
+                      config.seed, config.time_limit_s, config.environments_file)
 
 
 def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stages: tuple[str, ...] = (

@@ -1,14 +1,15 @@
 """Rollouts on a Ray cluster (the optional `ray` extra): the same records as the local pool.
 
-Each rollout is a Ray task running `batch.run_rollout` with one CPU; its record comes back
+Each rollout is a Ray task running `rollout_worker.run_rollout` with one CPU; its record comes back
 to the calling process, which appends it to the results file, so resuming works exactly as
 with the local pool. A Python exception inside a rollout is already a record with status
 "error"; a task whose worker process dies is retried once by Ray (`max_retries`), then
 recorded as an error here.
 """
 
-from ditch_drake.environments import ConfigError
+from ditch_drake.common.errors import ConfigError
 from ditch_drake.evaluation.results import RolloutRecord, RolloutSpec
+from ditch_drake.evaluation.rollout_worker import error_record, run_rollout
 
 # Ray retries a task this many times after its worker process died.
 _MAX_RETRIES = 1
@@ -32,8 +33,6 @@ def run_on_ray(specs: list[RolloutSpec], address: str | None, max_in_flight: int
         max_in_flight: at most this many tasks submitted at once (None or 0: all).
         keep: called with each `RolloutRecord`, in the order they finish.
     """
-    from ditch_drake.evaluation.batch import _error_record, run_rollout
-
     ray = _ray()
     started_here = not ray.is_initialized()
     if started_here:
@@ -54,7 +53,7 @@ def run_on_ray(specs: list[RolloutSpec], address: str | None, max_in_flight: int
             try:
                 record: RolloutRecord = ray.get(finished[0])
             except ray.exceptions.RayError as error:
-                record = _error_record(spec, f"Ray task failed after {_MAX_RETRIES} retry: {type(error).__name__}: "
+                record = error_record(spec, f"Ray task failed after {_MAX_RETRIES} retry: {type(error).__name__}: "
                                              f"{str(error).splitlines()[0] if str(error) else ''}")
             keep(record)
     except KeyboardInterrupt:

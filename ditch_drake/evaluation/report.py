@@ -41,17 +41,17 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
+from ditch_drake.common.files import atomic_output, atomic_write_text, remove_stale_temporaries
 from ditch_drake.evaluation.results import RolloutRecord, current_records, read_records
 from ditch_drake.evaluation.summary import AROUND_TILT_DEG, GroupSummary, summarize
-from ditch_drake.files import atomic_output, atomic_write_text, remove_stale_temporaries
 
 STUDIES = ("scalability", "generalization", "baseline", "amalgam")
 # What each kind of bar is drawn as (colour, hatch), so the figures agree with each other.
-_OWN_MODEL = dict(color="tab:blue")
-_OTHER_MODELS = dict(color="tab:gray")
-_BASELINE = dict(color="tab:red")
-_AMALGAM = dict(color="tab:orange", hatch="xx", edgecolor="black")
-_AROUND = dict(fill=False, hatch="///", edgecolor="black", linewidth=0.0)
+_OWN_MODEL = {"color": "tab:blue"}
+_OTHER_MODELS = {"color": "tab:gray"}
+_BASELINE = {"color": "tab:red"}
+_AMALGAM = {"color": "tab:orange", "hatch": "xx", "edgecolor": "black"}
+_AROUND = {"fill": False, "hatch": "///", "edgecolor": "black", "linewidth": 0.0}
 _AROUND_LABEL = f"successes that went around the ditch (peak tilt < {AROUND_TILT_DEG:g} deg)"
 _CI_TEXT = "Error bars: 95 % Wilson score intervals"
 
@@ -96,7 +96,7 @@ def tracked_by_git(path: str | os.PathLike) -> bool:
     existing = next(folder for folder in [path, *path.parents] if folder.is_dir())
     try:
         result = subprocess.run(["git", "-C", str(existing), "ls-files", "--error-unmatch", "--",
-                                 os.path.relpath(path, existing)], capture_output=True, timeout=30)
+                                 os.path.relpath(path, existing)], capture_output=True, timeout=30, check=False)
     except (OSError, subprocess.SubprocessError):
         return False
     return result.returncode == 0
@@ -186,8 +186,8 @@ def _table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str, str
     for record in records:
         groups[(model_label(record), record.environment)].append(record)
     summaries = {key: summarize(group) for key, group in sorted(groups.items())}
-    lines = ["| model | environment | success | rate | 95 % Wilson | of which around the ditch | "
-             "failures (status@region) | errors |",
+    lines = [("| model | environment | success | rate | 95 % Wilson | of which around the ditch | "
+              "failures (status@region) | errors |"),
              "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for (model, env), s in summaries.items():
         failures = ", ".join(f"{k} {v}" for k, v in sorted(s.failure_regions.items())) or "-"
@@ -198,8 +198,8 @@ def _table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str, str
 
 def _runs_section(results: list[str | os.PathLike]) -> list[str]:
     """A table of the `ditch-drake experiment` runs recorded in the results folders (see
-    `experiment.record_run`): each stage's wall time; empty if none is recorded."""
-    from ditch_drake.evaluation.experiment import RUNS_FILE, read_runs
+    `runs.record_run`): each stage's wall time; empty if none is recorded."""
+    from ditch_drake.evaluation.runs import RUNS_FILE, read_runs
 
     runs = [run for entry in map(Path, results) if entry.is_dir() for run in read_runs(entry)]
     if not runs:
@@ -423,7 +423,7 @@ def _figure_study(study: str, summaries: dict, path: Path, number: int) -> _Figu
     fig, ax = plt.subplots(figsize=(max(6.0, 1.2 + 0.5 * len(envs) * len(models)), 3.8))
     colours = plt.get_cmap("tab10")
     for j, model in enumerate(models):
-        style = _AMALGAM if "+" in model else dict(color=colours(j % 10))
+        style = _AMALGAM if "+" in model else {"color": colours(j % 10)}
         _bars(ax, [i + (j - (len(models) - 1) / 2) * width for i in range(len(envs))],
               [summaries.get((model, env)) for env in envs], width, label=model, **style)
     ax.set_xticks(range(len(envs)), envs)
@@ -550,8 +550,8 @@ def write_report(results: list[str | os.PathLike], out: str | os.PathLike, figur
     lines += _runs_section(results)
     if data.notes:
         lines += ["## Records not counted", "",
-                  "Each rollout counts once, by its latest real outcome, and each checkpoint name by one version of "
-                  "its file (the file as it is now, where it still resolves):", "",
+                  ("Each rollout counts once, by its latest real outcome, and each checkpoint name by one version "
+                   "of its file (the file as it is now, where it still resolves):"), "",
                   *(f"- {note}" for note in data.notes), ""]
     for study in data.studies:
         lines += [f"## {study}", "", *data.tables[study], ""]

@@ -9,22 +9,27 @@ what is already recorded and never records a rollout twice, and a checkpoint ret
 same path is evaluated afresh. An error record is history, not a result: a rerun runs its
 rollout again, and `current_records` leaves it out once a real record of the key exists.
 
-Schema version 2 files (whose key lacked the digest) still read: their keys are rebuilt from
-their fields as they load.
+Each record also carries its controller's full config (YAML, and its digest in the key), so
+that a controller with other parameters is another rollout, and its type ("module:Class") so
+that a worker process can build it.
+
+Files of schema versions 2 and 3 (whose records named only the controller, with its default
+parameters) still read: their controller configs and keys are rebuilt from their fields as
+they load, the same as a new spec of the same controller, so a rerun skips what they hold.
 """
 
 import json
 import math
 import os
-from dataclasses import asdict, dataclass, fields
+from dataclasses import MISSING, asdict, dataclass, fields
 from pathlib import Path
 
-from ditch_drake.errors import ResultsError
+from ditch_drake.common.errors import ResultsError
 
 SCHEMA = "ditch_drake.rollout_record"
-SCHEMA_VERSION = 3
+SCHEMA_VERSION = 4
 # Older versions that still read (see the module docstring).
-READABLE_VERSIONS = (2, 3)
+READABLE_VERSIONS = (2, 3, 4)
 
 
 @dataclass(frozen=True)
@@ -32,11 +37,15 @@ class RolloutSpec:
     """One seeded rollout to run.
 
     Attributes:
-        controller: "learned", "dwa", "expert" or "edge_angle".
+        controller: the registered controller's name (`ditch_drake.diagrams.controllers`).
+        controller_type: its config class, "module:Class".
+        controller_config: its config, as `config_to_yaml` writes it.
+        controller_sha256: `config_digest` of that config (in the key).
         checkpoint: the learned policy's shipped name or file ("" for other controllers).
         checkpoint_sha256: first 16 hex digits of that file's SHA-256 when the spec was made
             ("" for other controllers); a worker that finds other contents records an error.
         environment: the environment the robot drives in.
+        environments_file: the YAML file that defines it ("" for the packaged one).
         task: index of its start/goal task.
         seed: the episode's seed (start jitter, sensor noise, expert style).
         time_limit_s: the episode's timeout (s).
@@ -44,9 +53,13 @@ class RolloutSpec:
     """
 
     controller: str
+    controller_type: str
+    controller_config: str
+    controller_sha256: str
     checkpoint: str
     checkpoint_sha256: str
     environment: str
+    environments_file: str
     task: int
     seed: int
     time_limit_s: float
@@ -55,15 +68,14 @@ class RolloutSpec:
     @property
     def key(self) -> str:
         """Identifies the rollout within a results file."""
-        return record_key(self.controller, self.checkpoint, self.checkpoint_sha256, self.environment, self.task,
-                          self.seed, self.time_limit_s, self.goal_radius_m)
+        return record_key(self)
 
 
-def record_key(controller: str, checkpoint: str, checkpoint_sha256: str, environment: str, task: int, seed: int,
-               time_limit_s: float, goal_radius_m: float) -> str:
-    """`RolloutSpec.key` from its parts."""
-    return (f"{controller}|{checkpoint}@{checkpoint_sha256}|{environment}|{task}|{seed}|"
-            f"{time_limit_s:g}|{goal_radius_m:g}")
+def record_key(fields) -> str:
+    """The key of a spec or record: every field that changes what the rollout does."""
+    environment = fields.environment + (f"@{fields.environments_file}" if fields.environments_file else "")
+    return (f"{fields.controller}#{fields.controller_sha256}|{fields.checkpoint}@{fields.checkpoint_sha256}|"
+            f"{environment}|{fields.task}|{fields.seed}|{fields.time_limit_s:g}|{fields.goal_radius_m:g}")
 
 
 @dataclass
@@ -72,7 +84,8 @@ class RolloutRecord:
 
     Attributes:
         key: `RolloutSpec.key`.
-        controller, checkpoint, environment, task, seed, time_limit_s, goal_radius_m: the spec.
+        controller, checkpoint, environment, task, seed, time_limit_s, goal_radius_m,
+        controller_type, controller_config, controller_sha256, environments_file: the spec.
         checkpoint_sha256: first 16 hex digits of the checkpoint file's hash ("" if none).
         status: reached_goal, rolled_over, timeout, stuck, or error.
         success: status == reached_goal.
@@ -110,6 +123,10 @@ class RolloutRecord:
     failure_region: str
     wall_s: float
     error: str = ""
+    controller_type: str = ""
+    controller_config: str = ""
+    controller_sha256: str = ""
+    environments_file: str = ""
 
     def to_json(self) -> str:
         """One line: the fields plus the schema and its version (non-finite numbers as null)."""
@@ -130,14 +147,15 @@ class RolloutRecord:
                 f"{where}: schema {values.get('schema')!r} version {values.get('schema_version')!r}; expected "
                 f"{SCHEMA!r} version {' or '.join(map(str, READABLE_VERSIONS))} (a file from another version of "
                 "ditch_drake: write to a new file)")
+        if values["schema_version"] < 4:
+            values = _upgraded(values, where)
         names = [f.name for f in fields(cls)]
-        missing = [name for name in names if name not in values and name != "error"]
+        optional = {f.name for f in fields(cls) if f.default is not MISSING}
+        missing = [name for name in names if name not in values and name not in optional]
         if missing:
             raise ResultsError(f"{where}: record lacks {missing}")
         record = cls(**{name: (math.nan if values[name] is None else values[name]) for name in names if name in values})
-        if values["schema_version"] == 2:
-            record.key = record_key(record.controller, record.checkpoint, record.checkpoint_sha256, record.environment,
-                                    record.task, record.seed, record.time_limit_s, record.goal_radius_m)
+        record.key = record_key(record)
         return record
 
     @property
@@ -175,6 +193,19 @@ def read_records(path: str | os.PathLike) -> tuple[list[RolloutRecord], list[str
             raise ResultsError(f"{path}:{number}: expected a JSON object, got {type(values).__name__}")
         records.append(RolloutRecord.from_dict(values, f"{path}:{number}"))
     return records, warnings
+
+
+def _upgraded(values: dict, where: str) -> dict:
+    """A schema 2 or 3 record's fields as schema 4 has them: its controller's default config."""
+    from ditch_drake.common.config_yaml import config_digest, config_to_yaml, type_path
+    from ditch_drake.diagrams.controllers import controller_config
+
+    try:
+        config = controller_config(values.get("controller", ""), values.get("checkpoint", ""))
+    except ValueError as error:
+        raise ResultsError(f"{where}: {error}") from error
+    return {**values, "controller_type": type_path(type(config)), "controller_config": config_to_yaml(config),
+            "controller_sha256": config_digest(config), "environments_file": ""}
 
 
 def finished_keys(records: list[RolloutRecord]) -> set[str]:

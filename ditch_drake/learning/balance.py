@@ -36,7 +36,6 @@ import numpy as np
 import sklearn
 from imblearn.over_sampling import SMOTE
 
-from ditch_drake.actions import NUM_LABELS
 from ditch_drake.learning.config import SmoteConfig
 from ditch_drake.learning.data import (
     SYNTHETIC_DEMO_ID,
@@ -45,6 +44,7 @@ from ditch_drake.learning.data import (
     float32_to_images,
     images_to_float32,
 )
+from ditch_drake.spec.actions import NUM_LABELS
 
 _SCALARS = ("imu", "distance", "bearing")
 # scikit-learn's Cython neighbour search costs ~0.5 s per call on 65 k float32 features

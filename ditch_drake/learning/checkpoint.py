@@ -32,11 +32,11 @@ import numpy as np
 import torch
 
 import ditch_drake
-from ditch_drake import actions
-from ditch_drake.errors import CheckpointError, CheckpointNotFoundError
-from ditch_drake.files import atomic_output
+from ditch_drake.common.errors import CheckpointError, CheckpointNotFoundError, ConfigError
+from ditch_drake.common.files import atomic_output
 from ditch_drake.learning.data import InputStats
 from ditch_drake.learning.model import FourInputClassifier, ModelConfig
+from ditch_drake.spec import actions
 
 SCHEMA = "ditch_drake.policy_checkpoint"
 SCHEMA_VERSION = 1
@@ -47,6 +47,18 @@ SCHEMA_VERSION = 1
 SHIPPED_MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 ENVIRONMENT_MODELS = ("crater", "wide", "narrow", "sine")
 SHIPPED_MODELS = (*ENVIRONMENT_MODELS, *(f"{env}_bc40" for env in ENVIRONMENT_MODELS))
+
+
+def environment_model(environment: str) -> str:
+    """The shipped model of an environment: the learned policy's default checkpoint there.
+
+    Raises:
+        ConfigError: no shipped model is named after `environment`.
+    """
+    if environment not in ENVIRONMENT_MODELS:
+        raise ConfigError(f"environment {environment!r} has no shipped model; name a checkpoint (a .pt file or one "
+                          f"of {list(SHIPPED_MODELS)})")
+    return environment
 
 
 # What a checkpoint argument may be, for error messages.
@@ -327,7 +339,7 @@ def load_checkpoint(
             commands.shape != actions.COMMANDS.shape or not np.allclose(commands, actions.COMMANDS)):
         raise CheckpointError(
             f"{path} was trained with another action table {commands.tolist()}; expected "
-            f"ditch_drake.actions.COMMANDS {actions.COMMANDS.tolist()} (allow_other_action_table=True uses its own)")
+            f"ditch_drake.spec.actions.COMMANDS {actions.COMMANDS.tolist()} (allow_other_action_table=True uses its own)")
     try:
         input_stats = InputStats.from_dict(_require(payload, "input_stats", dict, path))
     except ValueError as error:

@@ -6,9 +6,9 @@ import re
 from dataclasses import asdict, dataclass, field, fields
 from numbers import Integral, Real
 
-from ditch_drake.actions import NUM_LABELS
-from ditch_drake.errors import ConfigError
-from ditch_drake.observation_spec import (
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.spec.actions import NUM_LABELS
+from ditch_drake.spec.observation_layout import (
     BEARING_STACK_SIZE,
     DISTANCE_STACK_SIZE,
     IMAGE_SIZE,

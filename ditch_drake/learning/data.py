@@ -2,7 +2,7 @@
 
 The on-disk demonstration format and its loader live elsewhere; they hand `train` an
 `ArraySet`: one row per control step, the four stacked inputs exactly as the FrameStacker
-outputs them (`ditch_drake.observation_spec`), the recorded action label and the
+outputs them (`ditch_drake.spec.observation_layout`), the recorded action label and the
 demonstration the step came from.
 
 Images are kept compact: uint8 (0..255 standing for [0, 1]) or float16 ([0, 1]). 16 k
@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from ditch_drake.actions import NUM_LABELS
-from ditch_drake.observation_spec import (
+from ditch_drake.spec.actions import NUM_LABELS
+from ditch_drake.spec.observation_layout import (
     BEARING_STACK_SIZE,
     DISTANCE_STACK_SIZE,
     IMAGE_STACK_SHAPE,
@@ -42,7 +42,7 @@ class ArraySet:
         imu: (N, 8) float32, [roll_t, pitch_t, roll_t-1, ...] (rad).
         distance: (N, 4) float32, distance to the goal, newest first (m).
         bearing: (N, 4) float32, bearing to the goal, newest first (rad).
-        label: (N,) int64 action labels in 0..16 (`ditch_drake.actions`).
+        label: (N,) int64 action labels in 0..16 (`ditch_drake.spec.actions`).
         demo_id: (N,) int64, the demonstration each sample came from (>= 0);
             `SYNTHETIC_DEMO_ID` (-1) for samples made by SMOTE.
 

@@ -6,7 +6,7 @@ within a tolerance of the true label as right (ordinal accuracy, tolerance 1).
 
 import numpy as np
 
-from ditch_drake.actions import NUM_LABELS
+from ditch_drake.spec.actions import NUM_LABELS
 
 ORDINAL_TOLERANCE = 1
 """The paper's tolerance: a prediction one label off still counts."""

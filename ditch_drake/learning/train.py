@@ -56,9 +56,8 @@ from torch import nn
 from tqdm import tqdm
 
 import ditch_drake
-from ditch_drake.actions import NUM_LABELS
-from ditch_drake.errors import ConfigError
-from ditch_drake.files import remove_stale_temporaries
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.files import remove_stale_temporaries
 from ditch_drake.learning.balance import smote_samples
 from ditch_drake.learning.checkpoint import (
     CheckpointError,
@@ -79,6 +78,7 @@ from ditch_drake.learning.data import (
 )
 from ditch_drake.learning.metrics import confusion_matrix, exact_accuracy, ordinal_accuracy
 from ditch_drake.learning.model import FourInputClassifier, parameter_groups
+from ditch_drake.spec.actions import NUM_LABELS
 
 RESUME_SCHEMA = "ditch_drake.training_state"
 RESUME_SCHEMA_VERSION = 1

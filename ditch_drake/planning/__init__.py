@@ -1,6 +1,6 @@
 """move_base-style planning in plain numpy/scipy: slope costmap, Dijkstra global planner, DWA.
 
-The Drake block that runs them at the control rate is `ditch_drake.systems.dwa.DwaController`.
+The Drake block that runs them at the control rate is `ditch_drake.systems.dwa_controller.DwaController`.
 """
 
 from ditch_drake.planning.costmap import CostmapConfig, SlopeCostmap, slope_cost

@@ -5,7 +5,7 @@ derived from the world z component of the lidar points' surface normals: flat gr
 costs nothing and cost rises with slope. This module is that layer plus costmap_2d's
 inflation layer on a rolling window. It holds no map itself: the observation layer and
 the window origin are passed in and returned, so the map lives in whichever Drake
-Context owns it (`ditch_drake.systems.dwa.DwaController`).
+Context owns it (`ditch_drake.systems.dwa_controller.DwaController`).
 
 Grid. A window of `ny x nx` square cells of side `resolution` (m). Its origin is kept in
 whole cells of a world lattice: cell (iy, ix) covers
@@ -67,7 +67,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
-from ditch_drake import robot
+from ditch_drake.spec import robot
 
 FREE_SPACE = 0
 MAX_NON_OBSTACLE = 252

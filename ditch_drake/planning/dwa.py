@@ -43,9 +43,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.sparse.csgraph import dijkstra
 
-from ditch_drake import robot
 from ditch_drake.planning.costmap import INSCRIBED_INFLATED_OBSTACLE, LETHAL_OBSTACLE, MAX_NON_OBSTACLE, NO_INFORMATION
 from ditch_drake.planning.global_planner import grid_graph
+from ditch_drake.spec import robot
 
 # Oscillation flags (dwa_local_planner's OscillationCostFunction, rotation only: min_vel_x >= 0).
 ROT_POS, ROT_NEG, ROT_POS_ONLY, ROT_NEG_ONLY = range(4)

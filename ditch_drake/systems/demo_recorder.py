@@ -7,8 +7,8 @@ from pydrake.common.value import AbstractValue, Value
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.framework import LeafSystem
 
-from ditch_drake import robot, schedule
-from ditch_drake.observation_spec import (
+from ditch_drake.spec import robot, schedule
+from ditch_drake.spec.observation_layout import (
     BEARING_STACK_SIZE,
     DISTANCE_STACK_SIZE,
     IMAGE_PIXELS,

@@ -8,9 +8,9 @@ from pydrake.common.value import Value
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ditch_drake import robot
-from ditch_drake.planar import planar_yaw, wrap_to_pi
-from ditch_drake.terrain import DitchTerrain
+from ditch_drake.spec import robot
+from ditch_drake.spec.planar import planar_yaw, wrap_to_pi
+from ditch_drake.world.terrain import DitchTerrain
 
 
 @dataclass

@@ -9,7 +9,7 @@ from pydrake.common.value import Value
 from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.framework import EventStatus, LeafSystem
 
-from ditch_drake import robot
+from ditch_drake.spec import robot
 
 
 class EpisodeStatus(enum.IntEnum):

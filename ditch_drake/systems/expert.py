@@ -1,15 +1,15 @@
 """The scripted expert: a careful driver with seeded, human-like variation."""
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.common import RandomDistribution
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import Adder, DiscreteTimeDelay, MatrixGain, RandomSource
 
-from ditch_drake import robot, schedule
+from ditch_drake.spec import robot, schedule
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
-from ditch_drake.terrain import DitchTerrain
+from ditch_drake.world.terrain import DitchTerrain
 
 
 @dataclass
@@ -17,7 +17,7 @@ class ExpertVariation:
     """Ranges of the expert's per-demonstration variation (degrees, s, rad/s).
 
     Attributes:
-        wall_angle_deg: uniform range of the angle to the edge going down.
+        wall_angle_deg: uniform range [low, high] of the angle to the edge going down.
         climb_angle_deg: uniform range of the angle to the edge going up.
         approach_margin_m: uniform range of how early it lines up before the hinge.
         reaction_delay_steps: the delay is drawn uniformly from 0..this many control steps.
@@ -29,9 +29,9 @@ class ExpertVariation:
             crossing would not fit between the robot and the ditch's end.
     """
 
-    wall_angle_deg: tuple[float, float] = (17.0, 23.0)
-    climb_angle_deg: tuple[float, float] = (32.0, 38.0)
-    approach_margin_m: tuple[float, float] = (2.0, 3.0)
+    wall_angle_deg: list[float] = field(default_factory=lambda: [17.0, 23.0])
+    climb_angle_deg: list[float] = field(default_factory=lambda: [32.0, 38.0])
+    approach_margin_m: list[float] = field(default_factory=lambda: [2.0, 3.0])
     reaction_delay_steps: int = 1
     steering_noise_radps: float = 0.05
     replan_each_step: bool = False
@@ -85,12 +85,13 @@ class ExpertDriver(Diagram):
         raw_command: [v (m/s), w (rad/s)], updated at the control rate.
     """
 
-    def __init__(self, terrain: DitchTerrain, goal_xy, chassis_body_index, style: ExpertStyle):
+    def __init__(self, terrain: DitchTerrain, goal_xy, chassis_body_index, style: ExpertStyle,
+                 period_s: float = robot.CONTROL_PERIOD_S, offset_s: float = schedule.CONTROLLER_OFFSET_S):
         super().__init__()
         builder = DiagramBuilder()
-        period = robot.CONTROL_PERIOD_S
+        period = period_s
         driver = builder.AddNamedSystem("edge_angle_driver", EdgeAngleDriver(
-            terrain, goal_xy, chassis_body_index, style.driver, offset_s=schedule.CONTROLLER_OFFSET_S))
+            terrain, goal_xy, chassis_body_index, style.driver, period_s=period_s, offset_s=offset_s))
         builder.ExportInput(driver.GetInputPort("body_poses"), "body_poses")
         noise = builder.AddNamedSystem("steering_noise", RandomSource(RandomDistribution.kGaussian, 1, period))
         to_command = builder.AddNamedSystem(

@@ -2,8 +2,8 @@
 
 from pydrake.systems.framework import DiscreteValues, LeafSystem
 
-from ditch_drake import robot
-from ditch_drake.observation_spec import (
+from ditch_drake.spec import robot
+from ditch_drake.spec.observation_layout import (
     BEARING_SIZE,
     DISTANCE_SIZE,
     IMAGE_PIXELS,
@@ -31,13 +31,13 @@ class FrameStacker(LeafSystem):
     t_{k-1} (its initial value at t_0). The normal-image converter is a function of
     the lidar's cloud (state), so the image is that of the cloud the lidar holds at
     t_k: in `AddObservation` the lidar ticks earlier in the same control step
-    (`ditch_drake.schedule`), so it is this control step's cloud. The outputs
+    (`ditch_drake.spec.schedule`), so it is this control step's cloud. The outputs
     read the state, so between t_k and t_{k+1} they hold the entries pushed at
     t_k, t_{k-1}, t_{k-2}, t_{k-3}; a controller updating at t_k itself sees the
     stacks as pushed at t_{k-1}. (`Simulator.AdvanceTo(t)` handles an event at
     exactly t only on the next call.)
 
-    Layouts (see `ditch_drake.observation_spec`): `image_stack` is channel-major
+    Layouts (see `ditch_drake.spec.observation_layout`): `image_stack` is channel-major
     (depth, rows, cols), channel 0 newest, each channel the input image's row-major
     pixels; `imu_stack` is [roll_t, pitch_t, roll_t-1, pitch_t-1, ...];
     `distance_stack` and `bearing_stack` are [value_t, value_t-1, ...].
@@ -70,7 +70,7 @@ class FrameStacker(LeafSystem):
     def __init__(self, period_s: float = robot.CONTROL_PERIOD_S, depth: int = STACK_DEPTH, offset_s: float = 0.0):
         """Args:
             period_s: the control period (s) at which a step is pushed.
-            offset_s: time of the first push (s); see `ditch_drake.schedule`.
+            offset_s: time of the first push (s); see `ditch_drake.spec.schedule`.
             depth: how many steps each stack holds.
         """
         super().__init__()

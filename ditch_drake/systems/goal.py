@@ -7,8 +7,8 @@ from pydrake.common.value import Value
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ditch_drake.observation_spec import BEARING_SIZE, DISTANCE_SIZE
-from ditch_drake.planar import planar_yaw, wrap_to_pi
+from ditch_drake.spec.observation_layout import BEARING_SIZE, DISTANCE_SIZE
+from ditch_drake.spec.planar import planar_yaw, wrap_to_pi
 
 
 def distance_bearing(X_WB: RigidTransform, goal_xy) -> tuple[float, float]:

@@ -9,8 +9,8 @@ from pydrake.math import RigidTransform, RollPitchYaw
 from pydrake.systems.framework import BasicVector, DiagramBuilder, LeafSystem, OutputPort
 from pydrake.systems.primitives import RandomSource
 
-from ditch_drake import robot
-from ditch_drake.observation_spec import IMU_SIZE
+from ditch_drake.spec import robot
+from ditch_drake.spec.observation_layout import IMU_SIZE
 
 
 @dataclass

@@ -4,7 +4,7 @@ import numpy as np
 from pydrake.geometry import Meshcat
 from pydrake.systems.framework import LeafSystem
 
-from ditch_drake import actions, robot, schedule
+from ditch_drake.spec import actions, robot, schedule
 
 TURN_LEFT = "Turn left (ArrowLeft)"
 TURN_RIGHT = "Turn right (ArrowRight)"

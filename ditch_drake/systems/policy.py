@@ -4,8 +4,8 @@ import numpy as np
 import torch
 from pydrake.systems.framework import DiscreteValues, LeafSystem
 
-from ditch_drake import robot
 from ditch_drake.learning.checkpoint import PolicyCheckpoint
+from ditch_drake.spec import robot
 
 
 class LearnedPolicy(LeafSystem):

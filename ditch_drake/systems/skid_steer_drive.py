@@ -3,7 +3,7 @@
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ditch_drake import robot
+from ditch_drake.spec import robot
 
 
 def effective_track_m(w_radps: float) -> float:

@@ -3,7 +3,7 @@
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ditch_drake import actions
+from ditch_drake.spec import actions
 
 
 class ActionQuantizer(LeafSystem):

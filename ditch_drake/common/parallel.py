@@ -25,7 +25,7 @@ import sys
 import threading
 from concurrent.futures import ProcessPoolExecutor
 
-from ditch_drake.errors import ConfigError
+from ditch_drake.common.errors import ConfigError
 
 # linux/prctl.h
 _PR_SET_PDEATHSIG = 1
@@ -63,16 +63,23 @@ def terminate_as_interrupt():
 @contextlib.contextmanager
 def deferred_interrupts():
     """Holds Ctrl-C and SIGTERM back inside the block (a record being written and counted), so
-    that a stop lands before or after it, never halfway; a signal that came meanwhile is
-    handled as the block ends. Outside the main thread it changes nothing."""
+    that a stop lands before or after it, never halfway: a signal that came meanwhile is
+    handed to the previous handler as the block ends. Outside the main thread it changes
+    nothing. (Python-level handlers, not a thread's signal mask: the kernel may deliver a
+    process's signal to any thread that does not block it.)"""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    received = []
+    previous = {signum: signal.signal(signum, lambda number, frame: received.append(number))
+                for signum in (signal.SIGINT, signal.SIGTERM)}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        if received and callable(previous[received[0]]):
+            previous[received[0]](received[0], None)
 
 
 def check_workers(workers: int | None, where: str = "workers") -> None:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ditch_drake.errors import TerrainError
+from ditch_drake.common.errors import TerrainError
 
 COURSE_KINDS = ("line", "sine", "point")
 
@@ -262,11 +262,6 @@ class DitchTerrain:
         slope = self.profile_slope(d)[..., None]
         normal = np.concatenate([-slope * n, np.ones(slope.shape)], axis=-1)
         return normal / np.linalg.norm(normal, axis=-1, keepdims=True)
-
-    def edge_tangent(self, xy: np.ndarray) -> np.ndarray:
-        """Unit horizontal direction along the local edge (..., 2): `away` turned +90 deg."""
-        n = self.away_from_course(xy)
-        return np.stack([-n[..., 1], n[..., 0]], axis=-1)
 
     def edge_lines(self, which: str = "hinge", spacing_m: float = 0.25) -> list[np.ndarray]:
         """Polylines (K, 2) at the hinge (top edge) or toe (bottom edge) distance."""

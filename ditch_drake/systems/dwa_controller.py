@@ -10,8 +10,6 @@ from pydrake.math import RigidTransform
 from pydrake.perception import PointCloud
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ditch_drake import robot
-from ditch_drake.planar import planar_yaw, wrap_to_pi
 from ditch_drake.planning.costmap import CostmapConfig, SlopeCostmap
 from ditch_drake.planning.dwa import (
     DwaPlannerConfig,
@@ -20,6 +18,8 @@ from ditch_drake.planning.dwa import (
     update_oscillation_flags,
 )
 from ditch_drake.planning.global_planner import GlobalPlannerConfig, plan
+from ditch_drake.spec import robot
+from ditch_drake.spec.planar import planar_yaw, wrap_to_pi
 
 
 @dataclass
@@ -147,7 +147,7 @@ class DwaController(LeafSystem):
             X_BL: the lidar frame L's pose in B.
             config: the planners' parameters; None: `DwaConfig()`.
             period_s: the control period (s); also sizes the DWA's dynamic window.
-            offset_s: the first update's time (s); `ditch_drake.schedule.CONTROLLER_OFFSET_S`
+            offset_s: the first update's time (s); `ditch_drake.spec.schedule.CONTROLLER_OFFSET_S`
                 runs it just after the lidar's update in the same control step.
             ray_directions_L: (N, 3) unit directions in L of an organized cloud's rays, when
                 `point_cloud` is organized (N points, non-finite where a ray returned nothing

@@ -15,20 +15,25 @@ from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
-from pydrake.common import RandomGenerator
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.systems.analysis import Simulator
 from tqdm import tqdm
 
-from ditch_drake import robot
-from ditch_drake.actions import ANGULAR_RATES_RADPS
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.parallel import WorkerPool, worker_count
 from ditch_drake.diagrams.ditch_scene import DefaultPlantConfig, DitchScene, SceneConfig
-from ditch_drake.diagrams.rollout import ConstantCommandConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
-from ditch_drake.environments import environment_names, get_environment
-from ditch_drake.errors import ConfigError
-from ditch_drake.parallel import WorkerPool, worker_count
+from ditch_drake.diagrams.rollout import (
+    ConstantCommandConfig,
+    MakeRolloutDiagram,
+    RolloutConfig,
+    RunEpisode,
+    StartEpisode,
+)
+from ditch_drake.spec import robot
+from ditch_drake.spec.actions import ANGULAR_RATES_RADPS
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeStatus
+from ditch_drake.world.environments import environment_names, get_environment
 
 SPEED_TOLERANCE = 0.05
 RATE_TOLERANCE = 0.10
@@ -47,6 +52,8 @@ class CalibrationConfig:
         head_on: the driver that heads straight at the ditch.
         flat_duration_s: length of each flat-ground run; the last half is averaged.
         workers: parallel processes (None: one per core; 0: in this process).
+        environments_file: a YAML file of environments that the calibrated names may come
+            from ("": the packaged ones only).
     """
 
     trials: int = 10
@@ -57,10 +64,11 @@ class CalibrationConfig:
         default_factory=lambda: EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None))
     flat_duration_s: float = 4.0
     workers: int | None = None
+    environments_file: str = ""
 
 
-def _scene_config(environment: str, task: int, time_step_s: float) -> SceneConfig:
-    config = SceneConfig(environment=environment, task=task)
+def _scene_config(environment: str, task: int, time_step_s: float, environments_file: str = "") -> SceneConfig:
+    config = SceneConfig(environment=environment, task=task, environments_file=environments_file)
     config.plant.time_step = time_step_s
     return config
 
@@ -80,9 +88,16 @@ def _place(scene: DitchScene, context, xy, yaw: float, z: float = 0.0) -> None:
 
 
 def flat_tracking(environment: str, config: CalibrationConfig) -> dict:
-    """Steady-state speed and yaw rate for each of the 17 labels, far out on flat ground."""
+    """Steady-state speed and yaw rate for each of the 17 labels, far out on flat ground.
+
+    Each label starts like an episode (`StartEpisode`: the seeded jitter, then the robot moved
+    far out and the command set) but is no episode: no task, goal or outcome, a fixed
+    command for a fixed time. So it advances the simulator itself, to its sample times over
+    the run's second half, instead of through `RunEpisode`.
+    """
     diagram, scene = MakeRolloutDiagram(RolloutConfig(
-        scene=_scene_config(environment, 0, config.time_step_s), controller=ConstantCommandConfig()))
+        scene=_scene_config(environment, 0, config.time_step_s, config.environments_file),
+        controller=ConstantCommandConfig()))
     terrain = scene.terrain
     low, _ = terrain.bounds_xy()
     # Well clear of the ditch, heading away from it (-y), with room for a wide arc.
@@ -94,11 +109,12 @@ def flat_tracking(environment: str, config: CalibrationConfig) -> dict:
     chassis = scene.plant.GetBodyByName("chassis", scene.husky)
     speeds, rates = [], []
     for label, rate in enumerate(ANGULAR_RATES_RADPS):
-        context.SetTime(0.0)
-        diagram.SetRandomContext(context, RandomGenerator(config.seed + label))
-        _place(scene, context, spot, -math.pi / 2)
-        command_source.get_mutable_source_value(source_context).set_value([robot.MAX_SPEED_MPS, rate])
-        simulator.Initialize()
+
+        def far_out(root_context, rate=rate) -> None:
+            _place(scene, root_context, spot, -math.pi / 2)
+            command_source.get_mutable_source_value(source_context).set_value([robot.MAX_SPEED_MPS, rate])
+
+        StartEpisode(simulator, diagram, config.seed + label, before_start=far_out)
         samples = []
         for k in range(20):
             simulator.AdvanceTo(config.flat_duration_s * (0.5 + 0.5 * (k + 1) / 20))
@@ -121,35 +137,37 @@ def flat_tracking(environment: str, config: CalibrationConfig) -> dict:
     }
 
 
+def _at_the_bottom(scene: DitchScene):
+    """A `before_start` that moves the robot to the ditch bottom, facing the far wall."""
+    _, course_point = scene.terrain.nearest_on_course(np.asarray(scene.task.start[:2]))
+    to_goal = np.asarray(scene.task.goal) - course_point
+
+    def place(root_context) -> None:
+        _place(scene, root_context, course_point, math.atan2(to_goal[1], to_goal[0]), z=-scene.terrain.params.depth_m)
+
+    return place
+
+
 def driven_trials(environment: str, task: int, driver: EdgeAngleDriverConfig, seeds: list[int],
-                  time_step_s: float, start_at_bottom: bool = False) -> list[dict]:
+                  time_step_s: float, start_at_bottom: bool = False, environments_file: str = "") -> list[dict]:
     """Seeded episodes of one task; with `start_at_bottom`, from the ditch bottom facing the far wall."""
     diagram, scene = MakeRolloutDiagram(RolloutConfig(
-        scene=_scene_config(environment, task, time_step_s), controller=driver))
+        scene=_scene_config(environment, task, time_step_s, environments_file), controller=driver))
     simulator = Simulator(diagram)
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    before_start = _at_the_bottom(scene) if start_at_bottom else None
     records = []
     for seed in seeds:
+        record = asdict(RunEpisode(simulator, diagram, scene, seed, before_start=before_start))
         if start_at_bottom:
-            context = simulator.get_mutable_context()
-            context.SetTime(0.0)
-            diagram.SetRandomContext(context, RandomGenerator(seed))
-            _, course_point = scene.terrain.nearest_on_course(np.asarray(scene.task.start[:2]))
-            to_goal = np.asarray(scene.task.goal) - course_point
-            _place(scene, context, course_point, math.atan2(to_goal[1], to_goal[0]), z=-scene.terrain.params.depth_m)
-            simulator.Initialize()
-            simulator.AdvanceTo(scene.episode.time_limit_s + 1.0)
-            outcome = scene.monitor.outcome(scene.monitor.GetMyContextFromRoot(context))
-            chassis = scene.plant.GetBodyByName("chassis", scene.husky)
-            X_WB = scene.plant.EvalBodyPoseInWorld(scene.plant.GetMyContextFromRoot(context), chassis)
-            record = {**asdict(outcome), "final_forward_z": float(X_WB.rotation().matrix()[2, 0])}
-        else:
-            record = asdict(RunEpisode(simulator, diagram, scene, seed))
+            X_WB = scene.plant.EvalBodyPoseInWorld(scene.plant.GetMyContextFromRoot(simulator.get_context()), chassis)
+            record["final_forward_z"] = float(X_WB.rotation().matrix()[2, 0])
         records.append({"seed": seed, "task": scene.task.name, **record})
     return records
 
 
 def _jobs(environment: str, config: CalibrationConfig) -> list[tuple]:
-    tasks = len(get_environment(environment).tasks)
+    tasks = len(get_environment(environment, config.environments_file or None).tasks)
     seeds = [config.seed + i for i in range(config.trials)]
     jobs = [("flat", environment, None, None)]
     for task in range(tasks):
@@ -165,7 +183,7 @@ def _run_job(job: tuple, config: CalibrationConfig):
         return job, flat_tracking(environment, config)
     driver = config.shallow if kind == "shallow" else config.head_on
     return job, driven_trials(environment, task, driver, seeds, config.time_step_s,
-                              start_at_bottom=(kind == "climb_out_head_on"))
+                              start_at_bottom=(kind == "climb_out_head_on"), environments_file=config.environments_file)
 
 
 def _rate(records: list[dict], status: EpisodeStatus) -> float:
@@ -181,7 +199,7 @@ def run_calibration(config: CalibrationConfig | None = None, environments: list[
     config = config or CalibrationConfig()
     environments = environments or environment_names()
     for name in environments:
-        get_environment(name)  # Fails early, naming an unknown environment.
+        get_environment(name, config.environments_file or None)  # Fails early, naming an unknown environment.
     jobs = [job for name in environments for job in _jobs(name, config)]
     if config.trials < 1:
         raise ConfigError(f"trials={config.trials}: expected >= 1 seeded trials per driven case")
@@ -212,7 +230,7 @@ def run_calibration(config: CalibrationConfig | None = None, environments: list[
     all_ok = True
     for name in environments:
         bucket = results[name]
-        task_names = [task.name for task in get_environment(name).tasks]
+        task_names = [task.name for task in get_environment(name, config.environments_file or None).tasks]
         shallow = {task_names[t]: _rate(records, EpisodeStatus.REACHED_GOAL) for t, records in sorted(bucket["shallow"].items())}
         shallow_times = [r["time_s"] for records in bucket["shallow"].values() for r in records
                          if r["status"] == "reached_goal"]

@@ -16,7 +16,6 @@ GROUND_CLEARANCE_M = 0.13
 
 # Wheels: four, skid-steer.
 WHEEL_RADIUS_M = 0.165
-WHEEL_WIDTH_M = 0.1
 WHEELBASE_M = 0.512
 TRACK_M = 0.555
 WHEEL_NAMES = ("front_left", "rear_left", "front_right", "rear_right")
@@ -72,18 +71,6 @@ def chassis_center_in_body_frame() -> np.ndarray:
     """Returns p_BC, the chassis box centre in the body frame B (m)."""
     z = GROUND_CLEARANCE_M + CHASSIS_SIZE_M[2] / 2 - WHEEL_RADIUS_M
     return np.array([0.0, 0.0, z])
-
-
-def chassis_com_in_body_frame() -> np.ndarray:
-    """Returns p_BScm, the chassis body's centre of mass in B (m).
-
-    Placed so that the whole robot's centre of mass (chassis plus wheels at axle
-    height) sits `COM_HEIGHT_ABOVE_GROUND_M` above flat ground.
-    """
-    total_moment = TOTAL_MASS_KG * COM_HEIGHT_ABOVE_GROUND_M
-    wheels_moment = 4 * WHEEL_MASS_KG * WHEEL_RADIUS_M
-    z_ground = (total_moment - wheels_moment) / CHASSIS_MASS_KG
-    return np.array([0.0, 0.0, z_ground - WHEEL_RADIUS_M])
 
 
 def wheel_positions_in_body_frame() -> dict[str, np.ndarray]:

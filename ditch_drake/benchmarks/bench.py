@@ -8,15 +8,20 @@ import resource
 import time
 
 import numpy as np
-from pydrake.common import RandomGenerator
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
-from ditch_drake import robot
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig
 from ditch_drake.diagrams.observation import AddObservation
-from ditch_drake.diagrams.rollout import AddController, ConstantCommandConfig, MakeRolloutDiagram, RolloutConfig
-from ditch_drake.environments import environment_names
+from ditch_drake.diagrams.rollout import (
+    AddController,
+    ConstantCommandConfig,
+    MakeRolloutDiagram,
+    RolloutConfig,
+    StartEpisode,
+)
+from ditch_drake.spec import robot
+from ditch_drake.world.environments import environment_names, get_environment
 
 TRAVERSAL_S = 30.0
 # The first control step: every stage's tick (offsets up to 4 ms) has run once.
@@ -27,11 +32,14 @@ CLOSED_LOOP_EPISODES = 7
 
 def _timed_run(diagram, seed: int, duration_s: float, warmup_s: float = 0.0) -> tuple[float, float, float]:
     """One seeded run (which may end early): wall seconds and simulated seconds after
-    `warmup_s`, and the wall seconds of the untimed first `warmup_s`."""
+    `warmup_s`, and the wall seconds of the untimed first `warmup_s`.
+
+    An episode's start (`StartEpisode`, untimed), then two timed `AdvanceTo`s: the warm-up and
+    the measurement are timed apart, which `RunEpisode`'s one advance cannot do.
+    """
     simulator = Simulator(diagram)
     context = simulator.get_mutable_context()
-    diagram.SetRandomContext(context, RandomGenerator(seed))
-    simulator.Initialize()
+    StartEpisode(simulator, diagram, seed)
     start = time.perf_counter()
     simulator.AdvanceTo(warmup_s)
     warmup_wall_s = time.perf_counter() - start
@@ -41,14 +49,16 @@ def _timed_run(diagram, seed: int, duration_s: float, warmup_s: float = 0.0) -> 
     return time.perf_counter() - start, context.get_time() - start_time, warmup_wall_s
 
 
-def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVERSAL_S) -> dict:
+def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVERSAL_S,
+                      environments_file: str = "") -> dict:
     """Real-time factor of the plant driven by the scripted shallow-angle driver.
 
     One process, no visualization: `duration_s` of a traversal from the first task's
     seeded start, simulated seconds over wall seconds. Also times the diagram build.
     """
     start = time.perf_counter()
-    diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment)))
+    diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment,
+                                                                    environments_file=environments_file)))
     build_s = time.perf_counter() - start
     wall_s, sim_s, _ = _timed_run(diagram, seed, duration_s)
     return {
@@ -58,7 +68,8 @@ def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVE
 
 
 def measure_closed_loops(
-    environments: list[str], seed: int = 0, duration_s: float = TRAVERSAL_S, episodes: int = CLOSED_LOOP_EPISODES
+    environments: list[str], seed: int = 0, duration_s: float = TRAVERSAL_S, episodes: int = CLOSED_LOOP_EPISODES,
+    environments_file: str = "",
 ) -> dict:
     """Real-time factor with every perception block running at 10 Hz and a fixed command.
 
@@ -93,10 +104,11 @@ def measure_closed_loops(
     diagrams = {}
     for environment in environments:
         builder = DiagramBuilder()
-        scene = AddDitchScene(builder, SceneConfig(environment=environment))
+        scene_config = SceneConfig(environment=environment, environments_file=environments_file)
+        scene = AddDitchScene(builder, scene_config)
         AddObservation(builder, scene)
         AddController(builder, scene, command)
-        plant_only, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment), controller=command))
+        plant_only, _ = MakeRolloutDiagram(RolloutConfig(scene=scene_config, controller=command))
         diagrams[environment] = (builder.Build(), plant_only)
     rtfs, observation_ms, first_step_ms = ({environment: [] for environment in environments} for _ in range(3))
     for episode_seed in range(seed, seed + episodes):
@@ -171,14 +183,17 @@ def measure_host_reference_ms(repeats: int = 5) -> float:
     return 1e3 * float(np.median(times))
 
 
-def run_bench(environments: list[str] | None = None, training: bool = False) -> dict:
-    """All figures, in a stable key order; `training` adds the slow training-memory run."""
+def run_bench(environments: list[str] | None = None, training: bool = False, environments_file: str = "") -> dict:
+    """All figures, in a stable key order; `training` adds the slow training-memory run.
+    `environments_file` adds its environments to the packaged ones that `environments` may name."""
     figures: dict[str, float] = {"host_reference_start_ms": measure_host_reference_ms()}
     environments = environments or environment_names()
     for name in environments:
-        figures.update(measure_plant_rtf(name))
+        get_environment(name, environments_file or None)  # A bad name fails before minutes of measuring.
+    for name in environments:
+        figures.update(measure_plant_rtf(name, environments_file=environments_file))
     figures["plant_min_rtf"] = min(figures[f"plant_{name}_rtf"] for name in environments)
-    figures.update(measure_closed_loops(environments))
+    figures.update(measure_closed_loops(environments, environments_file=environments_file))
     figures["closed_loop_min_rtf"] = min(figures[f"closed_loop_{name}_rtf"] for name in environments)
     figures.update(measure_blocks())
     from ditch_drake.benchmarks.bench_training import measure_training_throughput, shipped_model_figures

@@ -4,8 +4,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ditch_drake.common.files import atomic_write_text
 from ditch_drake.demos.collect import record_demonstration
-from ditch_drake.files import atomic_write_text
 
 
 def normal_image_figure(environment: str, out_dir: str | Path, seed: int = 0) -> Path:
@@ -43,7 +43,7 @@ def normal_image_figure(environment: str, out_dir: str | Path, seed: int = 0) ->
 
 def diagram_figure(out_dir: str | Path, environment: str = "wide", controller: str = "learned",
                    max_depth: int = 1) -> Path:
-    """The rollout diagram (scene, observation blocks, controller) drawn by Drake's own
+    """The rollout diagram (scene, observation blocks, `controller`: a registered name) drawn by Drake's own
     `GetGraphvizString` and rendered by Graphviz's `dot` to `<out_dir>/diagram.svg`.
 
     Raises:
@@ -52,13 +52,14 @@ def diagram_figure(out_dir: str | Path, environment: str = "wide", controller: s
     import shutil
     import subprocess
 
+    from ditch_drake.diagrams.controllers import controller_config
     from ditch_drake.diagrams.ditch_scene import SceneConfig
-    from ditch_drake.diagrams.rollout import DwaBaselineConfig, LearnedPolicyConfig, MakeRolloutDiagram, RolloutConfig
+    from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig
 
     dot = shutil.which("dot")
     if dot is None:
         raise FileNotFoundError("Graphviz's `dot` is needed to draw the diagram (apt-get install graphviz)")
-    config = LearnedPolicyConfig() if controller == "learned" else DwaBaselineConfig()
+    config = controller_config(controller)  # Any registered controller, by name.
     diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment), controller=config))
     svg = subprocess.run([dot, "-Tsvg"], input=diagram.GetGraphvizString(max_depth=max_depth), capture_output=True,
                          text=True, check=True).stdout

@@ -1,0 +1,146 @@
+"""Config dataclasses to and from YAML, with Drake's `yaml_load_typed` and errors that name
+the file, the key, its line, the bad value and what was expected."""
+
+import dataclasses
+import hashlib
+import math
+import types
+import typing
+from pathlib import Path
+
+import yaml
+from pydrake.common.yaml import yaml_load_typed
+
+from ditch_drake.common.errors import ConfigError
+
+
+def load_typed_yaml(path: str | Path, schema: type, what: str):
+    """A YAML file read into the dataclass `schema` with Drake's `yaml_load_typed`.
+
+    Raises:
+        ConfigError: the file cannot be read, is not YAML, or has unknown keys or wrong
+            types (a typo'd key is an error, not ignored); the message names `what` and the file.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as error:
+        raise ConfigError(f"cannot read {what} {path}: {error}") from error
+    try:
+        root = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError as error:
+        raise ConfigError(f"malformed YAML in {path}: {error}") from error
+    if root is None:
+        raise ConfigError(f"{what} {path} is empty; expected a mapping of {schema.__name__}'s fields")
+    _check_node(root, schema, f"{what} {path}", "")
+    try:
+        return yaml_load_typed(schema=schema, data=text)
+    except (RuntimeError, ValueError, TypeError, AssertionError) as error:
+        raise ConfigError(f"invalid {what} {path}: {error}") from error
+
+
+_SCALAR_TAGS = {int: ("int",), float: ("int", "float"), bool: ("bool",), str: ("str", "int", "float", "bool")}
+
+
+def _check_node(node, schema, where: str, key: str) -> None:
+    """Raises ConfigError naming the key, its line, the bad value and the expected type, for a
+    YAML node that does not fit `schema` (a dataclass, a scalar type, list, dict or Optional).
+    Types it does not know are left to `yaml_load_typed`."""
+    line = node.start_mark.line + 1
+    name = key or "the top level"
+    origin, arguments = typing.get_origin(schema), typing.get_args(schema)
+    if origin in (typing.Union, types.UnionType):
+        if node.tag == "tag:yaml.org,2002:null" and type(None) in arguments:
+            return
+        options = [argument for argument in arguments if argument is not type(None)]
+        if node.tag.startswith("!"):  # A variant named by its YAML tag, as Drake writes them.
+            named = [option for option in options if getattr(option, "__name__", None) == node.tag[1:]]
+            if named:
+                _check_node(node, named[0], where, key)
+            return
+        if len(options) == 1 or (options and all(dataclasses.is_dataclass(option) for option in options)):
+            _check_node(node, options[0], where, key)  # Untagged: Drake reads the first variant.
+        return
+    if dataclasses.is_dataclass(schema):
+        if not isinstance(node, yaml.MappingNode):
+            raise ConfigError(f"{where}, line {line}: {name} is {_describe(node)}; expected a mapping of "
+                              f"{schema.__name__}'s fields")
+        field_types = typing.get_type_hints(schema)
+        # A field whose type was set at run time (a union of registered configs) has it on the field.
+        field_types.update({f.name: f.type for f in dataclasses.fields(schema) if not isinstance(f.type, str)})
+        for key_node, value_node in node.value:
+            if key_node.value not in field_types:
+                raise ConfigError(f"{where}, line {key_node.start_mark.line + 1}: unknown key "
+                                  f"{_join(key, key_node.value)!r}; expected one of {sorted(field_types)}")
+            _check_node(value_node, field_types[key_node.value], where, _join(key, key_node.value))
+        return
+    if origin is list:
+        if not isinstance(node, yaml.SequenceNode):
+            raise ConfigError(f"{where}, line {line}: {name} is {_describe(node)}; expected a list")
+        for index, item in enumerate(node.value):
+            _check_node(item, arguments[0] if arguments else typing.Any, where, f"{key}[{index}]")
+        return
+    if origin is dict:
+        if not isinstance(node, yaml.MappingNode):
+            raise ConfigError(f"{where}, line {line}: {name} is {_describe(node)}; expected a mapping")
+        for key_node, value_node in node.value:
+            _check_node(value_node, arguments[1] if arguments else typing.Any, where, _join(key, key_node.value))
+        return
+    if schema in _SCALAR_TAGS:
+        tag = node.tag.rsplit(":", 1)[-1] if isinstance(node, yaml.ScalarNode) else None
+        if tag not in _SCALAR_TAGS[schema]:
+            raise ConfigError(f"{where}, line {line}: {name} is {_describe(node)}; expected {schema.__name__}")
+
+
+def _join(prefix: str, key: str) -> str:
+    return f"{prefix}.{key}" if prefix else str(key)
+
+
+def _describe(node) -> str:
+    if isinstance(node, yaml.ScalarNode):
+        return f"{node.value!r} ({node.tag.rsplit(':', 1)[-1]})"
+    return "a list" if isinstance(node, yaml.SequenceNode) else "a mapping"
+
+
+def to_plain(value):
+    """A dataclass (or a value inside one) as plain YAML types: lists for tuples, None kept."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+    if isinstance(value, (list, tuple)):
+        return [to_plain(item) for item in value]
+    if isinstance(value, dict):
+        return {str(key): to_plain(item) for key, item in value.items()}
+    if isinstance(value, float) and not math.isfinite(value):
+        return str(value)
+    return value
+
+
+def config_to_yaml(config) -> str:
+    """`config`'s fields as a YAML mapping (every field written, None as null)."""
+    return yaml.safe_dump(to_plain(config), sort_keys=False, default_flow_style=None, width=1000)
+
+
+def config_from_yaml(schema: type, text: str, where: str = "config"):
+    """The `schema` instance of `config_to_yaml`'s text.
+
+    Raises:
+        ConfigError: the text does not fit `schema`, naming `where` and the key.
+    """
+    root = yaml.compose(text, Loader=yaml.SafeLoader)
+    if root is not None:
+        _check_node(root, schema, where, "")
+    try:
+        return yaml_load_typed(schema=schema, data=text or "{}")
+    except (RuntimeError, ValueError, TypeError, AssertionError) as error:
+        raise ConfigError(f"invalid {where}: {error}") from error
+
+
+def type_path(kind: type) -> str:
+    """"module:QualifiedName" of a class, which `importlib` can find again."""
+    return f"{kind.__module__}:{kind.__qualname__}"
+
+
+def config_digest(config) -> str:
+    """First 16 hex digits of the SHA-256 of a config's type and fields: equal configs, equal digests."""
+    text = type_path(type(config)) + "\n" + config_to_yaml(config)
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()[:16]

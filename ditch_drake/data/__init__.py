@@ -1,1 +1,0 @@
-"""Packaged data: the environments file."""

@@ -1,0 +1,1 @@
+"""Tools that make the documentation: the DWA baseline page, figures, browser screenshots."""

@@ -1,0 +1,122 @@
+"""One rollout of a spec, in whatever process runs it: the worker side of batch evaluation.
+
+Each worker builds a diagram once per (controller config, environment, task, episode
+settings) and reuses it for every seed: building the sine ditch costs seconds, more than some
+rollouts. It keeps the `MAX_WORKER_RIGS` most recently used: each holds a scene, a renderer
+and a network (about 100 MB). Every rollout starts from a fresh random Context
+(`RunEpisode`), so its record depends only on its spec, not on what the worker ran before.
+"""
+
+import collections
+import importlib
+import time
+from dataclasses import asdict, replace
+
+import numpy as np
+from pydrake.systems.analysis import Simulator
+
+from ditch_drake.common.config_yaml import config_from_yaml
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.diagrams.controllers import entry_for_config
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+from ditch_drake.evaluation.results import RolloutRecord, RolloutSpec
+from ditch_drake.learning.checkpoint import checkpoint_digest
+from ditch_drake.systems.episode_monitor import EpisodeConfig
+
+# A worker process's built rollout diagrams, most recently used last, by everything they are
+# built from. Specs are handed out in order, so a worker meets the same rig for the seeds of
+# one task in a row.
+MAX_WORKER_RIGS = 4
+_WORKER_RIGS: collections.OrderedDict[tuple, tuple] = collections.OrderedDict()
+
+
+def spec_controller_config(spec: RolloutSpec):
+    """The controller config a spec names, as the episode of its seed builds it.
+
+    Its class is imported by its "module:Class" path, so a controller registered by a
+    user's module (imported there) is found in a fresh worker process too.
+    """
+    module, _, qualified_name = spec.controller_type.partition(":")
+    kind = importlib.import_module(module)
+    for part in qualified_name.split("."):
+        kind = getattr(kind, part)
+    config = config_from_yaml(kind, spec.controller_config, f"controller config of {spec.controller!r}")
+    return entry_for_config(config).for_seed(config, spec.seed)
+
+
+def rollout_config(spec: RolloutSpec) -> RolloutConfig:
+    """The diagram configuration of a spec."""
+    scene = SceneConfig(environment=spec.environment, task=spec.task, environments_file=spec.environments_file,
+                        episode=replace(EpisodeConfig(), time_limit_s=spec.time_limit_s,
+                                        goal_radius_m=spec.goal_radius_m))
+    return RolloutConfig(scene=scene, controller=spec_controller_config(spec))
+
+
+def failure_region(terrain, start_xy, final_xy) -> str:
+    """Where a rollout ended relative to the ditch (see `RolloutRecord.failure_region`)."""
+    distance, away = terrain.distance_and_away(np.asarray([start_xy, final_xy], dtype=float))
+    same_side = float(np.dot(away[0], away[1])) > 0.0
+    if distance[1] < terrain.toe_distance_m:
+        return "floor"
+    if distance[1] <= terrain.hinge_distance_m:
+        return "down_wall" if same_side else "up_wall"
+    return "approach" if same_side else "beyond"
+
+
+def _rig(spec: RolloutSpec):
+    config = rollout_config(spec)
+    # The config as this seed builds it: the expert's style (drawn from the seed) is part of
+    # its diagram's structure; every other controller's is the same for all seeds.
+    key = (spec.controller_type, repr(config.controller), spec.environment, spec.environments_file, spec.task,
+           spec.time_limit_s, spec.goal_radius_m)
+    if key in _WORKER_RIGS:
+        _WORKER_RIGS.move_to_end(key)
+    else:
+        while len(_WORKER_RIGS) >= MAX_WORKER_RIGS:
+            _WORKER_RIGS.popitem(last=False)
+        diagram, scene = MakeRolloutDiagram(config)
+        _WORKER_RIGS[key] = (diagram, scene, Simulator(diagram))
+    return _WORKER_RIGS[key]
+
+
+def run_rollout(spec: RolloutSpec) -> RolloutRecord:
+    """Runs one rollout; an exception becomes a record with status "error"."""
+    common = spec_fields(spec)
+    start = time.perf_counter()
+    try:
+        digest = checkpoint_digest(spec.checkpoint)
+        if digest != spec.checkpoint_sha256:
+            raise ConfigError(f"checkpoint {spec.checkpoint!r} has digest {digest}, not {spec.checkpoint_sha256} as "
+                              "when the evaluation started: the file changed during the run")
+        diagram, scene, simulator = _rig(spec)
+        outcome = RunEpisode(simulator, diagram, scene, spec.seed)
+    except Exception as error:
+        return error_record(spec, f"{type(error).__name__}: {error}", time.perf_counter() - start)
+    region = "" if outcome.success else failure_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
+    return RolloutRecord(
+        **common, status=outcome.status, success=outcome.success, time_s=outcome.time_s,
+        path_length_m=outcome.path_length_m, peak_abs_roll_deg=outcome.peak_abs_roll_deg,
+        peak_abs_pitch_deg=outcome.peak_abs_pitch_deg, peak_tilt_deg=outcome.peak_tilt_deg,
+        min_stability_margin_deg=outcome.min_stability_margin_deg, final_x_m=float(outcome.final_xy[0]),
+        final_y_m=float(outcome.final_xy[1]), failure_region=region, wall_s=time.perf_counter() - start)
+
+
+def initialize_worker() -> None:
+    # Each worker is one of `workers` processes sharing the cores: one thread each.
+    import torch
+
+    torch.set_num_threads(1)
+
+
+def spec_fields(spec: RolloutSpec) -> dict:
+    """The record fields that repeat the spec."""
+    return {"key": spec.key, **asdict(spec)}
+
+
+def error_record(spec: RolloutSpec, message: str, wall_s: float = float("nan")) -> RolloutRecord:
+    nan = float("nan")
+    return RolloutRecord(**spec_fields(spec), status="error", success=False, time_s=nan,
+                         path_length_m=nan, peak_abs_roll_deg=nan, peak_abs_pitch_deg=nan, peak_tilt_deg=nan,
+                         min_stability_margin_deg=nan, final_x_m=nan, final_y_m=nan, failure_region="",
+                         wall_s=wall_s, error=message)

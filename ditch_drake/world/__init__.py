@@ -1,0 +1,1 @@
+"""The world the robot drives in: the terrain family and the environments (data in environments.yaml)."""
