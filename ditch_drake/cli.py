@@ -41,14 +41,9 @@ def _print_table(rows: list[dict], columns: list[str], file=None) -> None:
 
 def _checkpoint_for(args, environment: str) -> str:
     """The learned policy's checkpoint: --checkpoint, else the environment's shipped model."""
-    from ditch_drake.learning.checkpoint import SHIPPED_MODELS
+    from ditch_drake.learning.checkpoint import environment_model
 
-    if args.checkpoint:
-        return args.checkpoint
-    if environment not in SHIPPED_MODELS:
-        raise ConfigError(f"environment {environment!r} has no shipped model; pass --checkpoint (a .pt file or one "
-                          f"of {list(SHIPPED_MODELS)})")
-    return environment
+    return args.checkpoint or environment_model(environment)
 
 
 def _check_seed(seed: int, count: int = 1) -> None:
@@ -104,7 +99,7 @@ def _controller_label(scenario, name: str | None = None) -> str:
 
     name = name or entry_for_config(scenario.controller).name
     checkpoint = getattr(scenario.controller, "checkpoint", None)
-    return name if checkpoint is None else f"{name} ({checkpoint or scenario.environment + ' model'})"
+    return name if checkpoint is None else f"{name} ({checkpoint})"
 
 
 def cmd_scenario(args) -> int:
@@ -568,17 +563,20 @@ def build_parser() -> argparse.ArgumentParser:
                          help="a YAML file of environments in the packaged schema (ditch_drake/world/environments.yaml; "
                               "docs/extending.md); --env names one of them (default: the packaged environments)")
 
-    def add_scenario(sub, controller_default: str):
-        """The single-episode options of a Scenario: each one given overrides the scenario's."""
+    def add_scenario_file(sub, what: str):
         sub.add_argument("--scenario", default=None, metavar="FILE",
-                         help="a Scenario YAML file (`ditch-drake scenario --print` writes a template); the options "
-                              "below override it (default: none, the built-in scenario)")
+                         help=f"a Scenario YAML file (`ditch-drake scenario --print` writes a template): {what} "
+                              "(default: none, the built-in scenario)")
         sub.add_argument("--scenario-name", default=None, metavar="NAME",
                          help="the scenario of that name within --scenario's file (default: the whole file)")
         sub.add_argument("--override", default=None, metavar="YAML",
                          help="YAML in the Scenario schema applied last, e.g. \"{controller: !DwaBaselineConfig "
                               "{planner: {costmap: {lethal_slope_deg: 60}}}}\" (default: none)")
         add_environments_file(sub)
+
+    def add_scenario(sub, controller_default: str):
+        """The single-episode options of a Scenario: each one given overrides the scenario's."""
+        add_scenario_file(sub, "the options below override it")
         sub.add_argument("--env", default=None, metavar="NAME",
                          help=f"environment (default: the scenario's; built in: {DEFAULT_ENVIRONMENT}; packaged: "
                               f"{environments})")
@@ -677,15 +675,8 @@ def build_parser() -> argparse.ArgumentParser:
                                  "Ctrl-C keeps what finished)", with_environments=True)
     evaluation.add_argument("--controller", default=None, choices=controller_names(),
                             help=f"{controllers_help} (default: the scenario's, else learned)")
-    evaluation.add_argument("--scenario", default=None, metavar="FILE",
-                            help="a Scenario YAML file: its controller (with all its parameters), environment, "
-                                 "environments file and time limit (default: none)")
-    evaluation.add_argument("--scenario-name", default=None, metavar="NAME",
-                            help="the scenario of that name within --scenario's file (default: the whole file)")
-    evaluation.add_argument("--override", default=None, metavar="YAML",
-                            help="YAML in the Scenario schema applied last, e.g. \"{controller: !DwaBaselineConfig "
-                                 "{}}\" (default: none)")
-    add_environments_file(evaluation)
+    add_scenario_file(evaluation, "its controller with all its parameters, environment, environments file and "
+                                  "time limit")
     evaluation.add_argument("--checkpoint", default=None,
                             help="the learned policy, a shipped name or a .pt file (default: each environment's "
                                  "shipped model)")
