@@ -303,7 +303,7 @@ def cmd_train(args) -> int:
         print("interrupted: " + (f"the best finished epoch is in {result.output_path}" if result.output_path
                                  else "no epoch had finished, so no checkpoint was written")
               + (f"; --resume continues from {result.resume_file}" if result.resume_file else ""), file=sys.stderr)
-        return 130
+        return result.exit_code
     return 0
 
 

@@ -377,6 +377,16 @@ def test_interrupt_after_an_epoch_saves_beside_an_existing_checkpoint(tmp_path, 
     assert result.resume_file == resume_path(output) and result.resume_file.exists()  # For --resume.
 
 
+def test_sigterm_during_training_is_reported_with_its_own_exit_code(tmp_path, monkeypatch):
+    from ditch_drake.common.parallel import Terminated
+
+    _stop_at_evaluation(monkeypatch, 2, Terminated)
+    result = train(_arrays(), TINY, progress=False, output_path=tmp_path / "policy.pt")
+    assert result.interrupted and (result.exit_code, result.output_path) == (143, tmp_path / "policy.pt")
+    _stop_at_evaluation(monkeypatch, 2, KeyboardInterrupt)
+    assert train(_arrays(), TINY, progress=False).exit_code == 130
+
+
 def test_a_killed_run_leaves_nothing_that_passes_for_a_checkpoint_and_resumes(tmp_path, monkeypatch):
     arrays = _arrays()
     reference = train(arrays, TINY, progress=False)

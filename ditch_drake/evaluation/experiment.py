@@ -361,7 +361,7 @@ def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
     result = train(to_array_set(demonstrations), train_config, progress=progress, output_path=out, resume=True)
     if result.interrupted:  # `train` kept what it could (see its docstring); the pipeline stops here.
-        raise KeyboardInterrupt()
+        _stop(result.exit_code)
 
 
 def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool) -> None:

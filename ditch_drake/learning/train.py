@@ -58,6 +58,7 @@ from tqdm import tqdm
 import ditch_drake
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import remove_stale_temporaries
+from ditch_drake.common.parallel import interrupt_exit_code
 from ditch_drake.learning.balance import smote_samples
 from ditch_drake.learning.checkpoint import (
     CheckpointError,
@@ -106,6 +107,8 @@ class TrainResult:
             for, or interrupted before any epoch finished).
         resume_file: the training state kept for `resume=True` (after an interruption),
             else None.
+        exit_code: the shell's code for the stop that interrupted it (130 Ctrl-C, 143
+            SIGTERM), else 0.
     """
 
     model: FourInputClassifier
@@ -116,6 +119,7 @@ class TrainResult:
     interrupted: bool
     output_path: Path | None = None
     resume_file: Path | None = None
+    exit_code: int = 0
 
 
 class _TrainingSamples:
@@ -352,6 +356,7 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
         steps = min(steps, config.max_batches_per_epoch)
     has_val = len(val_rows) > 0
     stopped_early = interrupted = False
+    exit_code = 0
     try:
         for epoch in range(start_epoch, config.epochs):
             if has_val and run["bad_epochs"] >= config.patience:
@@ -407,8 +412,8 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
             if has_val and run["bad_epochs"] >= config.patience and epoch + 1 < config.epochs:
                 stopped_early = True
                 break
-    except KeyboardInterrupt:
-        interrupted = True
+    except KeyboardInterrupt as error:
+        interrupted, exit_code = True, interrupt_exit_code(error)
         if run["best_state"] is None:
             _log(progress, "interrupted before the first epoch finished: no checkpoint is saved")
         else:
@@ -436,6 +441,7 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
         interrupted=interrupted,
         output_path=saved_to,
         resume_file=kept_state,
+        exit_code=exit_code,
     )
 
 
