@@ -15,6 +15,7 @@ import time
 
 from ditch_drake.common.errors import ConfigError, ResultsError, TerrainError
 from ditch_drake.common.parallel import check_workers, interrupt_exit_code, terminate_as_interrupt
+from ditch_drake.common.seeds import check_seed
 from ditch_drake.diagrams.controllers import controller_descriptions, controller_names
 
 # The single-episode commands (demo, replay, view, teleop) share these defaults. Seed 0 of the
@@ -44,12 +45,6 @@ def _checkpoint_for(args, environment: str) -> str:
     from ditch_drake.learning.checkpoint import environment_model
 
     return args.checkpoint or environment_model(environment)
-
-
-def _check_seed(seed: int, count: int = 1) -> None:
-    from ditch_drake.evaluation.batch import check_seed
-
-    check_seed(seed, count)
 
 
 def _check_task(environment: str, task: int, environments_file: str = "") -> None:
@@ -114,7 +109,7 @@ def cmd_demo(args) -> int:
     """The main job: the shipped policy, the DWA baseline and a head-on driver through one ditch;
     an outcome table and the policy's rollout as a standalone HTML page."""
     _check_task(args.env, args.task, args.environments)
-    _check_seed(args.seed)
+    check_seed(args.seed)
     checkpoint = _checkpoint_for(args, args.env)
     from pydrake.systems.analysis import Simulator
 
@@ -177,7 +172,7 @@ def cmd_calibrate(args) -> int:
     check_workers(args.workers, "--workers")
     if args.trials < 1:
         raise ConfigError(f"--trials {args.trials}: expected >= 1 (seeded trials per driven case)")
-    _check_seed(args.seed, args.trials)
+    check_seed(args.seed, args.trials)
     from ditch_drake.benchmarks.calibration import CalibrationConfig, run_calibration
 
     config = CalibrationConfig(trials=args.trials, seed=args.seed, workers=args.workers,
@@ -207,7 +202,7 @@ def cmd_bench(args) -> int:
 
 def cmd_collect(args) -> int:
     check_workers(args.workers, "--workers")
-    _check_seed(args.seed, args.demos if args.demos > 0 else 1)
+    check_seed(args.seed, args.demos if args.demos > 0 else 1)
     if args.learner is None and args.labeller != "latched":
         raise ConfigError(f"--labeller {args.labeller}: a labeller needs --learner (a DAgger round)")
     from dataclasses import replace
@@ -233,7 +228,7 @@ def cmd_collect(args) -> int:
 def cmd_teleop(args) -> int:
     """A person drives (arrow keys or gamepad in the meshcat page); a success is kept."""
     _check_task(args.env, args.task, args.environments)
-    _check_seed(args.seed)
+    check_seed(args.seed)
     from pydrake.geometry import StartMeshcat
 
     from ditch_drake.demos.collect import next_free_demo_path, record_person_demonstration
@@ -324,7 +319,7 @@ def cmd_replay(args) -> int:
     if args.time_limit is not None and not args.time_limit > 0:
         raise ConfigError(f"--time-limit {args.time_limit}: expected a positive episode timeout in s")
     if args.seed is not None:
-        _check_seed(args.seed)
+        check_seed(args.seed)
     scenario = _scenario(args)
     from ditch_drake.diagrams.replay import ReplayConfig, record_replay
 

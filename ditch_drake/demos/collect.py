@@ -24,6 +24,7 @@ from ditch_drake.common.parallel import (
     terminate_as_interrupt,
     worker_count,
 )
+from ditch_drake.common.seeds import check_seed
 from ditch_drake.demos.dataset import (
     DatasetError,
     Demonstration,
@@ -296,8 +297,7 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     if not isinstance(config.demos, int) or config.demos <= 0:
         raise ConfigError(f"demos={config.demos!r} must be a positive integer")
     check_workers(config.workers)
-    if isinstance(config.seed, bool) or not isinstance(config.seed, int) or config.seed < 0:
-        raise ConfigError(f"seed={config.seed!r}: expected an integer >= 0 (it seeds Drake's RandomGenerator)")
+    check_seed(config.seed, config.demos)
     out = Path(config.out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"output path {out} is a file; expected a directory of demonstrations")

@@ -24,6 +24,7 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorC
 
 from ditch_drake.common.config_yaml import _check_node
 from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.seeds import check_seed
 from ditch_drake.diagrams.controllers import controller_config_types
 from ditch_drake.diagrams.ditch_scene import DefaultPlantConfig, SceneConfig, StartJitter
 from ditch_drake.diagrams.rollout import LearnedPolicyConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
@@ -138,8 +139,7 @@ def check_scenario(scenario: Scenario) -> None:
     from ditch_drake.diagrams.controllers import entry_for_config
     from ditch_drake.world.environments import get_environment, get_task
 
-    if isinstance(scenario.seed, bool) or not isinstance(scenario.seed, int) or not 0 <= scenario.seed < 2**32:
-        raise ConfigError(f"scenario seed={scenario.seed!r}: expected an integer in 0..{2**32 - 1}")
+    check_seed(scenario.seed, where="scenario seed")
     environment = get_environment(scenario.environment, scenario.environments_file or None, scenario.environments)
     get_task(environment, scenario.task)
     if not scenario.episode.time_limit_s > 0 or not scenario.episode.goal_radius_m > 0:

@@ -43,6 +43,7 @@ from ditch_drake.common.parallel import (
     terminate_as_interrupt,
     worker_count,
 )
+from ditch_drake.common.seeds import check_seed
 from ditch_drake.diagrams.controllers import config_checkpoint, controller_config, entry_for_config
 from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, finished_keys, read_records
 from ditch_drake.evaluation.rollout_worker import error_record, initialize_worker, run_rollout
@@ -137,13 +138,6 @@ def make_specs(controller, checkpoint: str, environment: str, tasks: list[int] |
     return [RolloutSpec(**fields, task=task, seed=seed + i, time_limit_s=float(time_limit_s),
                         goal_radius_m=float(EpisodeConfig.goal_radius_m))
             for task in tasks for i in range(rollouts)]
-
-
-def check_seed(seed: int, count: int = 1) -> None:
-    """Raises ConfigError unless seeds seed .. seed + count - 1 fit Drake's RandomGenerator (0 .. 2**32 - 1)."""
-    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0 or seed + count - 1 >= 2**32:
-        raise ConfigError(f"seed={seed!r}: expected an integer in 0..{2**32 - count} (seeds seed..seed+{count - 1} "
-                          "seed Drake's RandomGenerator)")
 
 
 def check_checkpoint(checkpoint: str) -> str:
