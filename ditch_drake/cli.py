@@ -44,7 +44,7 @@ def _checkpoint_for(args, environment: str) -> str:
     """The learned policy's checkpoint: --checkpoint, else the environment's shipped model."""
     from ditch_drake.learning.checkpoint import environment_model
 
-    return args.checkpoint or environment_model(environment)
+    return args.checkpoint or environment_model(environment, getattr(args, "environments", None) or "")
 
 
 def _check_task(environment: str, task: int, environments_file: str = "") -> None:
@@ -84,7 +84,8 @@ def _scenario(args, default_controller: str = "learned"):
         from ditch_drake.learning.checkpoint import environment_model
 
         scenario = replace(scenario, controller=replace(scenario.controller,
-                                                        checkpoint=environment_model(scenario.environment)))
+                                                        checkpoint=environment_model(
+                                                            scenario.environment, scenario.environments_file)))
     return scenario
 
 
@@ -479,6 +480,11 @@ def cmd_figure(args) -> int:
     if args.kind == "diagram":
         print(diagram_figure(args.out))
         return 0
+    if args.kind == "cost-curves":
+        from ditch_drake.docs_tools.figures import cost_curve_figure
+
+        print(cost_curve_figure(args.out))
+        return 0
     if args.kind == "screenshot":
         from pathlib import Path
 
@@ -515,11 +521,12 @@ class _Parser(argparse.ArgumentParser):
 
 def _environments_epilog() -> str:
     """The packaged environments and their tasks, by index and name."""
-    from ditch_drake.world.environments import environment_names, get_environment
+    from ditch_drake.world.environments import load_environments
 
     lines = ["environments and their tasks (--env NAME --task INDEX):"]
-    for name in environment_names():
-        tasks = get_environment(name).tasks
+    # Read without proving the walls (`get_environment` does that when one is used): --help stays quick.
+    for name, environment in load_environments(prove_walls=False).items():
+        tasks = environment.tasks
         lines.append(f"  {name}: " + ", ".join(f"{index} {task.name}" for index, task in enumerate(tasks)))
     return "\n".join(lines)
 
@@ -528,7 +535,7 @@ def build_parser() -> argparse.ArgumentParser:
     from ditch_drake.learning.config import TrainConfig
     from ditch_drake.world.environments import environment_names
 
-    environments = environment_names()
+    environments, variants = environment_names(), environment_names(variants=True)
     epilog = _environments_epilog()
     parser = _Parser(prog="ditch-drake", description=__doc__.split("\n\n")[0], epilog=epilog)
     parser.add_argument("--import", dest="imports", action="append", default=[], metavar="MODULE_OR_FILE",
@@ -545,7 +552,7 @@ def build_parser() -> argparse.ArgumentParser:
                              help=f"environment (repeatable; default: all of {environments})")
         else:
             sub.add_argument("--env", default=DEFAULT_ENVIRONMENT, metavar="NAME",
-                             help=f"environment, one of {environments}")
+                             help=f"environment, one of {variants}")
 
     def add_episode(sub):
         add_env(sub)
@@ -574,7 +581,7 @@ def build_parser() -> argparse.ArgumentParser:
         add_scenario_file(sub, "the options below override it")
         sub.add_argument("--env", default=None, metavar="NAME",
                          help=f"environment (default: the scenario's; built in: {DEFAULT_ENVIRONMENT}; packaged: "
-                              f"{environments})")
+                              f"{variants})")
         sub.add_argument("--task", type=int, default=None,
                          help=f"task index, the list below (default: the scenario's; built in: {DEFAULT_TASK})")
         sub.add_argument("--seed", type=int, default=None,
@@ -737,8 +744,9 @@ def build_parser() -> argparse.ArgumentParser:
     training.set_defaults(run=cmd_train)
 
     figure = add("figure", "figures for docs/: surface-normal images per environment, the diagram, a browser "
-                           "screenshot of a recording, the DWA baseline at the ditch")
-    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot", "dwa"], help="which figure")
+                           "screenshot of a recording, the DWA baseline at the ditch, the DWA baselines' slope cost")
+    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot", "dwa", "cost-curves"],
+                        help="which figure")
     figure.add_argument("--html", default="results/demo.html", help="screenshot: the recording to open in Chromium")
     add_env(figure, many=True)
     figure.add_argument("--out", default="docs/img", help="folder of the figures")

@@ -21,7 +21,7 @@ def test_unknown_environment_is_a_clear_error(capsys):
 def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     from ditch_drake.benchmarks import bench
 
-    monkeypatch.setattr(bench.measure_plant_rtf, "__defaults__", (0, 0.5, ""))
+    monkeypatch.setattr(bench.measure_plant_rtf, "__defaults__", (0, 0.5, "", 1))
     monkeypatch.setattr(bench.measure_closed_loops, "__defaults__", (0, 0.5, 2, ""))
     monkeypatch.setattr(bench, "measure_blocks", lambda: {"lidar_render_and_cloud_ms": 1.0})
     monkeypatch.setattr(bench, "measure_rollouts_per_minute", lambda: {"evaluate_rollouts_per_min": 1.0})
@@ -31,6 +31,7 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     assert main(["bench", "--json", "--env", "narrow"]) == 0
     figures = json.loads(capsys.readouterr().out)
     assert set(figures) >= {"plant_narrow_rtf", "scene_build_narrow_s", "plant_min_rtf", "peak_rss_mib",
+                            "plant_narrow_walled_rtf", "scene_build_narrow_walled_s",
                             "closed_loop_narrow_rtf", "observation_update_narrow_ms", "observation_first_step_narrow_ms",
                             "closed_loop_min_rtf", "host_reference_start_ms", "host_reference_end_ms"}
     assert all(key.rsplit("_", 1)[-1] in {"rtf", "s", "mib", "ms", "min"} for key in figures)

@@ -1,10 +1,21 @@
 """The experiment pipeline end to end on a tiny experiment, its file checks, and the report."""
 
 import json
+from collections import Counter
+from dataclasses import replace
+from pathlib import Path
 
 import pytest
 
-from ditch_drake.evaluation.experiment import code_revision, load_experiment, plan, run_experiment
+from ditch_drake.evaluation.experiment import (
+    ModelSpec,
+    code_revision,
+    evaluation_specs,
+    load_experiment,
+    model_path,
+    plan,
+    run_experiment,
+)
 from ditch_drake.evaluation.report import write_report
 from ditch_drake.evaluation.results import read_records
 from ditch_drake.evaluation.runs import read_runs
@@ -100,14 +111,79 @@ def test_experiment_files_with_a_typo_or_an_unknown_environment_are_refused(tmp_
         load_experiment(fp16)
 
 
-def test_the_paper_protocol_plans_13_models_and_29_evaluations():
+def test_the_paper_protocol_plans_13_models_and_29_evaluations_and_24_where_the_ditch_must_be_crossed():
     config = load_experiment("experiments/paper.yaml")
     models, evaluations = plan(config)
-    assert len(models) == 13  # 4 x (10, 20, 40) + the amalgam
-    assert len(evaluations) == 12 + 12 + 4 + 1
+    assert len(models) == 13  # 4 x (10, 20, 40) + the amalgam; must_cross's 40-demonstration models are among them
+    studies = Counter(e.study for e in evaluations)
+    assert studies == {"scalability": 12, "generalization": 12, "baseline": 4, "amalgam": 1, "must_cross": 24}
     models, evaluations = plan(config, only=["wide"])
     assert {m.name for m in models} >= {"wide_10", "wide_20", "wide_40", "crater+narrow+sine_40"}
-    assert all("wide" in (e.environment, *(e.model.environments if e.model else ())) for e in evaluations)
+    assert all("wide" in (e.environment, e.environment.removesuffix("_walled"),
+                          *(e.model.environments if e.model else ())) for e in evaluations)
+
+
+WALLED = ["crater_walled", "wide_walled", "narrow_walled", "sine_walled"]
+OPEN = ["crater", "wide", "narrow", "sine"]
+
+
+def test_must_cross_runs_both_dwas_and_both_learned_models_in_every_walled_environment_and_more_in_the_open():
+    config = load_experiment("experiments/paper.yaml")
+    _, evaluations = plan(config)
+    must_cross = [e for e in evaluations if e.study == "must_cross"]
+    walled = [e for e in must_cross if e.environment in WALLED]
+    # Per walled environment: dwa, dwa_paper, the shipped model (no model to train) and the paper-method one.
+    assert Counter(e.environment for e in walled) == dict.fromkeys(WALLED, 4)
+    for env, base in zip(WALLED, OPEN):
+        here = [(e.controller, e.model) for e in walled if e.environment == env]
+        assert here == [("dwa", None), ("dwa_paper", None), ("learned", None),
+                        ("learned", ModelSpec((base,), 40))]
+    # Each paper-method model is the experiment's own file, the one the generalization study trains.
+    paths = {model_path(config, e.model) for e in walled if e.model}
+    assert paths == {Path("models/paper") / f"{env}_40.pt" for env in OPEN}
+    generalization = {e.model for e in evaluations if e.study == "generalization"}
+    assert {e.model for e in walled if e.model} <= generalization
+    # The open field on the same seeds: the paper's move_base and the shipped models.
+    assert [(e.controller, e.environment) for e in must_cross if e.environment in OPEN] == [
+        (controller, env) for env in OPEN for controller in ("dwa_paper", "learned")]
+    # 3 tasks x 10 rollouts each; the shipped model is the walled environment's base's.
+    shipped = next(e for e in walled if e.controller == "learned" and e.model is None and e.environment == "wide_walled")
+    specs = evaluation_specs(config, shipped)
+    assert len(specs) == 30 and {s.checkpoint for s in specs} == {"wide"} and {s.task for s in specs} == {0, 1, 2}
+    dwa_paper = evaluation_specs(config, next(e for e in walled if e.controller == "dwa_paper"))
+    assert len(dwa_paper) == 30 and {s.controller for s in dwa_paper} == {"dwa_paper"}
+
+
+def test_only_an_open_environment_keeps_its_walled_variant_and_an_untrained_model_is_skipped(tmp_path):
+    config = load_experiment("experiments/paper.yaml")
+    config = replace(config, models_dir=str(tmp_path / "models"),
+                     studies=replace(config.studies, scalability=None, generalization=None, baseline=None, amalgam=None))
+    models, evaluations = plan(config, only=["wide"])
+    assert models == [ModelSpec(("wide",), 40)]  # The train stage trains it when it is missing.
+    assert [(e.controller, e.environment) for e in evaluations] == [
+        ("dwa", "wide_walled"), ("dwa_paper", "wide_walled"), ("learned", "wide_walled"), ("learned", "wide_walled"),
+        ("dwa_paper", "wide"), ("learned", "wide")]
+    models, evaluations = plan(config, only=["wide_walled"])
+    assert models == [ModelSpec(("wide",), 40)] and {e.environment for e in evaluations} == {"wide_walled"}
+    untrained = next(e for e in evaluations if e.model)
+    assert evaluation_specs(config, untrained) == []  # Not trained yet: the evaluate stage says so and goes on.
+
+
+def test_a_must_cross_study_naming_an_open_environment_or_an_unknown_controller_is_refused(tmp_path, tiny_experiment):
+    text = tiny_experiment.read_text()
+    cases = {"open": ("{environments: [wide]}", "are not walled variants"),
+             "controller": ("{environments: [wide_walled], controllers: [dwa, move_base]}", "'move_base'"),
+             "demos": ("{environments: [wide_walled], demos: -1}", "demos=-1")}
+    for name, (study, message) in cases.items():
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(text + f"  must_cross: {study}\n")
+        with pytest.raises(ConfigError, match=message):
+            load_experiment(path)
+    path = tmp_path / "fine.yaml"
+    path.write_text(text + "  must_cross: {environments: [wide_walled], open_environments: [wide]}\n")
+    study = load_experiment(path).studies.must_cross
+    assert (study.controllers, study.open_controllers, study.shipped_models, study.demos) == (
+        ["dwa", "dwa_paper"], ["dwa_paper"], True, 40)
 
 
 def test_the_report_renders_from_a_small_fixture(tmp_path):
@@ -139,6 +215,9 @@ def test_the_report_renders_from_a_small_fixture(tmp_path):
     assert "| wide_10 | m/wide_10.pt |  | (file gone or changed since) |" in text
     assert "| wide_10 | wide | 1/2 | 50% | 9%-91% | 0 |" in text
     assert "rolled_over@up_wall 2" in text
-    assert "| every learned model beats move_base in its own environment | wide 100% vs 0% | yes |" in text
+    # 2 of 2 against 0 of 2 is higher, but not significantly (two-sided Boschloo p = 0.125).
+    assert ("| every learned model beats move_base in its own environment: open field, against our DWA baseline "
+            "(dwa: slopes from 45 deg lethal) | wide: wide_40 100% (p=0.12) vs 0%; 0 of 1 pairs higher with p < 0.05 "
+            "| not significant |") in text
     assert "| success generally rises with demonstrations | wide 10: 50% -> 40: 100% | yes |" in text
     assert (tmp_path / "img" / "fig5_wide.png").exists() and (tmp_path / "img" / "fig5_baseline.png").exists()

@@ -50,21 +50,38 @@ def _timed_run(diagram, seed: int, duration_s: float, warmup_s: float = 0.0) -> 
 
 
 def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVERSAL_S,
-                      environments_file: str = "") -> dict:
-    """Real-time factor of the plant driven by the scripted shallow-angle driver.
+                      environments_file: str = "", repeats: int = 3) -> dict:
+    """Real-time factor of the plant driven by the scripted shallow-angle driver, and of its
+    walled variant's (`<env>_walled`, if the environment has one) in the same run.
 
     One process, no visualization: `duration_s` of a traversal from the first task's
-    seeded start, simulated seconds over wall seconds. Also times the diagram build.
+    seeded start, simulated seconds over wall seconds; the median of `repeats` runs, the
+    open and the walled field taking turns run by run, so that their ratio holds on a host
+    whose speed drifts. Also times the diagram builds.
     """
-    start = time.perf_counter()
-    diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment,
-                                                                    environments_file=environments_file)))
-    build_s = time.perf_counter() - start
-    wall_s, sim_s, _ = _timed_run(diagram, seed, duration_s)
-    return {
-        f"plant_{environment}_rtf": sim_s / wall_s,
-        f"scene_build_{environment}_s": build_s,
-    }
+    names = [environment, *walled_variants(environment, environments_file)]
+    figures, diagrams = {}, {}
+    for name in names:
+        start = time.perf_counter()
+        diagrams[name], _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=name,
+                                                                               environments_file=environments_file)))
+        figures[f"scene_build_{name}_s"] = time.perf_counter() - start
+    rates: dict[str, list[float]] = {name: [] for name in names}
+    for _ in range(repeats):
+        for name in names:
+            wall_s, sim_s, _ = _timed_run(diagrams[name], seed, duration_s)
+            rates[name].append(sim_s / wall_s)
+    return {**{f"plant_{name}_rtf": float(np.median(rates[name])) for name in names}, **figures}
+
+
+def walled_variants(environment: str, environments_file: str = "") -> list[str]:
+    """The packaged (or the file's) environments based on `environment` that are fenced."""
+    from ditch_drake.world.environments import load_environments
+
+    library = {**(load_environments(environments_file) if environments_file else {}),
+               **{name: get_environment(name) for name in environment_names(variants=True)}}
+    return [name for name, candidate in library.items()
+            if candidate.based_on == environment and candidate.terrain.walls]
 
 
 def measure_closed_loops(

@@ -68,9 +68,9 @@ def summarize(samples: list[dict], environments: list[str]) -> dict:
 def main(argv: list[str]) -> None:
     repeats = int(argv[0]) if argv else 5
     environments = argv[1:] or environment_names()
-    unknown = sorted(set(environments) - set(environment_names()))
+    unknown = sorted(set(environments) - set(environment_names(variants=True)))
     if unknown:
-        raise SystemExit(f"unknown environment(s) {unknown}; expected some of {environment_names()}")
+        raise SystemExit(f"unknown environment(s) {unknown}; expected some of {environment_names(variants=True)}")
     samples = sample_closed_loop(repeats, environments)
     if samples:
         print(json.dumps({"summary": summarize(samples, environments)}))

@@ -3,7 +3,6 @@ the file, the key, its line, the bad value and what was expected."""
 
 import dataclasses
 import hashlib
-import math
 import types
 import typing
 from pathlib import Path
@@ -102,16 +101,31 @@ def _describe(node) -> str:
     return "a list" if isinstance(node, yaml.SequenceNode) else "a mapping"
 
 
+# The metadata of a field added to a config after rollouts of it were recorded, as in
+# `field(default=0.0, metadata=WRITTEN_WHEN_SET)`: `to_plain` (so `config_to_yaml`) leaves it
+# out where it holds its default, so that a config that does not use it keeps the text and the
+# `config_digest` (part of every recorded rollout's key) it had before the field existed.
+WRITTEN_WHEN_SET = types.MappingProxyType({"written_when_set": True})
+
+
+def _written(config, f: dataclasses.Field) -> bool:
+    """Whether `to_plain` writes field `f` of the dataclass `config` (see `WRITTEN_WHEN_SET`)."""
+    if not f.metadata.get("written_when_set"):
+        return True
+    default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+    return getattr(config, f.name) != default
+
+
 def to_plain(value):
-    """A dataclass (or a value inside one) as plain YAML types: lists for tuples, None kept."""
+    """A dataclass (or a value inside one) as plain YAML types: lists for tuples, None kept,
+    inf and nan as floats (YAML .inf, .nan, which read back); fields marked
+    `WRITTEN_WHEN_SET` only where they differ from their default."""
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: to_plain(getattr(value, f.name)) for f in dataclasses.fields(value)}
+        return {f.name: to_plain(getattr(value, f.name)) for f in dataclasses.fields(value) if _written(value, f)}
     if isinstance(value, (list, tuple)):
         return [to_plain(item) for item in value]
     if isinstance(value, dict):
         return {str(key): to_plain(item) for key, item in value.items()}
-    if isinstance(value, float) and not math.isfinite(value):
-        return str(value)
     return value
 
 

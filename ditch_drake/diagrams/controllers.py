@@ -230,6 +230,10 @@ register_controller(
     "dwa", "ditch_drake.diagrams.rollout:DwaBaselineConfig", "ditch_drake.diagrams.rollout:AddDwaController",
     "the move_base-style baseline: slope costmap, Dijkstra global plan, DWA local planner")
 register_controller(
+    "dwa_paper", "ditch_drake.diagrams.rollout:DwaBaselineConfig", "ditch_drake.diagrams.rollout:AddDwaController",
+    "the paper's move_base: the dwa block with cost rising with slope, no slope lethal, walls lethal",
+    default="ditch_drake.diagrams.rollout:paper_dwa_config")
+register_controller(
     "expert", "ditch_drake.diagrams.rollout:ExpertConfig", "ditch_drake.diagrams.rollout:AddExpert",
     "the scripted shallow-angle expert that made the demonstrations (its style drawn from the seed)",
     per_seed="ditch_drake.diagrams.controllers:_expert_for_seed")

@@ -32,6 +32,7 @@ TERRAIN_COLORS = {
     "ground": np.array([0.45, 0.62, 0.33, 1.0]),
     "wall": np.array([0.55, 0.42, 0.28, 1.0]),
     "floor": np.array([0.48, 0.37, 0.25, 1.0]),
+    "barrier": np.array([0.62, 0.62, 0.66, 1.0]),
 }
 
 
@@ -104,22 +105,23 @@ def MakeParser(plant: MultibodyPlant) -> Parser:
 
 
 def AddDitchTerrain(plant: MultibodyPlant, terrain: DitchTerrain) -> int:
-    """Welds the terrain's box pieces to the world as collision and visual geometry.
+    """Welds the terrain's box pieces (named `terrain_*`) and its walls' (`barrier_*`) to the
+    world as collision and visual geometry.
 
     Returns the number of pieces.
     """
     ground_friction = CoulombFriction(robot.TERRAIN_FRICTION, robot.TERRAIN_FRICTION)
     properties = ProximityProperties()
     properties.AddProperty("material", "coulomb_friction", ground_friction)
-    pieces = terrain.box_pieces()
+    named = [(f"terrain_{piece.kind}_{index}", piece) for index, piece in enumerate(terrain.box_pieces())]
+    named += [(f"barrier_{index}", piece) for index, piece in enumerate(terrain.wall_pieces())]
     world = plant.world_body()
-    for index, piece in enumerate(pieces):
+    for name, piece in named:
         X_WP = RigidTransform(RotationMatrix(piece.R_WP), piece.p_WP)
         shape = Box(*piece.size)
-        name = f"terrain_{piece.kind}_{index}"
         plant.RegisterCollisionGeometry(world, X_WP, shape, name, properties)
         plant.RegisterVisualGeometry(world, X_WP, shape, name, TERRAIN_COLORS[piece.kind])
-    return len(pieces)
+    return len(named)
 
 
 def load_model_file(plant: MultibodyPlant, path: str | Path) -> list[ModelInstanceIndex]:

@@ -89,8 +89,9 @@ def MergeAnchoredPerceptionBoxes(scene_graph: SceneGraph, source_id: SourceId, f
     faster, most in the sine ditch (`python -m ditch_drake.benchmarks.bench_lidar sine 50
     top`), but those few pixels reach the policies' images and move some rollouts a little,
     so the default stays "up", with which every recorded result of the project was made.
-    The boxes lose only their perception role; collision and illustration (Meshcat) are
-    untouched. Each mesh copies the perception properties (label, colour) of its first
+    The fences of a walled field (geometry named `barrier_*`, `AddDitchTerrain`) stay boxes:
+    they stand up, and their sides are what the lidar sees of them. The boxes merged lose
+    only their perception role; collision and illustration (Meshcat) are untouched. Each mesh copies the perception properties (label, colour) of its first
     box. Must run before a Context is created; a second call finds no boxes and does
     nothing.
 
@@ -107,7 +108,7 @@ def MergeAnchoredPerceptionBoxes(scene_graph: SceneGraph, source_id: SourceId, f
     for geometry_id in inspector.GetGeometries(inspector.world_frame_id(), Role.kPerception):
         if not inspector.BelongsToSource(geometry_id, source_id) or not isinstance(
             inspector.GetShape(geometry_id), Box
-        ):
+        ) or inspector.GetName(geometry_id).rpartition("::")[2].startswith(UNMERGED_PREFIX):
             continue
         properties = inspector.GetPerceptionProperties(geometry_id)
         color = properties.GetPropertyOrDefault("phong", "diffuse", Rgba(0.9, 0.9, 0.9, 1.0))
@@ -152,6 +153,9 @@ def RemoveSensorHousings(
             removed.append(inspector.GetName(geometry_id))
     return removed
 
+
+# Anchored boxes whose (unscoped) names start with this are never merged: the walls' boxes.
+UNMERGED_PREFIX = "barrier_"
 
 # Faces whose outward normal's world z is at most this face sideways or down: on terrain
 # pieces seen from above they are buried in the neighbouring pieces.

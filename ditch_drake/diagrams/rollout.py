@@ -20,10 +20,12 @@ from ditch_drake.diagrams.lidar_rig import AddLidar
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
 from ditch_drake.learning.checkpoint import CheckpointError, environment_model, load_checkpoint, resolve_checkpoint_path
 from ditch_drake.perception.lidar_model import LidarConfig
+from ditch_drake.planning.costmap import CostmapConfig
 from ditch_drake.systems.dwa_controller import DwaConfig, DwaController
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
+from ditch_drake.systems.halt_counter import HaltCounter
 from ditch_drake.systems.policy import LearnedPolicy
 from ditch_drake.systems.teleop import ActionQuantizer
 
@@ -90,11 +92,28 @@ def head_on_config() -> EdgeAngleDriverConfig:
     return EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None)
 
 
+def paper_dwa_config() -> DwaBaselineConfig:
+    """The paper's move_base (section 4.2): the `dwa` block with the paper's slope cost.
+
+    Cost rises with slope from the normals' z, flat ground costs 0 and no slope is lethal
+    (`lethal_slope_deg=inf`: 252 at 90 deg, 107 on the ditches' 55 deg walls); vertical
+    obstacles still are, by the height their points span in a cell (`max_step_height`, 0.3 m:
+    see `ditch_drake.planning.costmap`). No hidden-drop marking (`negative_obstacle_depth=0`):
+    the paper's layer had only the normal-based cost, so the unseen wall below a ditch's edge
+    stays unknown, which the global planner crosses at the highest non-lethal weight
+    (`allow_unknown`) and the DWA at cost 252 (`unknown_is_lethal` False): it drives into a
+    ditch when that is cheaper than the way around, or when walls leave no way around.
+    """
+    costmap = CostmapConfig(lethal_slope_deg=math.inf, negative_obstacle_depth=0.0, max_step_height=0.3)
+    return DwaBaselineConfig(planner=DwaConfig(costmap=costmap))
+
+
 def AddController(builder: DiagramBuilder, scene: DitchScene, config) -> System:
     """Adds the registered controller whose config `config` is, and connects its command to the drive.
 
     Every controller's command output is [v m/s, w rad/s]; the learned policy, the DWA
     baseline and the scripted drivers plug in here the same way (`ditch_drake.diagrams.controllers`).
+    A "halt_counter" (`AddHaltCounter`) counts the command's halts per region of the ditch.
 
     Raises:
         ConfigError: a config of no registered controller.
@@ -103,7 +122,21 @@ def AddController(builder: DiagramBuilder, scene: DitchScene, config) -> System:
 
     command = entry_for_config(config).add(builder, scene, config)
     builder.Connect(command, scene.drive.GetInputPort("command"))
+    AddHaltCounter(builder, scene, command)
     return command.get_system()
+
+
+def AddHaltCounter(builder: DiagramBuilder, scene: DitchScene, command: OutputPort) -> HaltCounter:
+    """Adds the "halt_counter" on `command`, the port that drives the robot (see `HaltCounter`)."""
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    # At the episode monitor's tick (offset 0): an event time the simulator already stops
+    # at, so counting changes no other system's results.
+    counter = builder.AddNamedSystem("halt_counter", HaltCounter(
+        scene.terrain, scene.task.start[:2], chassis.index(), period_s=scene.schedule.control_period_s,
+        offset_s=0.0))
+    builder.Connect(command, counter.GetInputPort("command"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), counter.GetInputPort("body_poses"))
+    return counter
 
 
 # Each controller's builder adds its blocks to a scene and returns the command output port
@@ -139,7 +172,7 @@ def AddExpert(builder: DiagramBuilder, scene: DitchScene, config: ExpertConfig) 
 
 
 def AddLearnedController(builder: DiagramBuilder, scene: DitchScene, config: LearnedPolicyConfig) -> OutputPort:
-    checkpoint = config.checkpoint or environment_model(scene.environment_name)
+    checkpoint = config.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
     observation = AddObservation(builder, scene, config.observation)
     return AddLearnedPolicy(builder, observation, checkpoint).GetOutputPort("command")
 

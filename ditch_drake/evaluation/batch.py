@@ -121,7 +121,7 @@ def make_specs(controller, checkpoint: str, environment: str, tasks: list[int] |
     else:
         name, config = entry_for_config(controller).name, controller
     if hasattr(config, "checkpoint") and not config.checkpoint:  # The learned policy's default: the environment's.
-        config = replace(config, checkpoint=environment_model(environment))
+        config = replace(config, checkpoint=environment_model(environment, environments_file))
     checkpoint = config_checkpoint(config)
     digest = check_checkpoint(checkpoint)
     task_count = len(get_environment(environment, environments_file or None).tasks)

@@ -3,8 +3,10 @@
 An experiment YAML (`experiments/paper.yaml`) names the studies of the paper (section 5,
 SPEC "Experiments"): scalability (10/20/40 demonstrations, evaluated in the training
 environment), generalization (each 40-demonstration model in the other environments),
-baseline (the DWA in every environment) and amalgam (one model trained on several
-environments, evaluated in another). `run_experiment` turns it into work:
+baseline (the DWA in every environment), amalgam (one model trained on several
+environments, evaluated in another) and must_cross (issue 20: the classical controllers and
+the learned models, like for like, in walled environments where every route crosses the
+ditch). `run_experiment` turns it into work:
 
 1. collect: `collect` the missing demonstrations of every environment a model trains on;
 2. train: every distinct model (environments, number of demonstrations), skipping a
@@ -14,9 +16,10 @@ environments, evaluated in another). `run_experiment` turns it into work:
 4. report: `ditch_drake.evaluation.report.write_report` over the results.
 
 `only` restricts every stage to the models and evaluations that involve the named
-environments, so the protocol can also be completed in parts. Each stage's wall time is
-returned, printed, and recorded in `<results_dir>/experiment_runs.json`, which the report
-shows.
+environments (a walled environment involves the open one it is based on: `--only wide`
+keeps `wide_walled`'s evaluations), so the protocol can also be completed in parts. Each
+stage's wall time is returned, printed, and recorded in `<results_dir>/experiment_runs.json`,
+which the report shows.
 """
 
 import datetime
@@ -34,7 +37,7 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.parallel import Terminated, check_workers
 from ditch_drake.evaluation.results import RolloutSpec
 from ditch_drake.evaluation.runs import record_run
-from ditch_drake.world.environments import environment_names, load_environments
+from ditch_drake.world.environments import environment_names, get_environment, load_environments
 
 
 @dataclass
@@ -92,11 +95,43 @@ class AmalgamStudy:
 
 
 @dataclass
+class MustCrossStudy:
+    """Like for like where the ditch cannot be bypassed (issue 20): results in `must_cross.jsonl`.
+
+    In each walled environment (fenced so that every route crosses the ditch; its
+    `Environment.based_on` names the open environment it is made from) run each of
+    `controllers`, the shipped learned model of its base environment (`shipped_models`), and
+    the paper-method model of its base environment (`<models_dir>/<base>_<demos>.pt`, the
+    experiment's own, trained on the base's first `demos` demonstrations: the same file the
+    generalization study trains, trained by the train stage when missing). Each of
+    `open_controllers` also runs in each of `open_environments` (`learned`: that environment's
+    shipped model), on the same seeds, so the open field stands beside the walled one.
+
+    Attributes:
+        environments: the walled environments (each must name the environment it is based on).
+        controllers: registered controller names run in every walled environment.
+        shipped_models: run the learned controller with no checkpoint (its environment's
+            base's shipped model) in every walled environment.
+        demos: the paper-method models' demonstrations per model (0: no such models).
+        open_environments: open environments where `open_controllers` run.
+        open_controllers: registered controller names run in every open environment.
+    """
+
+    environments: list[str] = field(default_factory=list)
+    controllers: list[str] = field(default_factory=lambda: ["dwa", "dwa_paper"])
+    shipped_models: bool = True
+    demos: int = 40
+    open_environments: list[str] = field(default_factory=list)
+    open_controllers: list[str] = field(default_factory=lambda: ["dwa_paper"])
+
+
+@dataclass
 class Studies:
     scalability: ScalabilityStudy | None = None
     generalization: GeneralizationStudy | None = None
     baseline: BaselineStudy | None = None
     amalgam: AmalgamStudy | None = None
+    must_cross: MustCrossStudy | None = None
 
 
 @dataclass
@@ -164,7 +199,7 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
     options = typing.Union[controller_config_types()]  # noqa: UP007  (built from the registry at run time)
     BaselineStudy.__dataclass_fields__["controller"].type = typing.Optional[options]  # noqa: UP045
     config = load_typed_yaml(path, ExperimentConfig, "experiment file")
-    known = set(environment_names())
+    known = set(environment_names(variants=True))
     if config.environments_file:
         known |= set(load_environments(config.environments_file))
     named = list(_study_environments(config))
@@ -175,10 +210,39 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
         raise ConfigError(f"experiment file {path}: rollouts={config.rollouts} must be >= 1 and "
                           f"time_limit_s={config.time_limit_s} positive")
     check_workers(config.workers, f"experiment file {path}: workers")
+    _check_must_cross(config, path)
     if config.training.precision not in ("auto", "fp32", "bf16"):
         raise ConfigError(f"experiment file {path}: training.precision={config.training.precision!r} must be "
                           "'auto', 'fp32' or 'bf16'")
     return config
+
+
+def _check_must_cross(config: ExperimentConfig, path: Path) -> None:
+    """Refuses a must_cross study naming an unknown controller, an open environment among the
+    walled ones, a walled environment without a shipped model when `shipped_models` asks for
+    them, or a negative number of demonstrations (environment names are checked before), so
+    that the evaluate stage cannot fail on it after hours of training."""
+    from ditch_drake.diagrams.controllers import controller_names
+    from ditch_drake.learning.checkpoint import environment_model
+
+    study = config.studies.must_cross
+    if study is None:
+        return
+    unknown = sorted({name for name in study.controllers + study.open_controllers if name not in controller_names()})
+    if unknown:
+        raise ConfigError(f"experiment file {path}: studies.must_cross names unknown controllers {unknown}; "
+                          f"expected some of {controller_names()}")
+    open_ = [env for env in study.environments if base_environment(config, env) == env]
+    if open_:
+        raise ConfigError(f"experiment file {path}: studies.must_cross.environments {open_} are not walled variants "
+                          "(their environments name no `based_on`); put open environments under open_environments")
+    if study.demos < 0:
+        raise ConfigError(f"experiment file {path}: studies.must_cross.demos={study.demos} must be >= 0")
+    for env in study.environments if study.shipped_models else []:
+        try:
+            environment_model(env, config.environments_file)
+        except ConfigError as error:
+            raise ConfigError(f"experiment file {path}: studies.must_cross.shipped_models: {error}") from error
 
 
 def _study_environments(config: ExperimentConfig):
@@ -187,11 +251,29 @@ def _study_environments(config: ExperimentConfig):
         yield from study.environments if study else []
     if studies.amalgam:
         yield from studies.amalgam.train + studies.amalgam.evaluate
+    if studies.must_cross:
+        yield from studies.must_cross.environments + studies.must_cross.open_environments
+
+
+def base_environment(config: ExperimentConfig, environment: str) -> str:
+    """The open environment a walled `environment` is made from (`Environment.based_on`), else
+    `environment` itself.
+
+    Raises:
+        ConfigError: an unknown environment.
+    """
+    found = get_environment(environment, config.environments_file or None)
+    return found.based_on or environment
 
 
 @dataclass(frozen=True)
 class Evaluation:
-    """One study's rollouts of one controller in one environment."""
+    """One study's rollouts of one controller in one environment.
+
+    `controller` is a registered controller's name; `model` the learned controller's
+    checkpoint to train and use (None: a classical controller, or for "learned" the
+    environment's shipped model, `checkpoint.environment_model`).
+    """
 
     study: str
     controller: str
@@ -203,7 +285,11 @@ def plan(config: ExperimentConfig, only: list[str] | None = None) -> tuple[list[
     """The models to train and the evaluations to run, restricted to `only`'s environments.
 
     A model is kept when one of its training environments is in `only`; an evaluation
-    when its environment or one of its model's environments is.
+    when its environment, the open environment that one is based on, or one of its model's
+    environments is.
+
+    Raises:
+        ConfigError: a study names an unknown environment (`load_experiment` refuses those).
     """
     studies = config.studies
     evaluations: list[Evaluation] = []
@@ -225,12 +311,22 @@ def plan(config: ExperimentConfig, only: list[str] | None = None) -> tuple[list[
         model = ModelSpec(tuple(studies.amalgam.train), studies.amalgam.demos)
         for env in studies.amalgam.evaluate:
             evaluations.append(Evaluation("amalgam", "learned", model, env))
+    if studies.must_cross:
+        study = studies.must_cross
+        for env in study.environments:
+            evaluations += [Evaluation("must_cross", controller, None, env) for controller in study.controllers]
+            if study.shipped_models:
+                evaluations.append(Evaluation("must_cross", "learned", None, env))
+            if study.demos:
+                model = ModelSpec((base_environment(config, env),), study.demos)
+                evaluations.append(Evaluation("must_cross", "learned", model, env))
+        for env in study.open_environments:
+            evaluations += [Evaluation("must_cross", controller, None, env) for controller in study.open_controllers]
 
-    def involved(environments) -> bool:
-        return only is None or any(env in only for env in environments)
-
-    evaluations = [e for e in evaluations
-                   if involved([e.environment, *(e.model.environments if e.model else ())])]
+    if only is not None:
+        bases = {env: base_environment(config, env) for env in {e.environment for e in evaluations}}
+        evaluations = [e for e in evaluations if any(
+            env in only for env in (e.environment, bases[e.environment], *(e.model.environments if e.model else ())))]
     models = list(dict.fromkeys(e.model for e in evaluations if e.model is not None))
     return models, evaluations
 
@@ -243,8 +339,8 @@ def evaluation_specs(config: ExperimentConfig, evaluation: Evaluation) -> list[R
     from ditch_drake.evaluation.batch import make_specs
 
     checkpoint = str(model_path(config, evaluation.model)) if evaluation.model else ""
-    if evaluation.controller == "learned" and not Path(checkpoint).exists():
-        return []
+    if evaluation.model and not Path(checkpoint).exists():
+        return []  # Not trained (yet): `_evaluate` says so. No model: a shipped one, or a classical controller.
     baseline = config.studies.baseline
     controller = baseline.controller if evaluation.study == "baseline" and baseline.controller else evaluation.controller
     return make_specs(controller, checkpoint, evaluation.environment, config.tasks or None, config.rollouts,
@@ -370,7 +466,7 @@ def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress:
     by_study: dict[str, list[RolloutSpec]] = {}
     for evaluation in evaluations:
         specs = evaluation_specs(config, evaluation)
-        if not specs:
+        if not specs and evaluation.model:
             _log(progress, f"evaluate {evaluation.study}: no checkpoint {model_path(config, evaluation.model)}; skipped")
         by_study.setdefault(evaluation.study, []).extend(specs)
     for study, specs in by_study.items():

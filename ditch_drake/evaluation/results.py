@@ -16,20 +16,22 @@ that a worker process can build it.
 Files of schema versions 2 and 3 (whose records named only the controller, with its default
 parameters) still read: their controller configs and keys are rebuilt from their fields as
 they load, the same as a new spec of the same controller, so a rerun skips what they hold.
+Schema 5 added `halts_by_region`; records of older versions read with it empty (not counted),
+and their keys are unchanged, so a rerun skips them too.
 """
 
 import json
 import math
 import os
-from dataclasses import MISSING, asdict, dataclass, fields
+from dataclasses import MISSING, asdict, dataclass, field, fields
 from pathlib import Path
 
 from ditch_drake.common.errors import ResultsError
 
 SCHEMA = "ditch_drake.rollout_record"
-SCHEMA_VERSION = 4
+SCHEMA_VERSION = 5
 # Older versions that still read (see the module docstring).
-READABLE_VERSIONS = (2, 3, 4)
+READABLE_VERSIONS = (2, 3, 4, 5)
 
 
 @dataclass(frozen=True)
@@ -99,6 +101,10 @@ class RolloutRecord:
             it leaves by), "beyond" (outside, past the ditch), or "" on success.
         wall_s: wall-clock time of the rollout, building excluded (s).
         error: the exception's type and message when status is error, else "".
+        halts_by_region: the controller's halts (|v| command below 0.05 m/s for 0.5 s or
+            more, `ditch_drake.systems.halt_counter`) per region, every region of
+            `ditch_drake.world.regions.REGIONS` a key; empty for an error record and for
+            records of schema versions before 5 (not counted).
     """
 
     key: str
@@ -127,6 +133,7 @@ class RolloutRecord:
     controller_config: str = ""
     controller_sha256: str = ""
     environments_file: str = ""
+    halts_by_region: dict[str, int] = field(default_factory=dict)
 
     def to_json(self) -> str:
         """One line: the fields plus the schema and its version (non-finite numbers as null)."""
@@ -150,7 +157,7 @@ class RolloutRecord:
         if values["schema_version"] < 4:
             values = _upgraded(values, where)
         names = [f.name for f in fields(cls)]
-        optional = {f.name for f in fields(cls) if f.default is not MISSING}
+        optional = {f.name for f in fields(cls) if f.default is not MISSING or f.default_factory is not MISSING}
         missing = [name for name in names if name not in values and name not in optional]
         if missing:
             raise ResultsError(f"{where}: record lacks {missing}")

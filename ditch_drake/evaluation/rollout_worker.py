@@ -12,7 +12,6 @@ import importlib
 import time
 from dataclasses import asdict, replace
 
-import numpy as np
 from pydrake.systems.analysis import Simulator
 
 from ditch_drake.common.config_yaml import config_from_yaml
@@ -23,6 +22,7 @@ from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunE
 from ditch_drake.evaluation.results import RolloutRecord, RolloutSpec
 from ditch_drake.learning.checkpoint import checkpoint_digest
 from ditch_drake.systems.episode_monitor import EpisodeConfig
+from ditch_drake.world.regions import ditch_region
 
 # A worker process's built rollout diagrams, most recently used last, by everything they are
 # built from. Specs are handed out in order, so a worker meets the same rig for the seeds of
@@ -53,17 +53,6 @@ def rollout_config(spec: RolloutSpec) -> RolloutConfig:
     return RolloutConfig(scene=scene, controller=spec_controller_config(spec))
 
 
-def failure_region(terrain, start_xy, final_xy) -> str:
-    """Where a rollout ended relative to the ditch (see `RolloutRecord.failure_region`)."""
-    distance, away = terrain.distance_and_away(np.asarray([start_xy, final_xy], dtype=float))
-    same_side = float(np.dot(away[0], away[1])) > 0.0
-    if distance[1] < terrain.toe_distance_m:
-        return "floor"
-    if distance[1] <= terrain.hinge_distance_m:
-        return "down_wall" if same_side else "up_wall"
-    return "approach" if same_side else "beyond"
-
-
 def _rig(spec: RolloutSpec):
     config = rollout_config(spec)
     # The config as this seed builds it: the expert's style (drawn from the seed) is part of
@@ -91,15 +80,18 @@ def run_rollout(spec: RolloutSpec) -> RolloutRecord:
                               "when the evaluation started: the file changed during the run")
         diagram, scene, simulator = _rig(spec)
         outcome = RunEpisode(simulator, diagram, scene, spec.seed)
+        counter = diagram.GetSubsystemByName("halt_counter")
+        halts = counter.halts_by_region(counter.GetMyContextFromRoot(simulator.get_context()))
     except Exception as error:
         return error_record(spec, f"{type(error).__name__}: {error}", time.perf_counter() - start)
-    region = "" if outcome.success else failure_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
+    region = "" if outcome.success else ditch_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
     return RolloutRecord(
         **common, status=outcome.status, success=outcome.success, time_s=outcome.time_s,
         path_length_m=outcome.path_length_m, peak_abs_roll_deg=outcome.peak_abs_roll_deg,
         peak_abs_pitch_deg=outcome.peak_abs_pitch_deg, peak_tilt_deg=outcome.peak_tilt_deg,
         min_stability_margin_deg=outcome.min_stability_margin_deg, final_x_m=float(outcome.final_xy[0]),
-        final_y_m=float(outcome.final_xy[1]), failure_region=region, wall_s=time.perf_counter() - start)
+        final_y_m=float(outcome.final_xy[1]), failure_region=region, halts_by_region=halts,
+        wall_s=time.perf_counter() - start)
 
 
 def initialize_worker() -> None:

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from scipy.stats import binomtest
 
 from ditch_drake.evaluation.results import RolloutRecord
+from ditch_drake.world.regions import REGIONS
 
 # A rollout that reached the goal with the chassis never tilted this far went around the
 # ditch's end instead of through it: a 55 deg wall tilts it by 20 deg or more however
@@ -41,6 +42,9 @@ class GroupSummary:
         failure_regions: count per failure region of the failed trials.
         errors: rollouts that raised (not trials).
         around: successes that went around the ditch (peak tilt below `AROUND_TILT_DEG`).
+        halts_by_region: the controller's halts per region, summed over the trials whose
+            records count them (`RolloutRecord.halts_by_region`); empty when none does.
+        halts_counted: the trials whose records count halts (older records do not).
     """
 
     trials: int
@@ -52,11 +56,17 @@ class GroupSummary:
     failure_regions: dict[str, int] = field(default_factory=dict)
     errors: int = 0
     around: int = 0
+    halts_by_region: dict[str, int] = field(default_factory=dict)
+    halts_counted: int = 0
 
 
 def summarize(records: list[RolloutRecord]) -> GroupSummary:
     """The summary of a group of records."""
     valid = [r for r in records if r.status != "error"]
+    counted = [r for r in valid if r.halts_by_region]
+    halts: Counter[str] = Counter()
+    for record in counted:
+        halts.update(record.halts_by_region)
     successes = sum(r.success for r in valid)
     low, high = wilson_interval(successes, len(valid))
     return GroupSummary(
@@ -64,7 +74,9 @@ def summarize(records: list[RolloutRecord]) -> GroupSummary:
         statuses=dict(Counter(r.status for r in records)),
         failure_regions=dict(Counter(f"{r.status}@{r.failure_region}" for r in valid if not r.success)),
         errors=len(records) - len(valid),
-        around=sum(r.success and r.peak_tilt_deg < AROUND_TILT_DEG for r in valid))
+        around=sum(r.success and r.peak_tilt_deg < AROUND_TILT_DEG for r in valid),
+        halts_by_region={region: halts[region] for region in REGIONS} if counted else {},
+        halts_counted=len(counted))
 
 
 def group_by(records: list[RolloutRecord], *names: str) -> dict[tuple, list[RolloutRecord]]:

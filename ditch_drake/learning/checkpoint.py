@@ -49,15 +49,28 @@ ENVIRONMENT_MODELS = ("crater", "wide", "narrow", "sine")
 SHIPPED_MODELS = (*ENVIRONMENT_MODELS, *(f"{env}_bc40" for env in ENVIRONMENT_MODELS))
 
 
-def environment_model(environment: str) -> str:
+def environment_model(environment: str, environments_file: str = "") -> str:
     """The shipped model of an environment: the learned policy's default checkpoint there.
 
+    A variant of an environment (`Environment.based_on`, e.g. "wide_walled" of "wide") drives
+    the model of the environment it is based on.
+
     Raises:
-        ConfigError: no shipped model is named after `environment`.
+        ConfigError: no shipped model is named after `environment` or what it is based on.
     """
-    if environment not in ENVIRONMENT_MODELS:
-        raise ConfigError(f"environment {environment!r} has no shipped model; name a checkpoint (a .pt file or one "
-                          f"of {list(SHIPPED_MODELS)})")
+    from ditch_drake.world.environments import get_environment
+
+    seen = [environment]
+    while environment not in ENVIRONMENT_MODELS:
+        try:
+            based_on = get_environment(environment, environments_file or None).based_on
+        except ConfigError:
+            based_on = ""
+        if not based_on or based_on in seen:
+            raise ConfigError(f"environment {seen[0]!r} has no shipped model; name a checkpoint (a .pt file or one "
+                              f"of {list(SHIPPED_MODELS)})")
+        environment = based_on
+        seen.append(environment)
     return environment
 
 

@@ -21,13 +21,41 @@ Slope cost of a point with unit normal n (oriented up, world frame W) and n_z = 
 
     cost = 0                                    if n_z >= cos(free_slope_deg)
     cost = LETHAL_OBSTACLE (254)                if n_z <= cos(lethal_slope_deg)
-    cost = ceil(252 (cos(free) - n_z) / (cos(free) - cos(lethal)))   otherwise,
+    cost = ceil(252 (cos(free) - n_z) / (cos(free) - cos(top)))   otherwise,
 
-linear in n_z between the two slopes (so roughly quadratic in the slope angle). A cell's
-value is the largest cost of the points that fall in it this update.
+linear in n_z between the two slopes (so roughly quadratic in the slope angle), where top is
+`lethal_slope_deg`. With `lethal_slope_deg` infinite (YAML `.inf`) no slope is lethal and top
+is 90 deg: the cost rises from 0 at `free_slope_deg` to 252 (MAX_NON_OBSTACLE) for a vertical
+normal. (Infinite, not None: Drake's `yaml_dump_typed` leaves None out, which would read back
+as the default 45.) The two curves in use (`docs/baseline.md`; drawn by
+`ditch_drake.docs_tools.figures.cost_curve_figure`):
+- `dwa` (`CostmapConfig()`): 0 up to 5 deg, then linear in n_z to 252 just below 45 deg,
+  LETHAL from 45 deg on; the ditches' 55 deg walls are lethal.
+- `dwa_paper` (`ditch_drake.diagrams.rollout.paper_dwa_config`, the paper's section 4.2:
+  cost "increases with increasing or decreasing terrain slope, while flat terrain garners
+  zero cost"): 0 up to 5 deg, then ceil(252 (cos 5 deg - n_z) / cos 5 deg), 252 at 90 deg and
+  never lethal; a 55 deg wall costs 107.
+A cell's value is the largest cost of the points that fall in it this update.
 
-Marking and clearing. A cell with at least one point (with a normal) this update is
-overwritten with that update's cost: a flat observation clears an old slope and a steep
+Obstacles (`max_step_height` > 0; 0, the default, disables it). Slope alone cannot tell a
+vertical wall from a steep ditch wall when no slope is lethal, so, as costmap_2d's obstacle
+layer marks the points of real obstacles, a cell whose points (after the voxel downsampling)
+span more than `max_step_height` in height is LETHAL_OBSTACLE, whatever their slope cost.
+The span leaves out the cell's single highest and single lowest point (cells of fewer than 4
+points have none), so that one stray return does not make a wall. Measured on the rendered
+lidar (task 0 of each ditch, the expert crossing it: 1532 updates), against `dwa_paper`'s
+0.3 m: the full span exceeded it in 5 cells, each a lone point at the floor's depth among
+the points of a 55 deg wall, up to 1.1 m below them, and the trimmed span never exceeded
+0.09 m (a 55 deg wall rises 0.14 m across a 0.1 m cell, 0.2 m along its diagonal). A 1 m
+vertical wall cast with the lidar's rays from 1 to 3.5 m away gave a median of 4-10 points a
+cell and marked 75-100 % of the face cells seen (60 % at 3.5 m and 80 deg off the wall's
+normal); after inflation the only passable cells of the face were the last one or two at
+each end of the stretch seen. The span is of single cells: over a cell and its 8 neighbours
+a 55 deg wall spreads up to 0.5-0.6 m (99.9th percentile), too close to a 1 m wall's to tell
+them apart.
+
+Marking and clearing. A cell with at least one point (with a normal) this update, or a
+step, is overwritten with that update's cost: a flat observation clears an old slope and a steep
 one marks it. Cells without a point of their own are raytraced, as costmap_2d's obstacle
 layer clears along each ray from the sensor to its return, but gated by height against
 a level plane through the ground under the robot's wheels (as the voxel layer only clears
@@ -45,6 +73,12 @@ within its height band):
   negative obstacle's near wall stays unknown (or, with ROS's plain 2D raytrace, is cleared
   to FREE) until the robot is at its edge. Drop marking wins over clearing; a point's own
   cost wins over both.
+With `max_step_height` > 0, marks are kept: an observation never lowers a LETHAL cell, as
+costmap_2d's obstacle layer keeps a mark until a ray passes through it (these rays pass
+over cells, never through a wall). A wall's cells are seen in part as they slide toward the
+edge of the view, and a face on a cell boundary splits its points between two cells: driving
+along a 1 m wall 2 m away (rendered lidar, 6 s), 23 % of its nearby cells flickered
+back to passable after inflation without this, none with it.
 A cell neither observed nor raytraced keeps its value (observations persist while the
 cell stays in the window); cells that leave the rolling window are forgotten and come
 back unknown. Cells under the robot's footprint are set FREE (costmap_2d's
@@ -67,6 +101,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
 
+from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.spec import robot
 
 FREE_SPACE = 0
@@ -100,9 +135,15 @@ class CostmapConfig:
         negative_obstacle_depth: rays deeper than this below the ground plane mark the
             cells they pass over LETHAL (hidden drops); 0 disables.
         free_slope_deg: slopes up to this cost 0 (flat ground, and noise of the normals).
-        lethal_slope_deg: slopes from this on are LETHAL_OBSTACLE. 45 makes the ditches'
-            55 deg walls lethal; above 55 the planners may cross them at a high cost (the
-            paper's baseline drove into the ditches); 90 makes no slope lethal.
+        lethal_slope_deg: slopes from this on are LETHAL_OBSTACLE, and the cost reaches 252
+            just below it. 45 makes the ditches' 55 deg walls lethal; above 55 the planners
+            may cross them at a high cost (the paper's baseline drove into the ditches); 90
+            leaves only exactly vertical normals lethal; math.inf (YAML .inf) makes no slope
+            lethal (the cost reaches 252 at 90 deg).
+        max_step_height: a cell whose points span more than this height (m; without its
+            highest and lowest point, see the module doc) is LETHAL_OBSTACLE: a vertical
+            obstacle, whatever its slope cost; and LETHAL cells are kept when seen again.
+            0 disables both.
         downsample_voxel_size: the cloud is reduced to one point (the centroid) per occupied
             cubic voxel of this side before normals are estimated; 0 keeps every point.
         normal_neighbours: k of the k-nearest-neighbour PCA normals.
@@ -124,6 +165,8 @@ class CostmapConfig:
     negative_obstacle_depth: float = 0.3
     free_slope_deg: float = 5.0
     lethal_slope_deg: float = 45.0
+    # Written to results only when set: `dwa`'s recorded rollouts keep their keys.
+    max_step_height: float = field(default=0.0, metadata=WRITTEN_WHEN_SET)
     downsample_voxel_size: float = 0.1
     normal_neighbours: int = 12
     footprint: list[list[float]] = field(default_factory=default_footprint)
@@ -137,9 +180,12 @@ class CostmapConfig:
         if not (self.resolution > 0 and self.width >= 4 * self.resolution and self.height >= 4 * self.resolution):
             raise ValueError(f"costmap width {self.width}, height {self.height} and resolution {self.resolution} "
                              "must be positive, with at least 4 cells a side")
-        if not 0.0 <= self.free_slope_deg < self.lethal_slope_deg <= 90.0:
+        top = 90.0 if self.lethal_slope_deg == math.inf else self.lethal_slope_deg
+        if not 0.0 <= self.free_slope_deg < top <= 90.0:
             raise ValueError(f"need 0 <= free_slope_deg ({self.free_slope_deg}) < lethal_slope_deg "
-                             f"({self.lethal_slope_deg}) <= 90")
+                             f"({self.lethal_slope_deg}) <= 90, or lethal_slope_deg inf (none lethal)")
+        if not self.max_step_height >= 0.0:
+            raise ValueError(f"max_step_height {self.max_step_height} must be >= 0 (0: off)")
         if self.normal_neighbours < 3:
             raise ValueError(f"normal_neighbours {self.normal_neighbours} must be >= 3")
         if len(self.footprint) < 3 or any(len(p) != 2 for p in self.footprint):
@@ -149,12 +195,45 @@ class CostmapConfig:
 
 
 def slope_cost(normal_z: np.ndarray, free_slope_deg: float, lethal_slope_deg: float) -> np.ndarray:
-    """Cost (0..252, or 254 lethal) of points whose unit normals have world z component `normal_z`."""
+    """Cost (0..252, or 254 lethal) of points whose unit normals have world z component `normal_z`.
+
+    The module doc's formula; `lethal_slope_deg` inf: no slope is lethal and the cost reaches
+    252 at 90 deg (n_z = 0).
+    """
     normal_z = np.abs(np.asarray(normal_z, dtype=float))
-    z_free, z_lethal = math.cos(math.radians(free_slope_deg)), math.cos(math.radians(lethal_slope_deg))
-    fraction = np.clip((z_free - normal_z) / (z_free - z_lethal), 0.0, 1.0)
+    z_free = math.cos(math.radians(free_slope_deg))
+    never = lethal_slope_deg == math.inf
+    # cos(radians(90)) is 6e-17, not 0: the curve's top is exact when nothing is lethal.
+    z_top = 0.0 if never else math.cos(math.radians(lethal_slope_deg))
+    fraction = np.clip((z_free - normal_z) / (z_free - z_top), 0.0, 1.0)
     cost = np.ceil(MAX_NON_OBSTACLE * fraction - 1e-9) + 0.0  # + 0.0: no -0.0
-    return np.where(normal_z <= z_lethal, float(LETHAL_OBSTACLE), cost)
+    if never:
+        return cost
+    return np.where(normal_z <= z_top, float(LETHAL_OBSTACLE), cost)
+
+
+def step_heights(cell: np.ndarray, z: np.ndarray, size: int) -> np.ndarray:
+    """Per cell, how far its points spread in height (m) without its highest and lowest point.
+
+    Args:
+        cell: (N,) flat cell index of each point, in [0, size).
+        z: (N,) the points' heights (m).
+        size: cells in the grid.
+
+    Returns:
+        (size,) the second-highest minus the second-lowest height of each cell's points; 0 for
+        cells of fewer than 4 points (see the module doc: one stray return is not a wall).
+    """
+    spread = np.zeros(size)
+    if len(z) == 0:
+        return spread
+    order = np.lexsort((z, cell))
+    cell, z = np.asarray(cell)[order], np.asarray(z, dtype=float)[order]
+    first = np.flatnonzero(np.r_[True, cell[1:] != cell[:-1]])
+    last = np.r_[first[1:], len(z)] - 1
+    many = last - first >= 3
+    spread[cell[first[many]]] = z[last[many] - 1] - z[first[many] + 1]
+    return spread
 
 
 def voxel_downsample(points: np.ndarray, voxel_size: float) -> np.ndarray:
@@ -440,13 +519,21 @@ class SlopeCostmap:
             normals_W = self.estimate_normals(points_W)
         else:
             normals_W = np.asarray(normals_W, dtype=float).reshape(-1, 3)[keep]
-        iy, ix, inside = self.world_to_cell(origin, points_W[:, :2])
-        inside &= np.isfinite(normals_W[:, 2])
+        iy, ix, in_window = self.world_to_cell(origin, points_W[:, :2])
+        inside = in_window & np.isfinite(normals_W[:, 2])
         observed = np.full(self.size, -1.0)
         if inside.any():
             cost = slope_cost(normals_W[inside, 2], self.config.free_slope_deg, self.config.lethal_slope_deg)
             np.maximum.at(observed, iy[inside] * self.shape[1] + ix[inside], cost)
+        if self.config.max_step_height > 0.0 and in_window.any():
+            # Every point counts for the step, with a normal or without (a point's normal may
+            # be undefined where its neighbours are collinear, as on a thin vertical edge).
+            spread = step_heights(iy[in_window] * self.shape[1] + ix[in_window], points_W[in_window, 2], self.size)
+            observed[spread > self.config.max_step_height] = LETHAL_OBSTACLE
         flat = layer.reshape(-1)
+        # With steps on, marks are kept (module doc): a later view showing too little of a
+        # wall to see its step does not lower a LETHAL cell.
+        kept = flat == LETHAL_OBSTACLE if self.config.max_step_height > 0.0 else np.zeros(self.size, dtype=bool)
         if ground_W is not None:
             directions = np.zeros((0, 3)) if no_return_W is None else np.asarray(no_return_W, float).reshape(-1, 3)
             ends = np.concatenate([points_W, p_WS + self.config.obstacle_range * directions])
@@ -455,7 +542,7 @@ class SlopeCostmap:
             cleared, dropped = self._raytrace(origin, ends, hit, p_WS, ground_W, clearable=unknown)
             flat[cleared & ~dropped & unknown] = FREE_SPACE
             flat[dropped] = LETHAL_OBSTACLE
-        seen = observed >= 0.0
+        seen = (observed >= 0.0) & ~kept
         flat[seen] = observed[seen]
         return layer
 

@@ -11,6 +11,9 @@ from ditch_drake.common.config_yaml import load_typed_yaml
 from ditch_drake.common.errors import ConfigError, TerrainError
 from ditch_drake.world.terrain import DitchTerrain, TerrainParams
 
+# How far a task's start and goal must keep from the ditch's edge and from any wall (m).
+TASK_CLEARANCE_M = 1.0
+
 
 @dataclass
 class Task:
@@ -23,11 +26,21 @@ class Task:
 
 @dataclass
 class Environment:
-    """A terrain and its tasks."""
+    """A terrain and its tasks.
+
+    Attributes:
+        description: one line for people.
+        terrain: the ditch (and its walls, if fenced).
+        tasks: start/goal pairs on opposite sides of the ditch.
+        based_on: the environment this one varies ("wide" for "wide_walled"): the same ditch
+            and tasks; its shipped model is the learned policy's default here, and reports
+            pair the two. "": none.
+    """
 
     description: str = ""
     terrain: TerrainParams = field(default_factory=TerrainParams)
     tasks: list[Task] = field(default_factory=list)
+    based_on: str = ""
 
 
 @dataclass
@@ -44,8 +57,13 @@ def _default_path() -> Path:
     return Path(str(resources.files("ditch_drake.world") / DEFAULT_ENVIRONMENTS_FILE))
 
 
-def load_environments(path: str | Path | None = None) -> dict[str, Environment]:
+def load_environments(path: str | Path | None = None, prove_walls: bool = True) -> dict[str, Environment]:
     """Loads and validates an environments file (the packaged one by default).
+
+    `prove_walls`: also prove, for each walled environment, that its walls leave no way
+    round the ditch (`ditch_drake.world.bypass`, up to a second per environment); the packaged
+    file is read without it for listing names, and each of its environments is proven when
+    first used (`get_environment`).
 
     Raises:
         ConfigError: the file cannot be read or parsed, has unknown fields, or
@@ -57,13 +75,18 @@ def load_environments(path: str | Path | None = None) -> dict[str, Environment]:
         raise ConfigError(f"environments file {path} defines no environments")
     for name, environment in library.environments.items():
         try:
-            _validate_environment(environment)
+            _validate_environment(environment, prove_walls)
         except (TerrainError, ConfigError) as error:
             raise ConfigError(f"environment {name!r} in {path}: {error}") from error
+    names = set(library.environments) | (set() if path == _default_path() else set(environment_names(variants=True)))
+    for name, environment in library.environments.items():
+        if environment.based_on and environment.based_on not in names:
+            raise ConfigError(f"environment {name!r} in {path}: based_on={environment.based_on!r} names no "
+                              f"environment; expected one of {sorted(names)}")
     return library.environments
 
 
-def _validate_environment(environment: Environment) -> None:
+def _validate_environment(environment: Environment, prove_walls: bool = True) -> None:
     terrain = DitchTerrain(environment.terrain)
     if not environment.tasks:
         raise ConfigError("has no tasks")
@@ -73,12 +96,34 @@ def _validate_environment(environment: Environment) -> None:
                               f"finite; got start={task.start}, goal={task.goal}")
         for label, xy in (("start", task.start[:2]), ("goal", task.goal)):
             clearance = float(terrain.nearest_on_course(np.array(xy))[0]) - terrain.hinge_distance_m
-            if clearance < 1.0:
-                raise ConfigError(f"task {task.name!r}: {label} {xy} must be on flat ground at least 1 m "
-                                  f"from the ditch's edge (it is {clearance:.2f} m)")
+            if clearance < TASK_CLEARANCE_M:
+                raise ConfigError(f"task {task.name!r}: {label} {xy} must be on flat ground at least "
+                                  f"{TASK_CLEARANCE_M:g} m from the ditch's edge (it is {clearance:.2f} m)")
+            to_wall = float(terrain.distance_to_walls(np.array(xy)))
+            if to_wall < TASK_CLEARANCE_M:
+                raise ConfigError(f"task {task.name!r}: {label} {xy} is {to_wall:.2f} m from a wall: expected at "
+                                  f"least {TASK_CLEARANCE_M:g} m (a wall crosses the task)")
         if not crosses_ditch(terrain, task.start[:2], task.goal):
             raise ConfigError(f"task {task.name!r}: start {task.start[:2]} and goal {task.goal} "
                               "are not on opposite sides of the ditch")
+    if prove_walls:
+        prove_no_bypass(environment, terrain)
+
+
+def prove_no_bypass(environment: Environment, terrain: DitchTerrain | None = None) -> None:
+    """Raises ConfigError, naming the task, unless every route of every task of a walled
+    environment crosses its ditch (`ditch_drake.world.bypass`); nothing for an open one."""
+    # Imported here: scipy's image and graph modules would cost `ditch-drake --help` half a second.
+    from ditch_drake.world.bypass import check_no_bypass, rasterize_field
+
+    terrain = terrain or DitchTerrain(environment.terrain)
+    if terrain.walled:
+        grid = rasterize_field(terrain)
+        for task in environment.tasks:
+            try:
+                check_no_bypass(terrain, task.start[:2], task.goal, grid)
+            except ConfigError as error:
+                raise ConfigError(f"task {task.name!r}: {error}") from error
 
 
 def crosses_ditch(terrain: DitchTerrain, start_xy, goal_xy) -> bool:
@@ -89,12 +134,23 @@ def crosses_ditch(terrain: DitchTerrain, start_xy, goal_xy) -> bool:
 
 @functools.cache
 def _packaged_environments() -> dict[str, Environment]:
-    return load_environments()
+    return load_environments(prove_walls=False)
 
 
-def environment_names() -> list[str]:
-    """Names of the packaged environments."""
-    return list(_packaged_environments())
+@functools.cache
+def _proven_packaged(name: str) -> Environment:
+    environment = _packaged_environments()[name]
+    try:
+        prove_no_bypass(environment)
+    except ConfigError as error:
+        raise ConfigError(f"environment {name!r} in {_default_path()}: {error}") from error
+    return environment
+
+
+def environment_names(variants: bool = False) -> list[str]:
+    """Names of the packaged environments: the paper's four, and with `variants` also those
+    based on them (`Environment.based_on`: the walled ones)."""
+    return [name for name, environment in _packaged_environments().items() if variants or not environment.based_on]
 
 
 def get_environment(name: str, path: str | Path | None = None,
@@ -121,7 +177,7 @@ def get_environment(name: str, path: str | Path | None = None,
         known = [*environments, *(inline or {}), *packaged]
         where = f" (in {path} or packaged)" if path else ""
         raise ConfigError(f"unknown environment {name!r}{where}: expected one of {known}")
-    return packaged[name]
+    return _proven_packaged(name)
 
 
 def get_task(environment: Environment, task: int | str) -> Task:

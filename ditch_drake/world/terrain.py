@@ -14,18 +14,39 @@ The same description gives
   boxes. Boxes under point contact are exact and fast; a terrain `Mesh` would
   collide as its convex hull (docs/physics.md).
 
+A ditch may also be fenced: `TerrainParams.walls` are straight wall segments on the
+ground (tall boxes, collision and visual geometry), so that every route from a start to
+its goal has to cross the ditch (`ditch_drake.world.bypass` proves it for each task).
+
 A new shape is a new `TerrainParams`, not new code.
 """
 
 import itertools
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ditch_drake.common.errors import TerrainError
 
 COURSE_KINDS = ("line", "sine", "point")
+
+
+@dataclass
+class Wall:
+    """A fence of straight wall segments standing on the ground (m).
+
+    Attributes:
+        points: the wall's centre line [[x, y], ...], at least two points. It may reach
+            into the ditch's sloping sides to seal against them, never over its floor.
+        height_m: how far it stands above the flat ground (z = 0); it reaches down to the
+            ditch's floor level, so it stands out of the slopes it enters too.
+        thickness_m: its width across the centre line.
+    """
+
+    points: list[list[float]] = field(default_factory=list)
+    height_m: float = 1.0
+    thickness_m: float = 0.2
 
 
 @dataclass
@@ -47,6 +68,7 @@ class TerrainParams:
         max_turn_deg: largest heading change between course segments, and the
             angular width of the pieces revolved around bends and ends.
         field_margin_m: flat ground kept around the ditch's outer edge.
+        walls: fences on the ground (none: an open field).
     """
 
     course: str = "line"
@@ -61,6 +83,7 @@ class TerrainParams:
     arc_facets: int = 4
     max_turn_deg: float = 6.0
     field_margin_m: float = 20.0
+    walls: list[Wall] = field(default_factory=list)
 
     def validate(self) -> None:
         """Raises TerrainError naming the first parameter out of range."""
@@ -100,6 +123,8 @@ class TerrainParams:
             fail("hinge_radius_m + toe_radius_m", self.hinge_radius_m + self.toe_radius_m,
                  f"small enough that the rounded edges drop less than depth_m={self.depth_m} "
                  f"(they drop {rounding_drop:.3f} m)")
+        for index, wall in enumerate(self.walls):
+            _validate_wall(index, wall)
         if self.course == "sine":
             if self.sine_amplitude_m < 0.0:
                 fail("sine_amplitude_m", self.sine_amplitude_m, "sine_amplitude_m >= 0")
@@ -111,6 +136,21 @@ class TerrainParams:
                 fail("sine_amplitude_m", self.sine_amplitude_m,
                      f"a bend radius ({1 / curvature:.2f} m) larger than the ditch's half-width "
                      f"({reach:.2f} m); lower the amplitude or lengthen the wavelength")
+
+
+def _validate_wall(index: int, wall: Wall) -> None:
+    points = np.asarray(wall.points, dtype=float) if wall.points else np.zeros((0, 2))
+    if points.ndim != 2 or points.shape[1] != 2 or len(points) < 2 or not np.all(np.isfinite(points)):
+        raise TerrainError(f"terrain parameter walls[{index}].points={wall.points!r} is out of range: expected "
+                           "at least two finite [x, y] points")
+    if np.any(np.linalg.norm(np.diff(points, axis=0), axis=1) < 1e-6):
+        raise TerrainError(f"terrain parameter walls[{index}].points={wall.points!r} repeats a point: expected "
+                           "segments of positive length")
+    for name, allowed, ok in (("height_m", "0 < height_m <= 10", 0.0 < wall.height_m <= 10.0),
+                              ("thickness_m", "0 < thickness_m <= 2", 0.0 < wall.thickness_m <= 2.0)):
+        if not ok:
+            raise TerrainError(f"terrain parameter walls[{index}].{name}={getattr(wall, name)!r} is out of range: "
+                               f"expected {allowed}")
 
 
 def _profile_width(params: TerrainParams) -> float:
@@ -128,7 +168,7 @@ class BoxPiece:
     size: np.ndarray
     R_WP: np.ndarray
     p_WP: np.ndarray
-    kind: str  # "floor", "wall" or "ground", for colouring
+    kind: str  # "floor", "wall" (the ditch's sides), "ground" or "barrier" (a fence), for colouring
 
 
 class DitchTerrain:
@@ -145,6 +185,64 @@ class DitchTerrain:
         self._seg_start = starts
         self._seg_vec = ends - starts
         self._seg_len2 = np.maximum(np.sum(self._seg_vec**2, axis=1), 1e-300)
+        self._check_walls_off_the_floor()
+
+    # ----- walls ----------------------------------------------------------------------
+    @property
+    def walled(self) -> bool:
+        """Whether the field is fenced (`TerrainParams.walls`)."""
+        return bool(self.params.walls)
+
+    def wall_segments(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every wall segment: start points (K, 2), end points (K, 2), half thicknesses (K,) (m)."""
+        starts, ends, half = [], [], []
+        for wall in self.params.walls:
+            points = np.asarray(wall.points, dtype=float)
+            starts.append(points[:-1])
+            ends.append(points[1:])
+            half.append(np.full(len(points) - 1, wall.thickness_m / 2))
+        if not starts:
+            return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
+        return np.concatenate(starts), np.concatenate(ends), np.concatenate(half)
+
+    def distance_to_walls(self, xy: np.ndarray) -> np.ndarray:
+        """Planar distance (m) from points xy (..., 2) to the nearest wall's surface (inf: no walls)."""
+        xy = np.asarray(xy, dtype=float)
+        starts, ends, half = self.wall_segments()
+        if len(starts) == 0:
+            return np.full(xy.shape[:-1], np.inf)
+        return _distance_to_segments(xy.reshape(-1, 2), starts, ends, half).reshape(xy.shape[:-1])
+
+    def _check_walls_off_the_floor(self) -> None:
+        """Raises TerrainError when a wall passes over the ditch's floor (it would cross the ditch)."""
+        for index, wall in enumerate(self.params.walls):
+            points = np.asarray(wall.points, dtype=float)
+            samples = np.concatenate([np.linspace(a, b, max(2, math.ceil(np.linalg.norm(b - a) / 0.05) + 1))
+                                      for a, b in itertools.pairwise(points)])
+            distance = self.nearest_on_course(samples)[0]
+            inside = distance < self.toe_distance_m + wall.thickness_m / 2
+            if inside.any():
+                x, y = samples[np.argmax(inside)]
+                raise TerrainError(f"walls[{index}] crosses the ditch: its point ({x:.2f}, {y:.2f}) lies over the "
+                                   f"ditch's floor (within {self.toe_distance_m:.2f} m of the course); a wall may "
+                                   "reach into the sloping sides, not across the floor")
+
+    def wall_pieces(self) -> list[BoxPiece]:
+        """The walls' collision/visual boxes, one per segment (kind "barrier"), from the ditch's
+        floor level up to each wall's height; each is a thickness longer than its segment so
+        that the corners of a polyline close."""
+        pieces = []
+        bottom = -self.params.depth_m - 0.5
+        for wall in self.params.walls:
+            for a, b in itertools.pairwise(np.asarray(wall.points, dtype=float)):
+                heading = math.atan2(*(b - a)[::-1])
+                c, s = math.cos(heading), math.sin(heading)
+                R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+                size = np.array([float(np.linalg.norm(b - a)) + wall.thickness_m, wall.thickness_m,
+                                 wall.height_m - bottom])
+                center = np.array([*(a + b) / 2, (wall.height_m + bottom) / 2])
+                pieces.append(BoxPiece(size, R, center, "barrier"))
+        return pieces
 
     # ----- cross-section profile -------------------------------------------------
     def _make_profile(self) -> tuple[np.ndarray, np.ndarray]:
@@ -396,6 +494,18 @@ class DitchTerrain:
             inside = (np.abs(local[:, 0]) <= piece.size[0] / 2 + 1e-9) & (np.abs(local[:, 1]) <= piece.size[1] / 2 + 1e-9)
             top = np.where(inside, np.maximum(top, z), top)
         return top
+
+
+def _distance_to_segments(xy: np.ndarray, starts: np.ndarray, ends: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """Distance (N,) from points (N, 2) to the nearest of the segments' thick bodies (0 inside)."""
+    vec = ends - starts
+    length2 = np.maximum(np.sum(vec**2, axis=1), 1e-300)
+    best = np.full(len(xy), np.inf)
+    for start, v, l2, h in zip(starts, vec, length2, half, strict=True):  # Few segments, many points.
+        t = np.clip((xy - start) @ v / l2, 0.0, 1.0)
+        gap = np.linalg.norm(xy - (start + t[:, None] * v), axis=1) - h
+        np.minimum(best, gap, out=best)
+    return np.maximum(best, 0.0)
 
 
 def _wrap(angle: float) -> float:
