@@ -427,9 +427,10 @@ def cmd_experiment(args) -> int:
     config = load_experiment(args.file)
     stages = tuple(args.stage) if args.stage else ("collect", "train", "evaluate", "report")
     command = " ".join(["ditch-drake experiment", str(args.file)] + [f"--only {env}" for env in args.only or []]
+                       + [f"--study {study}" for study in args.study or []]
                        + [f"--stage {stage}" for stage in args.stage or []])
     try:
-        timings = run_experiment(config, only=args.only, stages=stages, command=command)
+        timings = run_experiment(config, only=args.only, stages=stages, command=command, only_studies=args.study)
     except KeyboardInterrupt as error:
         print("interrupted; finished work is kept, run the same command again to continue", file=sys.stderr)
         return interrupt_exit_code(error)
@@ -532,6 +533,7 @@ def _environments_epilog() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from ditch_drake.evaluation.experiment import study_names
     from ditch_drake.learning.config import TrainConfig
     from ditch_drake.world.environments import environment_names
 
@@ -701,6 +703,10 @@ def build_parser() -> argparse.ArgumentParser:
     experiment.add_argument("file", help="experiment file, e.g. experiments/paper.yaml")
     experiment.add_argument("--only", action="append", metavar="ENV",
                             help="only the models and evaluations that involve this environment (repeatable)")
+    studies = study_names()
+    experiment.add_argument("--study", action="append", choices=studies, metavar="STUDY",
+                            help=f"only this study's models and evaluations (repeatable; one of {', '.join(studies)}; "
+                                 "default: all)")
     experiment.add_argument("--stage", action="append", choices=["collect", "train", "evaluate", "report"],
                             help="run only this stage (repeatable; default: all, in order)")
     experiment.set_defaults(run=cmd_experiment)

@@ -221,3 +221,13 @@ def test_the_report_renders_from_a_small_fixture(tmp_path):
             "| not significant |") in text
     assert "| success generally rises with demonstrations | wide 10: 50% -> 40: 100% | yes |" in text
     assert (tmp_path / "img" / "fig5_wide.png").exists() and (tmp_path / "img" / "fig5_baseline.png").exists()
+
+
+def test_a_study_alone_plans_its_own_models_and_evaluations():
+    config = load_experiment("experiments/paper.yaml")
+    models, evaluations = plan(config, only_studies=["must_cross"])
+    assert [m.name for m in models] == ["crater_40", "wide_40", "narrow_40", "sine_40"]
+    assert {e.study for e in evaluations} == {"must_cross"} and len(evaluations) == 24
+    models, evaluations = plan(config, only=["wide"], only_studies=["must_cross", "amalgam"])
+    assert [m.name for m in models] == ["crater+narrow+sine_40", "wide_40"]
+    assert Counter(e.study for e in evaluations) == {"must_cross": 6, "amalgam": 1}

@@ -77,7 +77,9 @@ def _lines(path: Path) -> int:
     return path.read_text().count("\n") if path.exists() else 0
 
 
-def _group_is_gone(group: int, timeout_s: float = 2.0) -> bool:
+def _group_is_gone(group: int, timeout_s: float = STOP_WITHIN_S) -> bool:
+    """Whether every process of `group` has exited within `timeout_s` (a killed worker's exit can
+    take seconds on a host whose cores other jobs hold)."""
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         try:
@@ -101,7 +103,8 @@ def _stop(process: subprocess.Popen, signum: int, to_group: bool) -> tuple[float
 @pytest.mark.parametrize("signum, to_group, code", [(signal.SIGINT, True, 130), (signal.SIGTERM, False, 143)])
 def test_a_signal_stops_evaluate_promptly_and_keeps_every_finished_rollout(tmp_path, signum, to_group, code):
     results = tmp_path / "results.jsonl"
-    process = _start(["evaluate", "--controller", "head_on", "--env", "wide", "--task", "0", "--rollouts", "30",
+    # 200 rollouts of 0.2 s: on a loaded host the test may look late, and the stop must still land mid-run.
+    process = _start(["evaluate", "--controller", "head_on", "--env", "wide", "--task", "0", "--rollouts", "200",
                       "--workers", "1", "--out", str(results)])
     _wait_for(lambda: _lines(results) >= 1)
     elapsed, out, err = _stop(process, signum, to_group)
@@ -111,21 +114,22 @@ def test_a_signal_stops_evaluate_promptly_and_keeps_every_finished_rollout(tmp_p
     records, warnings = read_records(results)
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["interrupted"] and summary["recorded"] == len(records) >= 1
-    assert 1 <= len(records) < 30 and not warnings
+    assert 1 <= len(records) < 200 and not warnings
     assert f"{len(records)} rollouts recorded by this run" in err
 
 
 def test_ctrl_c_stops_collect_promptly_and_a_rerun_completes_the_set(tmp_path):
     out = tmp_path / "demos"
-    process = _start(["collect", "--env", "wide", "--demos", "2", "--workers", "1", "--out", str(out)])
+    # Three demonstrations: the stop lands mid-set even when this test looks late on a loaded host.
+    process = _start(["collect", "--env", "wide", "--demos", "3", "--workers", "1", "--out", str(out)])
     _wait_for(lambda: (out / "demo_000.npz").exists())
     elapsed, _, err = _stop(process, signal.SIGINT, to_group=True)
     assert process.returncode == 130, err
     assert elapsed < STOP_WITHIN_S
     assert _group_is_gone(process.pid)
     assert "Traceback" not in err and "run the same command again" in err
-    assert main(["collect", "--env", "wide", "--demos", "2", "--workers", "0", "--out", str(out)]) == 0
-    assert sorted(path.name for path in out.glob("demo_*.npz")) == ["demo_000.npz", "demo_001.npz"]
+    assert main(["collect", "--env", "wide", "--demos", "3", "--workers", "0", "--out", str(out)]) == 0
+    assert sorted(path.name for path in out.glob("demo_*.npz")) == ["demo_000.npz", "demo_001.npz", "demo_002.npz"]
 
 
 def test_workers_die_with_a_killed_main_process(tmp_path):

@@ -29,7 +29,7 @@ import platform
 import sys
 import time
 import typing
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 from ditch_drake.common.config_yaml import load_typed_yaml
@@ -281,12 +281,18 @@ class Evaluation:
     environment: str
 
 
-def plan(config: ExperimentConfig, only: list[str] | None = None) -> tuple[list[ModelSpec], list[Evaluation]]:
-    """The models to train and the evaluations to run, restricted to `only`'s environments.
+def study_names() -> list[str]:
+    """The studies an experiment file may hold, in pipeline order."""
+    return [f.name for f in fields(Studies)]
 
-    A model is kept when one of its training environments is in `only`; an evaluation
-    when its environment, the open environment that one is based on, or one of its model's
-    environments is.
+
+def plan(config: ExperimentConfig, only: list[str] | None = None,
+         only_studies: list[str] | None = None) -> tuple[list[ModelSpec], list[Evaluation]]:
+    """The models to train and the evaluations to run, restricted to `only`'s environments and
+    to the studies `only_studies` names (None: all).
+
+    An evaluation is kept when its environment, the open environment that one is based on, or
+    one of its model's environments is in `only`; a model when a kept evaluation uses it.
 
     Raises:
         ConfigError: a study names an unknown environment (`load_experiment` refuses those).
@@ -323,6 +329,8 @@ def plan(config: ExperimentConfig, only: list[str] | None = None) -> tuple[list[
         for env in study.open_environments:
             evaluations += [Evaluation("must_cross", controller, None, env) for controller in study.open_controllers]
 
+    if only_studies is not None:
+        evaluations = [e for e in evaluations if e.study in only_studies]
     if only is not None:
         bases = {env: base_environment(config, env) for env in {e.environment for e in evaluations}}
         evaluations = [e for e in evaluations if any(
@@ -348,14 +356,16 @@ def evaluation_specs(config: ExperimentConfig, evaluation: Evaluation) -> list[R
 
 
 def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stages: tuple[str, ...] = (
-        "collect", "train", "evaluate", "report"), progress: bool = True, command: str = "") -> dict:
-    """Runs the stages of the experiment (see the module docstring); returns each stage's wall time (s).
+        "collect", "train", "evaluate", "report"), progress: bool = True, command: str = "",
+        only_studies: list[str] | None = None) -> dict:
+    """Runs the stages of the experiment (see the module docstring) for the models and
+    evaluations of `plan(config, only, only_studies)`; returns each stage's wall time (s).
 
     Each finished stage's time goes into the results folder's RUNS_FILE at once (with
     `command`, `only` and the CPU), so an interrupted run keeps the times of what it
     finished and the results page can say how long the protocol took.
     """
-    models, evaluations = plan(config, only)
+    models, evaluations = plan(config, only, only_studies)
     run = {"started_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
            "command": command, "only": list(only or []), "cpu": cpu_name(), "code": code_revision()}
 

@@ -623,7 +623,8 @@ def _figure_baseline(scalability: dict, baseline: dict, path: Path, number: int,
         series.append(([shipped[env][1] if env in shipped else None for env in envs],
                        "learned: the environment's shipped model", _OWN_MODEL))
     if any(learned) or not series:
-        series.append((learned, "learned (own environment's model)", _PAPER_MODEL if series else _OWN_MODEL))
+        label = "learned: the paper's method, own environment's model" if series else "learned (own environment's model)"
+        series.append((learned, label, _PAPER_MODEL if series else _OWN_MODEL))
     series += [(dwa, "DWA baseline (dwa)", _BASELINE)] if baseline else []
     series += [([paper.get(env) for env in envs], "the paper's move_base (dwa_paper)", _PAPER_BASELINE)] if paper else []
     width = 0.8 / len(series)
@@ -943,7 +944,7 @@ def _findings_section(data: ReportData, must_cross: MustCross | None) -> list[st
                    "\"beats move_base\" is answered where every route crosses the ditch (the must_cross study's "
                    "walled environments: each environment's learned models, the shipped one and the paper-method "
                    "one, against the paper's move_base and our DWA there), and beside it in the open field (each "
-                   "environment's 40-demonstration model against the same controllers)."), ""]
+                   "environment's learned models against the same controllers there)."), ""]
     lines += [*findings, ""]
     pairs = [(f"walled, against {controller}", must_cross.comparisons(controller))
              for controller in (must_cross.controllers if must_cross else ())]
