@@ -53,9 +53,8 @@ def _wide_walled():
 
 def test_a_short_wall_leaves_a_bypass_and_is_refused():
     environment = _wide_walled()
-    # Both walls stop 2 m short of the ditch at its east end: a way round that end opens.
-    environment.terrain.walls[0].points[0] = [14.0, -8.5]
-    environment.terrain.walls[1].points[0] = [14.0, 8.5]
+    # The wall from the ditch's east end to the field's side stops 1.2 m short of the ditch.
+    environment.terrain.walls[1].points[0] = [22.5, 0.0]
     with pytest.raises(ConfigError, match=r"task 'straight_across': the walls leave a bypass") as error:
         _validate_environment(environment)
     x, y = (float(v) for v in str(error.value).split("passes (")[1].split(")")[0].split(", "))
@@ -64,7 +63,9 @@ def test_a_short_wall_leaves_a_bypass_and_is_refused():
 
 def test_a_gap_on_one_side_lets_the_robot_out_and_is_refused():
     environment = _wide_walled()
-    environment.terrain.walls[0].points[0] = [14.0, -8.5]
+    # The field's south side open from x = -5 to 5 m: the start's half opens onto the field beyond.
+    environment.terrain.walls[0].points = [[-5.0, -14.0], [-27.0, -14.0], [-27.0, 14.0], [27.0, 14.0],
+                                           [27.0, -14.0], [5.0, -14.0]]
     with pytest.raises(ConfigError, match=r"task 'straight_across': start \[0.0, -11.0\] is outside the walls"):
         _validate_environment(environment)
 
@@ -78,7 +79,7 @@ def test_a_wall_across_the_ditch_is_refused():
 
 def test_a_wall_through_a_task_is_refused():
     environment = _wide_walled()
-    environment.terrain.walls[0].points[1:3] = [[14.0, -11.3], [-14.0, -11.3]]
+    environment.terrain.walls[0].points = [[-27.0, -11.3], [27.0, -11.3], [27.0, 14.0], [-27.0, 14.0], [-27.0, -11.3]]
     with pytest.raises(ConfigError, match=r"task 'straight_across': start \[0.0, -11.0\] is 0.20 m from a wall"):
         _validate_environment(environment)
 
@@ -117,9 +118,9 @@ def test_a_walled_variant_drives_the_model_of_its_base():
 
 
 def test_the_lidar_sees_a_wall_and_not_in_the_open_field():
-    """The robot 2 m from the east wall of wide_walled, facing it: the cloud holds points on
+    """The robot 2 m from the south wall of wide_walled, facing it: the cloud holds points on
     the wall's face, up to its top; in the open field the same pose sees only level ground."""
-    X_WB = RigidTransform(RotationMatrix.MakeZRotation(0.0), [11.8, -10.0, 0.135])
+    X_WB = RigidTransform(RotationMatrix.MakeZRotation(-np.pi / 2), [3.0, -11.8, 0.135])
     for name, expect_wall in (("wide_walled", True), ("wide", False)):
         builder = DiagramBuilder()
         scene = AddDitchScene(builder, SceneConfig(environment=name))
@@ -133,7 +134,7 @@ def test_the_lidar_sees_a_wall_and_not_in_the_open_field():
         lidar.converter.ExecuteForcedEvents(converter_context)
         p_L = lidar.converter.GetOutputPort("point_cloud").Eval(converter_context).xyzs().astype(float)
         p_W = (X_WB @ lidar.X_BL).multiply(p_L)
-        on_wall = (np.abs(p_W[0] - 13.9) < 0.05) & (p_W[2] > 0.3)
+        on_wall = (np.abs(p_W[1] + 13.9) < 0.05) & (p_W[2] > 0.3)
         if expect_wall:
             assert on_wall.sum() > 100
             assert p_W[2, on_wall].max() == pytest.approx(1.0, abs=0.1)
@@ -143,14 +144,14 @@ def test_the_lidar_sees_a_wall_and_not_in_the_open_field():
 
 
 def test_the_robot_stops_at_a_wall():
-    """Driven straight at the east wall from 3 m, the chassis never passes it."""
+    """Driven straight at the south wall from 3 m, the chassis never passes it."""
     environment = get_environment("wide_walled")
     field = copy.deepcopy(environment)
-    field.tasks[0].start = [10.5, -10.0, 0.0]
+    field.tasks[0].start = [3.0, -11.0, -90.0]
     scene = SceneConfig(environment="fenced", environments={"fenced": field})
     scene.episode.time_limit_s = 8.0
     diagram, built = MakeRolloutDiagram(RolloutConfig(scene=scene, controller=ConstantCommandConfig([1.0, 0.0])))
     outcome = RunEpisode(Simulator(diagram), diagram, built, seed=0)
-    wall_face_x = 14.0 - 0.1
-    assert outcome.final_xy[0] < wall_face_x - 0.3  # The chassis' front half (0.5 m) stays outside the wall.
-    assert outcome.final_xy[0] > 12.5  # It did drive there.
+    wall_face_y = -14.0 + 0.1
+    assert outcome.final_xy[1] > wall_face_y + 0.3  # The chassis' front half (0.5 m) stays outside the wall.
+    assert outcome.final_xy[1] < -12.5  # It did drive there.

@@ -21,7 +21,7 @@ from ditch_drake.diagrams.rollout import (
     StartEpisode,
 )
 from ditch_drake.spec import robot
-from ditch_drake.world.environments import environment_names, get_environment
+from ditch_drake.world.environments import environment_names, get_environment, load_environments
 
 TRAVERSAL_S = 30.0
 # The first control step: every stage's tick (offsets up to 4 ms) has run once.
@@ -76,8 +76,6 @@ def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVE
 
 def walled_variants(environment: str, environments_file: str = "") -> list[str]:
     """The packaged (or the file's) environments based on `environment` that are fenced."""
-    from ditch_drake.world.environments import load_environments
-
     library = {**(load_environments(environments_file) if environments_file else {}),
                **{name: get_environment(name) for name in environment_names(variants=True)}}
     return [name for name, candidate in library.items()
