@@ -60,10 +60,17 @@ from ditch_drake.world.environments import ConfigError
 STOP_WITHIN_S = 5.0
 
 
+def _default_signals() -> None:
+    # A shell's background job ignores SIGINT, and a child inherits that: as in a terminal's
+    # foreground, the command starts with Ctrl-C's default, whoever runs the tests.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(arguments: list[str]) -> subprocess.Popen:
     """`ditch-drake ARGUMENTS` in a process group of its own, as a terminal would run it."""
     return subprocess.Popen([sys.executable, "-m", "ditch_drake.cli", *arguments], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=_default_signals)
 
 
 def _wait_for(condition, timeout_s: float = 240.0) -> None:
