@@ -21,6 +21,7 @@ LAYERS = [
     {"diagrams"},
     {"demos"},
     {"evaluation"},
+    {"gym"},
     {"benchmarks"},
     {"docs_tools"},
     {"cli"},

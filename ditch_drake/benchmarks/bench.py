@@ -146,6 +146,7 @@ def measure_blocks() -> dict:
     """One control step of each expensive block, in ms (medians, one process)."""
     from ditch_drake.benchmarks.bench_dwa import measure_dwa_ms
     from ditch_drake.benchmarks.bench_lidar import measure_lidar_ms
+    from ditch_drake.benchmarks.bench_mppi import measure_mppi_ms
     from ditch_drake.benchmarks.bench_normal_image import measure_normal_image_ms
     from ditch_drake.benchmarks.bench_training import measure_policy_step_ms
 
@@ -161,6 +162,9 @@ def measure_blocks() -> dict:
     dwa = measure_dwa_ms()
     figures.update({key: dwa[key] for key in ("dwa_update_ms", "dwa_update_cpu_ms", "dwa_update_p90_ms",
                                               "dwa_global_plan_ms", "dwa_global_plan_cpu_ms", "dwa_step_ms")})
+    # The rollover-aware MPPI on its own replayed drive (map fusion + attitude-predicting plan).
+    mppi = measure_mppi_ms()
+    figures.update({key: mppi[key] for key in ("mppi_update_ms", "mppi_update_cpu_ms", "mppi_update_p90_ms")})
     return figures
 
 
@@ -176,6 +180,20 @@ def measure_rollouts_per_minute(rollouts: int = 4, environment: str = "wide") ->
     with tempfile.TemporaryDirectory() as folder:
         report = evaluate(specs, Path(folder) / "bench.jsonl", progress=False)
     return {"evaluate_rollouts_per_min": report.rollouts_per_minute}
+
+
+def measure_gym_figures() -> dict:
+    """The Gymnasium environment's steps per second and its time per step over the closed
+    loop's (`ditch_drake.benchmarks.bench_gym`); none without the `gym` extra, which says so on stderr."""
+    import importlib.util
+    import sys
+
+    if importlib.util.find_spec("gymnasium") is None:
+        print("bench: gymnasium is not installed (pip install -e '.[gym]'): no gym_* figures", file=sys.stderr)
+        return {}
+    from ditch_drake.benchmarks.bench_gym import measure_gym_env
+
+    return measure_gym_env()
 
 
 def measure_host_reference_ms(repeats: int = 5) -> float:
@@ -216,6 +234,7 @@ def run_bench(environments: list[str] | None = None, training: bool = False, env
     figures.update(measure_training_throughput())
     figures.update(shipped_model_figures())
     figures.update(measure_rollouts_per_minute())
+    figures.update(measure_gym_figures())
     if training:
         from ditch_drake.benchmarks.bench_training import measure_training_memory_mib
 

@@ -79,19 +79,26 @@ def run_rollout(spec: RolloutSpec) -> RolloutRecord:
             raise ConfigError(f"checkpoint {spec.checkpoint!r} has digest {digest}, not {spec.checkpoint_sha256} as "
                               "when the evaluation started: the file changed during the run")
         diagram, scene, simulator = _rig(spec)
-        outcome = RunEpisode(simulator, diagram, scene, spec.seed)
-        counter = diagram.GetSubsystemByName("halt_counter")
-        halts = counter.halts_by_region(counter.GetMyContextFromRoot(simulator.get_context()))
+        RunEpisode(simulator, diagram, scene, spec.seed)
+        fields = outcome_fields(diagram, scene, simulator.get_context())
     except Exception as error:
         return error_record(spec, f"{type(error).__name__}: {error}", time.perf_counter() - start)
+    return RolloutRecord(**common, **fields, wall_s=time.perf_counter() - start)
+
+
+def outcome_fields(diagram, scene, root_context) -> dict:
+    """The record fields that say what an episode did, read from a rollout diagram's Context:
+    the episode monitor's outcome, where it ended relative to the ditch ("" on success) and
+    the "halt_counter"'s halts by region (`RolloutRecord`'s status .. halts_by_region)."""
+    outcome = scene.monitor.outcome(scene.monitor.GetMyContextFromRoot(root_context))
+    counter = diagram.GetSubsystemByName("halt_counter")
     region = "" if outcome.success else ditch_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
-    return RolloutRecord(
-        **common, status=outcome.status, success=outcome.success, time_s=outcome.time_s,
-        path_length_m=outcome.path_length_m, peak_abs_roll_deg=outcome.peak_abs_roll_deg,
-        peak_abs_pitch_deg=outcome.peak_abs_pitch_deg, peak_tilt_deg=outcome.peak_tilt_deg,
-        min_stability_margin_deg=outcome.min_stability_margin_deg, final_x_m=float(outcome.final_xy[0]),
-        final_y_m=float(outcome.final_xy[1]), failure_region=region, halts_by_region=halts,
-        wall_s=time.perf_counter() - start)
+    return dict(
+        status=outcome.status, success=outcome.success, time_s=outcome.time_s, path_length_m=outcome.path_length_m,
+        peak_abs_roll_deg=outcome.peak_abs_roll_deg, peak_abs_pitch_deg=outcome.peak_abs_pitch_deg,
+        peak_tilt_deg=outcome.peak_tilt_deg, min_stability_margin_deg=outcome.min_stability_margin_deg,
+        final_x_m=float(outcome.final_xy[0]), final_y_m=float(outcome.final_xy[1]), failure_region=region,
+        halts_by_region=counter.halts_by_region(counter.GetMyContextFromRoot(root_context)))
 
 
 def initialize_worker() -> None:

@@ -1,0 +1,49 @@
+"""A scene whose controller sits outside the diagram: it reads an observation and sets an action label.
+
+What a Gymnasium environment (`ditch_drake.gym`) or any other agent loop steps: the scene,
+the observation blocks the learned policy reads, and in the policy's place an
+`ActionLabelInput` on the exported `action` port, with the stacks packed into one
+exported `observation` dictionary (`ObservationDict`).
+"""
+
+from pydrake.geometry import Meshcat
+from pydrake.systems.framework import Diagram, DiagramBuilder
+
+from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene
+from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, ObservationConfig
+from ditch_drake.diagrams.rollout import AddHaltCounter, LearnedPolicyConfig
+from ditch_drake.diagrams.scenario import Scenario
+from ditch_drake.systems.action_label_input import ActionLabelInput
+from ditch_drake.systems.observation_dict import ObservationDict
+
+
+def observation_config(scenario: Scenario) -> ObservationConfig:
+    """The perception blocks' settings: the scenario's learned-policy observation, else the defaults
+    (those the demonstrations and the shipped models were made with)."""
+    if isinstance(scenario.controller, LearnedPolicyConfig):
+        return scenario.controller.observation
+    return ObservationConfig()
+
+
+def MakeExternalAgentDiagram(scenario: Scenario, meshcat: Meshcat | None = None) -> tuple[Diagram, DitchScene]:
+    """The scene of `scenario` with its observation blocks, driven by the label on the exported
+    `action` input port, and the exported `observation` output (see `ObservationDict`).
+
+    The blocks are added in the order `AddController` adds the learned policy's (scene,
+    observation, the block in the policy's place, the halt counter), so a seed draws the
+    same start jitter and sensor noise as in a learned rollout. The scenario's controller only
+    lends its observation settings.
+    """
+    builder = DiagramBuilder()
+    scene = AddDitchScene(builder, scenario.scene_config(), meshcat)
+    observation = AddObservation(builder, scene, observation_config(scenario))
+    action = builder.AddNamedSystem("action_label_input", ActionLabelInput())
+    builder.Connect(action.GetOutputPort("command"), scene.drive.GetInputPort("command"))
+    AddHaltCounter(builder, scene, action.GetOutputPort("command"))
+    packer = builder.AddNamedSystem("observation_dict", ObservationDict())
+    ConnectObservation(builder, observation, packer)
+    builder.ExportInput(action.GetInputPort("action"), "action")
+    builder.ExportOutput(packer.GetOutputPort("observation"), "observation")
+    diagram = builder.Build()
+    diagram.set_name(f"external_agent_{scenario.environment}_task{scenario.task}")
+    return diagram, scene

@@ -1,0 +1,227 @@
+"""`DitchDrakeEnv`: a Scenario as a Gymnasium environment, on Drake's own `pydrake.gym.DrakeGymEnv`.
+
+The agent takes the learned policy's place: every step it reads the frame stacker's four
+stacks and picks one of the SPEC's 17 action labels, which the diagram executes for one
+control period (`MakeExternalAgentDiagram`). Steps begin and end at the policy block's
+ticks (`ScheduleConfig.controller_offset_s` + k * period), after the stacker's, so the agent
+sees exactly what the `LearnedPolicy` block would see at its update and its label takes
+effect exactly when the block's would. The shipped policy stepping this environment drives
+the same rollout as `ditch-drake evaluate`, to the last digit (`tests/test_gym.py`), for every
+plant step that does not fall on a policy tick itself: the default 20 ms does not. (There,
+the block's update and the plant's step would be simultaneous, the plant reading the old
+command, while the environment's label is set before the plant's step.)
+"""
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+from gymnasium import spaces
+from pydrake.geometry import Meshcat
+from pydrake.gym import DrakeGymEnv
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
+
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.seeds import SEED_LIMIT, check_seed
+from ditch_drake.diagrams.external_agent import MakeExternalAgentDiagram, observation_config
+from ditch_drake.diagrams.rollout import StartEpisode
+from ditch_drake.diagrams.scenario import Scenario, check_scenario, load_scenario
+from ditch_drake.evaluation.rollout_worker import outcome_fields
+from ditch_drake.spec import actions
+from ditch_drake.spec.observation_layout import (
+    BEARING_STACK_SIZE,
+    DISTANCE_STACK_SIZE,
+    IMAGE_STACK_SHAPE,
+    IMU_SIZE,
+    STACK_DEPTH,
+)
+
+# The monitor's outcomes that end the task itself (terminated) and the one that only cuts it short (truncated).
+TERMINAL_STATUSES = ("reached_goal", "rolled_over", "stuck")
+TIME_LIMIT_STATUS = "timeout"
+
+
+@dataclass
+class RewardConfig:
+    """The reward of one step: `progress_per_m` times the metres the robot came closer to the
+    goal in the plane (negative when it went away), plus `goal_bonus` on the step that
+    reaches the goal, minus `rollover_penalty` on the step that rolls over and
+    `stuck_penalty` on the step the monitor calls it stuck. A timeout adds nothing (it
+    truncates the episode)."""
+
+    progress_per_m: float = 1.0
+    goal_bonus: float = 10.0
+    rollover_penalty: float = 10.0
+    stuck_penalty: float = 0.0
+
+    def __post_init__(self):
+        for name, value in dataclasses.asdict(self).items():
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ConfigError(f"reward {name}={value!r}: expected a finite number")
+
+
+def observation_space(imu_noise_std_rad: float = 0.0) -> spaces.Dict:
+    """The observation's spaces, with the bounds the values really have (`ObservationDict`'s layout).
+
+    image: normals' z components in [0, 1]; imu: Drake's roll in [-pi, pi] and pitch in
+    [-pi/2, pi/2] (unbounded once Gaussian noise is added); distance: [0, inf) m; bearing:
+    [-pi, pi] rad (the stacks start as zeros, which every bound admits).
+    """
+    roll_pitch_high = np.tile([np.pi, np.pi / 2], STACK_DEPTH // 1 * IMU_SIZE // 2).astype(np.float32)
+    if imu_noise_std_rad > 0:
+        roll_pitch_high = np.full_like(roll_pitch_high, np.inf)
+    return spaces.Dict({
+        "image": spaces.Box(0.0, 1.0, IMAGE_STACK_SHAPE, np.float32),
+        "imu": spaces.Box(-roll_pitch_high, roll_pitch_high, dtype=np.float32),
+        "distance": spaces.Box(0.0, np.inf, (DISTANCE_STACK_SIZE,), np.float32),
+        "bearing": spaces.Box(-np.pi, np.pi, (BEARING_STACK_SIZE,), np.float32),
+    })
+
+
+def make_scenario(env: str | None = None, task: int | None = None, scenario: str | Path | Scenario | None = None,
+                  scenario_name: str | None = None, override: str | None = None, seed: int | None = None) -> Scenario:
+    """The Scenario an environment wraps: `scenario` (a Scenario, a Scenario YAML file or None
+    for the default one, with `scenario_name` and `override` as for `load_scenario`), then `env`,
+    `task` and `seed` where given.
+
+    Raises:
+        ConfigError: an unknown environment or task, or a bad scenario file, naming the value.
+    """
+    base = scenario if isinstance(scenario, Scenario) else load_scenario(scenario, scenario_name, override)
+    changes = {name: value for name, value in (("environment", env), ("task", task), ("seed", seed))
+               if value is not None}
+    result = dataclasses.replace(base, **changes)
+    check_scenario(result)
+    return result
+
+
+class DitchDrakeEnv(DrakeGymEnv):
+    """A ditch crossing as a Gymnasium environment (`gymnasium.make("DitchDrake-v0", env="wide", task=0)`).
+
+    Spaces:
+        action: `Discrete(17)`, the SPEC's labels (`ditch_drake.spec.actions`): v = 1 m/s,
+            w from -0.85 to 0.85 rad/s, 8 straight; executed for one control period.
+        observation: `Dict` of "image" (4, 128, 128) float32, "imu" (8,), "distance" (4,)
+            and "bearing" (4,), newest first (`observation_space`).
+
+    Episodes: `reset(seed=s)` starts the scenario's task from the start pose jittered by
+    seed s, with sensor noise drawn from s (the seed `ditch-drake evaluate --seed s` gives
+    its first rollout); `reset()` without a seed draws the next episode's seed from the
+    environment's `np_random`. The episode monitor ends an episode: `terminated` on reaching
+    the goal, rolling over or being stuck, `truncated` at the scenario's time limit (and when
+    the simulator fails). The last step's `info` holds the outcome record's fields
+    (`RolloutRecord`'s status .. halts_by_region) with the seed; every `info` has "seed" and
+    "time_s". Reward: `RewardConfig`.
+
+    The diagram is built once (the packaged sine takes seconds) and every reset reuses it.
+    """
+
+    metadata = {"render_modes": ["human"], "render_fps": 10}
+
+    def __init__(self, env: str | None = None, task: int | None = None,
+                 scenario: str | Path | Scenario | None = None, scenario_name: str | None = None,
+                 override: str | None = None, reward: RewardConfig | dict | None = None,
+                 render_mode: str | None = None, meshcat: Meshcat | None = None):
+        """Args:
+            env: an environment's name (None: the scenario's, by default "wide").
+            task: the environment's task index (None: the scenario's, by default 1).
+            scenario: a Scenario, or a Scenario YAML file, or None for the default Scenario.
+            scenario_name, override: as for `ditch_drake.diagrams.scenario.load_scenario`.
+            reward: a `RewardConfig` or a dict of its fields (None: the defaults).
+            render_mode: None, or "human": the scene in Meshcat (`meshcat`, else a new one),
+                drawn on `render()`.
+
+        Raises:
+            ConfigError: an unknown environment or task, a bad scenario, reward or render mode.
+        """
+        if render_mode not in (None, "human"):
+            raise ConfigError(f"render_mode={render_mode!r}: expected None or 'human'")
+        if isinstance(reward, dict):
+            known = {field.name for field in dataclasses.fields(RewardConfig)}
+            if set(reward) - known:
+                raise ConfigError(f"reward keys {sorted(set(reward) - known)}: expected among {sorted(known)}")
+            reward = RewardConfig(**reward)
+        self.reward_config = reward or RewardConfig()
+        self.metadata = dict(type(self).metadata)
+        self.scenario = make_scenario(env, task, scenario, scenario_name, override)
+        if render_mode == "human" and meshcat is None:
+            meshcat = Meshcat()
+        self.meshcat = meshcat
+        self.diagram, self.scene = MakeExternalAgentDiagram(self.scenario, meshcat)
+        simulator = Simulator(self.diagram)
+        ApplySimulatorConfig(self.scenario.simulator, simulator)
+        schedule = self.scene.schedule
+        super().__init__(
+            simulator, time_step=schedule.control_period_s, action_space=spaces.Discrete(actions.NUM_LABELS),
+            observation_space=observation_space(observation_config(self.scenario).imu.noise_std_rad),
+            reward=self._step_reward, action_port_id="action", observation_port_id="observation",
+            render_mode=render_mode)
+        # DrakeGymEnv writes the render modes it offers into `metadata` (the class's dict, were it
+        # not for the instance's copy above): this environment offers only "human".
+        self.metadata = dict(type(self).metadata)
+        self._first_boundary_s = schedule.controller_offset_s  # See the module docstring.
+        self._goal = self.diagram.GetSubsystemByName("goal_sensor")
+        self._monitor = self.scene.monitor
+        self._distance_m = math.nan
+        self._episode_seed: int | None = None
+        self._ended = True
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        gym.Env.reset(self, seed=seed)
+        if options:
+            raise ValueError(f"reset options {options!r}: DitchDrakeEnv takes none")
+        if seed is None:
+            seed = int(self.np_random.integers(SEED_LIMIT))
+        check_seed(seed, where="reset seed")
+        self.action_port.FixValue(self.simulator.get_mutable_context(), None)  # Stand still until the first step.
+        StartEpisode(self.simulator, self.diagram, seed)
+        self.simulator.AdvanceTo(self._first_boundary_s)
+        context = self.simulator.get_context()
+        self._distance_m = self._read_distance(context)
+        self._episode_seed, self._ended = seed, False
+        return self.observation_port.Eval(context), self._info(context)
+
+    def step(self, action):
+        if self._ended:
+            raise gym.error.ResetNeeded("DitchDrakeEnv: call reset() before step(): "
+                                        + ("no episode has started" if self._episode_seed is None
+                                           else "the episode has ended"))
+        if isinstance(action, (bool, np.bool_)) or not self.action_space.contains(action):
+            raise gym.error.InvalidAction(f"action {action!r} (type {type(action).__name__}): expected an integer "
+                                          f"label in 0..{actions.NUM_LABELS - 1} (Discrete({actions.NUM_LABELS}))")
+        observation, reward, _, truncated, _ = super().step(int(action))
+        context = self.simulator.get_context()
+        status = self._status(context)
+        terminated = status in TERMINAL_STATUSES
+        truncated = truncated or status == TIME_LIMIT_STATUS
+        self._ended = terminated or truncated
+        info = self._info(context)
+        if self._ended:
+            info.update(outcome_fields(self.diagram, self.scene, context))
+        return observation, float(reward), terminated, truncated, info
+
+    def _status(self, context) -> str:
+        return self._monitor.outcome(self._monitor.GetMyContextFromRoot(context)).status
+
+    def _read_distance(self, context) -> float:
+        return float(self._goal.GetOutputPort("distance").Eval(self._goal.GetMyContextFromRoot(context))[0])
+
+    def _step_reward(self, system, context) -> float:
+        config = self.reward_config
+        distance = self._read_distance(context)
+        reward = config.progress_per_m * (self._distance_m - distance)
+        self._distance_m = distance
+        status = self._status(context)
+        if status == "reached_goal":
+            reward += config.goal_bonus
+        elif status == "rolled_over":
+            reward -= config.rollover_penalty
+        elif status == "stuck":
+            reward -= config.stuck_penalty
+        return reward
+
+    def _info(self, context) -> dict:
+        return {"seed": self._episode_seed, "time_s": context.get_time()}
