@@ -234,6 +234,9 @@ register_controller(
     "the paper's move_base: the dwa block with cost rising with slope, no slope lethal, walls lethal",
     default="ditch_drake.diagrams.rollout:paper_dwa_config")
 register_controller(
+    "mppi", "ditch_drake.diagrams.rollout:MppiBaselineConfig", "ditch_drake.diagrams.rollout:AddMppiController",
+    "the rollover-aware MPPI baseline: elevation map, predicted attitude and tip margin per sample")
+register_controller(
     "expert", "ditch_drake.diagrams.rollout:ExpertConfig", "ditch_drake.diagrams.rollout:AddExpert",
     "the scripted shallow-angle expert that made the demonstrations (its style drawn from the seed)",
     per_seed="ditch_drake.diagrams.controllers:_expert_for_seed")

@@ -21,11 +21,14 @@ from ditch_drake.diagrams.observation import AddObservation, ConnectObservation,
 from ditch_drake.learning.checkpoint import CheckpointError, environment_model, load_checkpoint, resolve_checkpoint_path
 from ditch_drake.perception.lidar_model import LidarConfig
 from ditch_drake.planning.costmap import CostmapConfig
+from ditch_drake.planning.elevation_map import ElevationMapConfig
+from ditch_drake.planning.mppi import MppiPlannerConfig
 from ditch_drake.systems.dwa_controller import DwaConfig, DwaController
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
 from ditch_drake.systems.halt_counter import HaltCounter
+from ditch_drake.systems.mppi_controller import MppiController
 from ditch_drake.systems.policy import LearnedPolicy
 from ditch_drake.systems.teleop import ActionQuantizer
 
@@ -76,6 +79,23 @@ class DwaBaselineConfig:
     """
 
     planner: DwaConfig = field(default_factory=DwaConfig)
+    lidar: LidarConfig = field(default_factory=LidarConfig)
+
+
+@dataclass
+class MppiBaselineConfig:
+    """The rollover-aware MPPI baseline (`MppiController`) on its own lidar.
+
+    Attributes:
+        planner: MPPI's samples, horizon, costs, tip-margin thresholds and seed.
+        elevation_map: the rolling elevation grid fused from the lidar.
+        goal_tolerance_m: it stops for good within this planar distance of the goal (m).
+        lidar: the lidar feeding the map (the same sensor the learned policy sees).
+    """
+
+    planner: MppiPlannerConfig = field(default_factory=MppiPlannerConfig)
+    elevation_map: ElevationMapConfig = field(default_factory=ElevationMapConfig)
+    goal_tolerance_m: float = 1.0
     lidar: LidarConfig = field(default_factory=LidarConfig)
 
 
@@ -183,6 +203,23 @@ def AddDwaController(builder: DiagramBuilder, scene: DitchScene, config: DwaBase
     controller = builder.AddNamedSystem("dwa", DwaController(
         scene.task.goal, chassis.index(), lidar.X_BL, config.planner, period_s=scene.schedule.control_period_s,
         offset_s=scene.schedule.controller_offset_s, ray_directions_L=lidar.converter.ray_directions_L))
+    builder.Connect(lidar.converter.GetOutputPort("organized_points"), controller.GetInputPort("point_cloud"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
+    return controller.GetOutputPort("command")
+
+
+def AddMppiController(builder: DiagramBuilder, scene: DitchScene, config: MppiBaselineConfig) -> OutputPort:
+    """The MPPI baseline on its own lidar.
+
+    Raises:
+        ConfigError: a planner or map value out of range, naming the key.
+    """
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    lidar = AddLidar(builder, scene, config.lidar)
+    controller = builder.AddNamedSystem("mppi", MppiController(
+        scene.task.goal, chassis.index(), lidar.X_BL, config.planner, config.elevation_map,
+        goal_tolerance_m=config.goal_tolerance_m, period_s=scene.schedule.control_period_s,
+        offset_s=scene.schedule.controller_offset_s))
     builder.Connect(lidar.converter.GetOutputPort("organized_points"), controller.GetInputPort("point_cloud"))
     builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
     return controller.GetOutputPort("command")

@@ -82,3 +82,20 @@ def wheel_positions_in_body_frame() -> dict[str, np.ndarray]:
         "front_right": np.array([x, -y, 0.0]),
         "rear_right": np.array([-x, -y, 0.0]),
     }
+
+
+def tip_angle_sideways_rad() -> float:
+    """The static tip-over angle about the left or right wheel line (rad): atan(half track / CoM height).
+
+    The chassis tips sideways once the world's vertical leans further than this from the body's
+    z-axis in the body's y-z plane (about 61.6 deg for today's model: SPEC "Further facts").
+    """
+    return float(np.arctan2(TRACK_M / 2, COM_HEIGHT_ABOVE_GROUND_M))
+
+
+def tip_angle_fore_aft_rad() -> float:
+    """The static tip-over angle about the front or rear axle (rad): atan(half wheelbase / CoM height).
+
+    About 59.6 deg for today's model (SPEC "Further facts").
+    """
+    return float(np.arctan2(WHEELBASE_M / 2, COM_HEIGHT_ABOVE_GROUND_M))

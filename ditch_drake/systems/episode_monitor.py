@@ -68,8 +68,8 @@ class EpisodeOutcome:
 _STATUS, _END_TIME, _PATH, _ROLL, _PITCH, _TILT, _MARGIN, _LAST_X, _LAST_Y, _ANCHOR_X, _ANCHOR_Y, _ANCHOR_T, _STARTED = range(13)
 _STATE_SIZE = 13
 # Static tip-over angles about the side and the front/rear wheel lines.
-_LATERAL_TIP_RAD = math.atan2(robot.TRACK_M / 2, robot.COM_HEIGHT_ABOVE_GROUND_M)
-_LONGITUDINAL_TIP_RAD = math.atan2(robot.WHEELBASE_M / 2, robot.COM_HEIGHT_ABOVE_GROUND_M)
+_LATERAL_TIP_RAD = robot.tip_angle_sideways_rad()
+_LONGITUDINAL_TIP_RAD = robot.tip_angle_fore_aft_rad()
 
 
 def stability_margins_rad(R_WB: np.ndarray) -> list[float]:
