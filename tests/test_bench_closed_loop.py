@@ -52,7 +52,7 @@ def test_environments_take_turns_episode_by_episode(monkeypatch):
         is_loop = len(runs) % 2 == 1
         return (0.05 if is_loop else 0.0) + 0.01 * seed, 1.0, 0.02 if is_loop else 0.0
 
-    monkeypatch.setattr(bench, "_timed_run", fake_timed_run)
+    monkeypatch.setattr(bench, "timed_run", fake_timed_run)
     figures = bench.measure_closed_loops(["narrow", "wide"], seed=1, episodes=3)
     loops = [runs[i] for i in range(0, len(runs), 2)]
     assert [seed for _, seed in loops] == [1, 1, 2, 2, 3, 3]

@@ -143,7 +143,7 @@ def test_a_vector_env_of_two_spawned_workers_batches_the_observations():
         assert observations["imu"].shape == (2, 8)
         assert list(infos["seed"]) == [3, 4]
         observations, rewards, terminated, truncated, _ = envs.step(np.array([8, 12]))
-        assert observations["image"].dtype == np.float32 and rewards.shape == terminated.shape == (2,)
+        assert observations["image"].dtype == np.float32 and rewards.shape == terminated.shape == truncated.shape == (2,)
         assert observations["distance"].shape == (2, 4) and observations["bearing"].shape == (2, 4)
     finally:
         envs.close()
@@ -152,7 +152,7 @@ def test_a_vector_env_of_two_spawned_workers_batches_the_observations():
 def test_the_issue_bar_in_a_fresh_process():
     code = ("import gymnasium, ditch_drake; from gymnasium.utils.env_checker import check_env; "
             "check_env(gymnasium.make('DitchDrake-v0', env='wide').unwrapped)")
-    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False)
     assert result.returncode == 0, result.stderr
 
 

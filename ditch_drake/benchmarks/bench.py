@@ -8,45 +8,18 @@ import resource
 import time
 
 import numpy as np
-from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
 
-from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig
-from ditch_drake.diagrams.observation import AddObservation
-from ditch_drake.diagrams.rollout import (
-    AddController,
-    ConstantCommandConfig,
-    MakeRolloutDiagram,
-    RolloutConfig,
-    StartEpisode,
+from ditch_drake.benchmarks.closed_loop import (
+    CLOSED_LOOP_EPISODES,
+    TRAVERSAL_S,
+    WARMUP_S,
+    MakeClosedLoopDiagram,
+    timed_run,
 )
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import ConstantCommandConfig, MakeRolloutDiagram, RolloutConfig
 from ditch_drake.spec import robot
 from ditch_drake.world.environments import environment_names, get_environment, load_environments
-
-TRAVERSAL_S = 30.0
-# The first control step: every stage's tick (offsets up to 4 ms) has run once.
-WARMUP_S = 0.005
-# Fixed-command episodes per environment in `measure_closed_loops` (its figures are medians).
-CLOSED_LOOP_EPISODES = 7
-
-
-def _timed_run(diagram, seed: int, duration_s: float, warmup_s: float = 0.0) -> tuple[float, float, float]:
-    """One seeded run (which may end early): wall seconds and simulated seconds after
-    `warmup_s`, and the wall seconds of the untimed first `warmup_s`.
-
-    An episode's start (`StartEpisode`, untimed), then two timed `AdvanceTo`s: the warm-up and
-    the measurement are timed apart, which `RunEpisode`'s one advance cannot do.
-    """
-    simulator = Simulator(diagram)
-    context = simulator.get_mutable_context()
-    StartEpisode(simulator, diagram, seed)
-    start = time.perf_counter()
-    simulator.AdvanceTo(warmup_s)
-    warmup_wall_s = time.perf_counter() - start
-    start_time = context.get_time()
-    start = time.perf_counter()
-    simulator.AdvanceTo(duration_s)
-    return time.perf_counter() - start, context.get_time() - start_time, warmup_wall_s
 
 
 def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVERSAL_S,
@@ -69,7 +42,7 @@ def measure_plant_rtf(environment: str, seed: int = 0, duration_s: float = TRAVE
     rates: dict[str, list[float]] = {name: [] for name in names}
     for _ in range(repeats):
         for name in names:
-            wall_s, sim_s, _ = _timed_run(diagrams[name], seed, duration_s)
+            wall_s, sim_s, _ = timed_run(diagrams[name], seed, duration_s)
             rates[name].append(sim_s / wall_s)
     return {**{f"plant_{name}_rtf": float(np.median(rates[name])) for name in names}, **figures}
 
@@ -118,18 +91,14 @@ def measure_closed_loops(
     command = ConstantCommandConfig([robot.MAX_SPEED_MPS, 0.0])
     diagrams = {}
     for environment in environments:
-        builder = DiagramBuilder()
         scene_config = SceneConfig(environment=environment, environments_file=environments_file)
-        scene = AddDitchScene(builder, scene_config)
-        AddObservation(builder, scene)
-        AddController(builder, scene, command)
         plant_only, _ = MakeRolloutDiagram(RolloutConfig(scene=scene_config, controller=command))
-        diagrams[environment] = (builder.Build(), plant_only)
+        diagrams[environment] = (MakeClosedLoopDiagram(scene_config, command), plant_only)
     rtfs, observation_ms, first_step_ms = ({environment: [] for environment in environments} for _ in range(3))
     for episode_seed in range(seed, seed + episodes):
         for environment, (loop, plant_only) in diagrams.items():
-            loop_wall, loop_time, loop_warmup_wall = _timed_run(loop, episode_seed, duration_s, WARMUP_S)
-            plant_wall, plant_time, plant_warmup_wall = _timed_run(plant_only, episode_seed, duration_s, WARMUP_S)
+            loop_wall, loop_time, loop_warmup_wall = timed_run(loop, episode_seed, duration_s, WARMUP_S)
+            plant_wall, plant_time, plant_warmup_wall = timed_run(plant_only, episode_seed, duration_s, WARMUP_S)
             steps = loop_time / robot.CONTROL_PERIOD_S
             rtfs[environment].append(loop_time / loop_wall)
             observation_ms[environment].append(1e3 * (loop_wall - plant_wall * loop_time / plant_time) / steps)

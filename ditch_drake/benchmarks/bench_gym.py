@@ -2,8 +2,9 @@
 
     python -m ditch_drake.benchmarks.bench_gym [episodes]
 
-The closed loop is the bench's (`measure_closed_loops`): the scene with every perception
-block at 10 Hz and a fixed straight command, advanced by one `AdvanceTo` per episode. The
+The closed loop is the bench's (`MakeClosedLoopDiagram`, as `measure_closed_loops` times it):
+the scene with every perception block at 10 Hz and a fixed straight command, advanced by one
+`AdvanceTo` per episode. The
 environment runs the same blocks and steps them one control period per `step(8)` (label 8:
 straight ahead), reading the observation dictionary and the reward at every step. Both
 drive from the same seeded starts of the same task until the robot rolls over on the
@@ -16,17 +17,22 @@ import sys
 import time
 
 import numpy as np
-from pydrake.systems.framework import DiagramBuilder
 
-from ditch_drake.benchmarks.bench import CLOSED_LOOP_EPISODES, TRAVERSAL_S, WARMUP_S, _timed_run
-from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig
-from ditch_drake.diagrams.observation import AddObservation
-from ditch_drake.diagrams.rollout import AddController, ConstantCommandConfig
+from ditch_drake.benchmarks.closed_loop import (
+    TRAVERSAL_S,
+    WARMUP_S,
+    MakeClosedLoopDiagram,
+    timed_run,
+)
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import ConstantCommandConfig
 from ditch_drake.diagrams.scenario import Scenario
 from ditch_drake.gym.env import DitchDrakeEnv
 from ditch_drake.spec import actions, robot
 
 STRAIGHT_COMMAND = actions.COMMANDS[actions.STRAIGHT_LABEL]
+# Episodes of each kind; one is about 55 steps, a fifth of a second of wall time.
+GYM_EPISODES = 15
 
 
 def _timed_env_episode(env: DitchDrakeEnv, seed: int, max_steps: int) -> tuple[float, int]:
@@ -43,7 +49,7 @@ def _timed_env_episode(env: DitchDrakeEnv, seed: int, max_steps: int) -> tuple[f
 
 
 def measure_gym_env(environment: str = "wide", task: int = 0, seed: int = 0,
-                    episodes: int = CLOSED_LOOP_EPISODES) -> dict:
+                    episodes: int = GYM_EPISODES) -> dict:
     """Median environment steps per second, the closed loop's control steps per second, and
     their ratio of time per step (environment over closed loop; the issue's target: at most 1.10).
 
@@ -53,16 +59,13 @@ def measure_gym_env(environment: str = "wide", task: int = 0, seed: int = 0,
     if episodes < 1:
         raise ValueError(f"episodes={episodes!r} must be >= 1")
     env = DitchDrakeEnv(scenario=Scenario(environment=environment, task=task))
-    builder = DiagramBuilder()
-    scene = AddDitchScene(builder, SceneConfig(environment=environment, task=task))
-    AddObservation(builder, scene)
-    AddController(builder, scene, ConstantCommandConfig(list(STRAIGHT_COMMAND)))
-    loop = builder.Build()
+    loop = MakeClosedLoopDiagram(SceneConfig(environment=environment, task=task),
+                                 ConstantCommandConfig(list(STRAIGHT_COMMAND)))
     env_rates, loop_rates = [], []
     for episode_seed in range(seed, seed + episodes):
         wall_s, steps = _timed_env_episode(env, episode_seed, round(TRAVERSAL_S / robot.CONTROL_PERIOD_S))
         env_rates.append(steps / wall_s)
-        loop_wall_s, loop_sim_s, _ = _timed_run(loop, episode_seed, TRAVERSAL_S, WARMUP_S)
+        loop_wall_s, loop_sim_s, _ = timed_run(loop, episode_seed, TRAVERSAL_S, WARMUP_S)
         loop_rates.append(loop_sim_s / robot.CONTROL_PERIOD_S / loop_wall_s)
     env.close()
     env_rate, loop_rate = float(np.median(env_rates)), float(np.median(loop_rates))
@@ -71,4 +74,4 @@ def measure_gym_env(environment: str = "wide", task: int = 0, seed: int = 0,
 
 
 if __name__ == "__main__":
-    print(json.dumps(measure_gym_env(episodes=int(sys.argv[1]) if len(sys.argv) > 1 else CLOSED_LOOP_EPISODES)))
+    print(json.dumps(measure_gym_env(episodes=int(sys.argv[1]) if len(sys.argv) > 1 else GYM_EPISODES)))
