@@ -499,6 +499,12 @@ def cmd_figure(args) -> int:
         for name in environment_names() if not args.env or "all" in args.env else args.env:
             print(dwa_figure(name, args.out, task=0, seed=args.seed))
         return 0
+    if args.kind == "mppi":
+        from ditch_drake.docs_tools.mppi_figure import mppi_figure
+
+        for name in args.env or ["wide_walled"]:
+            print(mppi_figure(name, args.out, task=1, seed=args.seed))
+        return 0
     for name in args.env or environment_names():
         print(normal_image_figure(name, args.out, args.seed))
     return 0
@@ -750,8 +756,9 @@ def build_parser() -> argparse.ArgumentParser:
     training.set_defaults(run=cmd_train)
 
     figure = add("figure", "figures for docs/: surface-normal images per environment, the diagram, a browser "
-                           "screenshot of a recording, the DWA baseline at the ditch, the DWA baselines' slope cost")
-    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot", "dwa", "cost-curves"],
+                           "screenshot of a recording, the DWA baseline at the ditch, the DWA baselines' slope cost, "
+                           "the MPPI baseline at the hinge (task 1)")
+    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot", "dwa", "cost-curves", "mppi"],
                         help="which figure")
     figure.add_argument("--html", default="results/demo.html", help="screenshot: the recording to open in Chromium")
     add_env(figure, many=True)

@@ -23,7 +23,7 @@ def test_mppi_is_registered():
 
 
 def test_rollout_diagram_with_mppi_commands_a_finite_label_and_maps_the_ground():
-    diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="wide_walled", task=1),
+    diagram, _scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="wide_walled", task=1),
                                                       controller=MppiBaselineConfig()))
     controller = diagram.GetSubsystemByName("mppi")
     simulator = Simulator(diagram)
@@ -36,7 +36,7 @@ def test_rollout_diagram_with_mppi_commands_a_finite_label_and_maps_the_ground()
     assert np.all(np.isfinite(command)) and command[0] == 1.0  # Driving, at the label speed.
     status = controller.planner_status(own)
     assert status["mode"] == MppiMode.DRIVING and status["updates"] == 10 and status["no_data"] == 0
-    origin, heights = controller.unpack_map(controller.GetOutputPort("elevation_map").Eval(own))
+    _origin, heights = controller.unpack_map(controller.GetOutputPort("elevation_map").Eval(own))
     seen = np.isfinite(heights)
     assert 0.02 < seen.mean() < 0.6 and np.abs(heights[seen]).max() < 0.2  # Flat field near the start.
 

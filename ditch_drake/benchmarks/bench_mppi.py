@@ -1,0 +1,113 @@
+"""Times the rollover-aware MPPI baseline (`ditch_drake.systems.mppi_controller.MppiController`).
+
+Run: `python -m ditch_drake.benchmarks.bench_mppi [environment] [task] [seconds]`. As the DWA's
+bench (`ditch_drake.benchmarks.bench_dwa`): a closed-loop drive of the MPPI itself through
+the environment's task (seed 0) records what the controller saw at each control step, the
+rendered lidar's organized cloud and the chassis pose; a fresh controller then replays those
+steps, timing each whole periodic update (window roll, fusion of the cloud, footprint fill and
+one MPPI plan of all samples). The default drive, wide_walled task 1 for 15 s, goes from the
+start over the flat to the ditch's down wall, so the map fills and the walls' cells enter the
+samples' attitude predictions, the expensive case.
+
+Wall time is what a real-time loop sees; CPU time (`time.process_time`) is the time on one
+core. Each step is replayed `repeats` times and its fastest run kept, as `timeit` does, so a
+step that lost the core to another process counts at its own cost. numpy runs one thread here
+only if the caller limits BLAS threads; the update's work is elementwise numpy, which is
+single-threaded anyway.
+"""
+
+import sys
+import time
+
+import numpy as np
+from pydrake.math import RigidTransform
+from pydrake.perception import BaseField, Fields, PointCloud
+from pydrake.systems.analysis import Simulator
+
+from ditch_drake.benchmarks.bench_dwa import LidarDrive
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import MakeRolloutDiagram, MppiBaselineConfig, RolloutConfig, RunEpisode
+from ditch_drake.spec import robot
+from ditch_drake.systems.mppi_controller import MppiController
+
+
+def record_mppi_drive(environment: str = "wide_walled", task: int = 1, seed: int = 0, duration_s: float = 15.0,
+                      config: MppiBaselineConfig | None = None) -> LidarDrive:
+    """Drives the MPPI baseline for `duration_s` (s), or until the episode ends, and records its
+    inputs at each control step, read just after each update as `bench_dwa.record_lidar_drive` does."""
+    config = config or MppiBaselineConfig()
+    diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment, task=task),
+                                                      controller=config))
+    controller = diagram.GetSubsystemByName("mppi")
+    chassis_index = scene.plant.GetBodyByName("chassis", scene.husky).index()
+    steps = round(duration_s / scene.schedule.control_period_s)
+    clouds, poses = [], []
+
+    def read_after_update(step: int) -> float:
+        return step * scene.schedule.control_period_s + scene.schedule.controller_offset_s + 1e-4
+
+    def record(root_context) -> None:
+        if len(clouds) < steps and root_context.get_time() >= read_after_update(len(clouds)):
+            controller_context = controller.GetMyContextFromRoot(root_context)
+            clouds.append(controller.GetInputPort("point_cloud").Eval(controller_context).xyzs().T.copy())
+            poses.append(controller.GetInputPort("body_poses").Eval(controller_context)[chassis_index].GetAsMatrix4())
+
+    RunEpisode(Simulator(diagram), diagram, scene, seed, watch=record, end_time_s=read_after_update(steps - 1))
+    lidar = diagram.GetSubsystemByName("lidar")
+    X_BL = scene.plant.GetFrameByName("lidar_mount", scene.husky).GetFixedPoseInBodyFrame()
+    return LidarDrive(np.array(clouds), np.array(poses), np.asarray(lidar.ray_directions_L, dtype=float),
+                      X_BL.GetAsMatrix4(), np.asarray(scene.task.goal, dtype=float)[:2])
+
+
+def _cloud(p_LP: np.ndarray) -> PointCloud:
+    cloud = PointCloud(len(p_LP), Fields(BaseField.kXYZs))
+    cloud.mutable_xyzs()[:] = p_LP.T
+    return cloud
+
+
+def measure_mppi_ms(drive: LidarDrive | None = None, repeats: int = 3, config: MppiBaselineConfig | None = None) -> dict:
+    """Times the MPPI block's whole periodic update on a recorded drive (see the module doc).
+
+    Args:
+        drive: the recorded inputs; None: `record_mppi_drive()` (about a minute).
+        repeats: replays; each step keeps its fastest run.
+        config: the controller's config (None: the registered default), as the drive's.
+
+    Returns:
+        {"mppi_update_ms", "mppi_update_cpu_ms": median wall and CPU time of one update,
+        "mppi_update_p90_ms": its 90th percentile (wall), "mppi_samples": samples per plan,
+        "mppi_points": median returns per cloud, "mppi_steps": steps timed}. The first step
+        (an empty map) is left out, as in the DWA's bench.
+    """
+    drive = drive if drive is not None else record_mppi_drive()
+    config = config or MppiBaselineConfig()
+    controller = MppiController(drive.goal_xy, 1, RigidTransform(drive.X_BL), config.planner, config.elevation_map,
+                                goal_tolerance_m=config.goal_tolerance_m)
+    clouds = [_cloud(p_LP) for p_LP in drive.clouds]
+    steps = len(clouds)
+    wall, cpu = np.full((repeats, steps), np.inf), np.full((repeats, steps), np.inf)
+    for repeat in range(repeats):
+        context = controller.CreateDefaultContext()
+        for step, (cloud, X_WB) in enumerate(zip(clouds, drive.poses, strict=True)):
+            controller.GetInputPort("point_cloud").FixValue(context, cloud)
+            controller.GetInputPort("body_poses").FixValue(context, [RigidTransform(), RigidTransform(X_WB)])
+            context.SetTime(step * robot.CONTROL_PERIOD_S)
+            start_wall, start_cpu = time.perf_counter(), time.process_time()
+            context.SetDiscreteState(controller.EvalUniquePeriodicDiscreteUpdate(context))
+            wall[repeat, step], cpu[repeat, step] = time.perf_counter() - start_wall, time.process_time() - start_cpu
+    wall, cpu = 1e3 * wall.min(axis=0)[1:], 1e3 * cpu.min(axis=0)[1:]
+    return {
+        "mppi_update_ms": float(np.median(wall)),
+        "mppi_update_cpu_ms": float(np.median(cpu)),
+        "mppi_update_p90_ms": float(np.percentile(wall, 90)),
+        "mppi_samples": float(config.planner.samples),
+        "mppi_points": float(np.median(np.isfinite(drive.clouds).all(axis=2).sum(axis=1))),
+        "mppi_steps": float(len(wall)),
+    }
+
+
+if __name__ == "__main__":
+    environment = sys.argv[1] if len(sys.argv) > 1 else "wide_walled"
+    task = int(sys.argv[2]) if len(sys.argv) > 2 else 1
+    seconds = float(sys.argv[3]) if len(sys.argv) > 3 else 15.0
+    print(measure_mppi_ms(record_mppi_drive(environment, task, duration_s=seconds)))
