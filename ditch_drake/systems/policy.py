@@ -119,11 +119,10 @@ class LearnedPolicy(LeafSystem):
         return int(np.argmax(probabilities)), probabilities
 
     def _update(self, context, discrete_state: DiscreteValues) -> None:
+        # Read-only views of the stacks (`Eval` would copy each first); `infer` casts them to float32.
         label, probabilities = self.infer(
-            self._image_port.Eval(context),
-            self._imu_port.Eval(context),
-            self._distance_port.Eval(context),
-            self._bearing_port.Eval(context),
+            *(port.EvalBasicVector(context).value()
+              for port in (self._image_port, self._imu_port, self._distance_port, self._bearing_port))
         )
         discrete_state.set_value(self._command_index, self._commands[label])
         discrete_state.set_value(self._label_index, [float(label)])
