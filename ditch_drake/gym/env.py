@@ -163,8 +163,10 @@ class DitchDrakeEnv(DrakeGymEnv):
         # not for the instance's copy above): this environment offers only "human".
         self.metadata = dict(type(self).metadata)
         self._first_boundary_s = schedule.controller_offset_s  # See the module docstring.
-        self._goal = self.diagram.GetSubsystemByName("goal_sensor")
-        self._monitor = self.scene.monitor
+        # The Simulator keeps one Context for the environment's life; these are parts of it.
+        goal = self.diagram.GetSubsystemByName("goal_sensor")
+        self._distance_port, self._goal_context = goal.GetOutputPort("distance"), goal.GetMyContextFromRoot(
+            self.simulator.get_context())
         self._distance_m = math.nan
         self._episode_seed: int | None = None
         self._ended = True
@@ -180,7 +182,7 @@ class DitchDrakeEnv(DrakeGymEnv):
         StartEpisode(self.simulator, self.diagram, seed)
         self.simulator.AdvanceTo(self._first_boundary_s)
         context = self.simulator.get_context()
-        self._distance_m = self._read_distance(context)
+        self._distance_m = self._read_distance()
         self._episode_seed, self._ended = seed, False
         return self.observation_port.Eval(context), self._info(context)
 
@@ -192,36 +194,34 @@ class DitchDrakeEnv(DrakeGymEnv):
         if isinstance(action, (bool, np.bool_)) or not self.action_space.contains(action):
             raise gym.error.InvalidAction(f"action {action!r} (type {type(action).__name__}): expected an integer "
                                           f"label in 0..{actions.NUM_LABELS - 1} (Discrete({actions.NUM_LABELS}))")
-        observation, reward, _, truncated, _ = super().step(int(action))
+        # DrakeGymEnv's `terminated` is the simulator's termination: the episode monitor ended the
+        # episode (or, with `truncated`, the simulator failed).
+        observation, reward, ended, truncated, _ = super().step(int(action))
         context = self.simulator.get_context()
-        status = self._status(context)
-        terminated = status in TERMINAL_STATUSES
-        truncated = truncated or status == TIME_LIMIT_STATUS
-        self._ended = terminated or truncated
         info = self._info(context)
-        if self._ended:
+        terminated = False
+        if ended:
             info.update(outcome_fields(self.diagram, self.scene, context))
+            terminated = info["status"] in TERMINAL_STATUSES
+            truncated = info["status"] == TIME_LIMIT_STATUS
+            reward += self._outcome_reward(info["status"])
+        self._ended = terminated or truncated
         return observation, float(reward), terminated, truncated, info
 
-    def _status(self, context) -> str:
-        return self._monitor.outcome(self._monitor.GetMyContextFromRoot(context)).status
-
-    def _read_distance(self, context) -> float:
-        return float(self._goal.GetOutputPort("distance").Eval(self._goal.GetMyContextFromRoot(context))[0])
+    def _read_distance(self) -> float:
+        return float(self._distance_port.EvalBasicVector(self._goal_context)[0])
 
     def _step_reward(self, system, context) -> float:
-        config = self.reward_config
-        distance = self._read_distance(context)
-        reward = config.progress_per_m * (self._distance_m - distance)
+        """The progress part of the reward (DrakeGymEnv's reward callable); `step` adds the outcome's."""
+        distance = self._read_distance()
+        reward = self.reward_config.progress_per_m * (self._distance_m - distance)
         self._distance_m = distance
-        status = self._status(context)
-        if status == "reached_goal":
-            reward += config.goal_bonus
-        elif status == "rolled_over":
-            reward -= config.rollover_penalty
-        elif status == "stuck":
-            reward -= config.stuck_penalty
         return reward
+
+    def _outcome_reward(self, status: str) -> float:
+        config = self.reward_config
+        return {"reached_goal": config.goal_bonus, "rolled_over": -config.rollover_penalty,
+                "stuck": -config.stuck_penalty}.get(status, 0.0)
 
     def _info(self, context) -> dict:
         return {"seed": self._episode_seed, "time_s": context.get_time()}
