@@ -124,8 +124,9 @@ def test_numpy_integer_actions_are_taken(wide_env):
     ({"env": "wide", "render_mode": "rgb_array"}, "rgb_array"),
 ])
 def test_bad_environment_arguments_are_named(kwargs, message):
-    with pytest.raises(ConfigError, match=message):
+    with pytest.raises(gymnasium.error.Error, match=message) as raised:
         gymnasium.make("DitchDrake-v0", **kwargs)
+    assert isinstance(raised.value, ConfigError)
 
 
 def test_stepping_before_reset_is_refused():

@@ -44,6 +44,11 @@ TERMINAL_STATUSES = ("reached_goal", "rolled_over", "stuck")
 TIME_LIMIT_STATUS = "timeout"
 
 
+class DitchDrakeEnvError(gym.error.Error, ConfigError):
+    """A bad argument to `DitchDrakeEnv`: a Gymnasium error and the project's `ConfigError` (a
+    `ValueError`), so either kind of handler catches it."""
+
+
 @dataclass
 class RewardConfig:
     """The reward of one step: `progress_per_m` times the metres the robot came closer to the
@@ -61,6 +66,20 @@ class RewardConfig:
         for name, value in dataclasses.asdict(self).items():
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
                 raise ConfigError(f"reward {name}={value!r}: expected a finite number")
+
+
+def reward_config(reward: RewardConfig | dict | None) -> RewardConfig:
+    """`reward` as a RewardConfig (a dict of its fields, or None for the defaults).
+
+    Raises:
+        ConfigError: a key RewardConfig does not have, or a value that is not a finite number.
+    """
+    if isinstance(reward, dict):
+        known = {field.name for field in dataclasses.fields(RewardConfig)}
+        if set(reward) - known:
+            raise ConfigError(f"reward keys {sorted(set(reward) - known)}: expected among {sorted(known)}")
+        return RewardConfig(**reward)
+    return reward or RewardConfig()
 
 
 def observation_space(imu_noise_std_rad: float = 0.0) -> spaces.Dict:
@@ -135,18 +154,17 @@ class DitchDrakeEnv(DrakeGymEnv):
                 drawn on `render()`.
 
         Raises:
-            ConfigError: an unknown environment or task, a bad scenario, reward or render mode.
+            DitchDrakeEnvError: an unknown environment or task, a bad scenario, reward or render
+                mode, naming the value.
         """
-        if render_mode not in (None, "human"):
-            raise ConfigError(f"render_mode={render_mode!r}: expected None or 'human'")
-        if isinstance(reward, dict):
-            known = {field.name for field in dataclasses.fields(RewardConfig)}
-            if set(reward) - known:
-                raise ConfigError(f"reward keys {sorted(set(reward) - known)}: expected among {sorted(known)}")
-            reward = RewardConfig(**reward)
-        self.reward_config = reward or RewardConfig()
+        try:
+            if render_mode not in (None, "human"):
+                raise ConfigError(f"render_mode={render_mode!r}: expected None or 'human'")
+            self.reward_config = reward_config(reward)
+            self.scenario = make_scenario(env, task, scenario, scenario_name, override)
+        except ConfigError as error:
+            raise DitchDrakeEnvError(str(error)) from error
         self.metadata = dict(type(self).metadata)
-        self.scenario = make_scenario(env, task, scenario, scenario_name, override)
         if render_mode == "human" and meshcat is None:
             meshcat = Meshcat()
         self.meshcat = meshcat
