@@ -51,8 +51,10 @@ class LidarDrive:
     goal_xy: np.ndarray
 
 
-def record_lidar_drive(environment: str = "wide", task: int = 0, seed: int = 0, duration_s: float = 10.0) -> LidarDrive:
-    """Drives the DWA baseline for `duration_s` (s), or until the episode ends, and records its
+def record_lidar_drive(environment: str = "wide", task: int = 0, seed: int = 0, duration_s: float = 10.0,
+                       config=None, controller_name: str = "dwa") -> LidarDrive:
+    """Drives a lidar-fed planner block (the DWA baseline unless `config` names another, whose
+    block `controller_name` is) for `duration_s` (s), or until the episode ends, and records its
     inputs at each control step.
 
     The recording reads the controller's input ports once per control step, at the first
@@ -60,10 +62,10 @@ def record_lidar_drive(environment: str = "wide", task: int = 0, seed: int = 0, 
     (`controller_offset_s`): every block is discrete, so they hold the values that update
     used until the next event.
     """
-    config = DwaBaselineConfig()
+    config = config if config is not None else DwaBaselineConfig()
     diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment, task=task),
                                                       controller=config))
-    controller = diagram.GetSubsystemByName("dwa")
+    controller = diagram.GetSubsystemByName(controller_name)
     chassis_index = scene.plant.GetBodyByName("chassis", scene.husky).index()
     steps = round(duration_s / scene.schedule.control_period_s)
     clouds, poses = [], []
@@ -79,8 +81,9 @@ def record_lidar_drive(environment: str = "wide", task: int = 0, seed: int = 0, 
 
     RunEpisode(Simulator(diagram), diagram, scene, seed, watch=record, end_time_s=read_after_update(steps - 1))
     lidar = diagram.GetSubsystemByName("lidar")
+    X_BL = scene.plant.GetFrameByName("lidar_mount", scene.husky).GetFixedPoseInBodyFrame()
     return LidarDrive(np.array(clouds), np.array(poses), np.asarray(lidar.ray_directions_L, dtype=float),
-                      controller.X_BL.GetAsMatrix4(), np.asarray(scene.task.goal, dtype=float)[:2])
+                      X_BL.GetAsMatrix4(), np.asarray(scene.task.goal, dtype=float)[:2])
 
 
 def _cloud(p_LP: np.ndarray) -> PointCloud:

@@ -22,11 +22,9 @@ import time
 import numpy as np
 from pydrake.math import RigidTransform
 from pydrake.perception import BaseField, Fields, PointCloud
-from pydrake.systems.analysis import Simulator
 
-from ditch_drake.benchmarks.bench_dwa import LidarDrive
-from ditch_drake.diagrams.ditch_scene import SceneConfig
-from ditch_drake.diagrams.rollout import MakeRolloutDiagram, MppiBaselineConfig, RolloutConfig, RunEpisode
+from ditch_drake.benchmarks.bench_dwa import LidarDrive, record_lidar_drive
+from ditch_drake.diagrams.rollout import MppiBaselineConfig
 from ditch_drake.spec import robot
 from ditch_drake.systems.mppi_controller import MppiController
 
@@ -34,29 +32,8 @@ from ditch_drake.systems.mppi_controller import MppiController
 def record_mppi_drive(environment: str = "wide_walled", task: int = 1, seed: int = 0, duration_s: float = 15.0,
                       config: MppiBaselineConfig | None = None) -> LidarDrive:
     """Drives the MPPI baseline for `duration_s` (s), or until the episode ends, and records its
-    inputs at each control step, read just after each update as `bench_dwa.record_lidar_drive` does."""
-    config = config or MppiBaselineConfig()
-    diagram, scene = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment=environment, task=task),
-                                                      controller=config))
-    controller = diagram.GetSubsystemByName("mppi")
-    chassis_index = scene.plant.GetBodyByName("chassis", scene.husky).index()
-    steps = round(duration_s / scene.schedule.control_period_s)
-    clouds, poses = [], []
-
-    def read_after_update(step: int) -> float:
-        return step * scene.schedule.control_period_s + scene.schedule.controller_offset_s + 1e-4
-
-    def record(root_context) -> None:
-        if len(clouds) < steps and root_context.get_time() >= read_after_update(len(clouds)):
-            controller_context = controller.GetMyContextFromRoot(root_context)
-            clouds.append(controller.GetInputPort("point_cloud").Eval(controller_context).xyzs().T.copy())
-            poses.append(controller.GetInputPort("body_poses").Eval(controller_context)[chassis_index].GetAsMatrix4())
-
-    RunEpisode(Simulator(diagram), diagram, scene, seed, watch=record, end_time_s=read_after_update(steps - 1))
-    lidar = diagram.GetSubsystemByName("lidar")
-    X_BL = scene.plant.GetFrameByName("lidar_mount", scene.husky).GetFixedPoseInBodyFrame()
-    return LidarDrive(np.array(clouds), np.array(poses), np.asarray(lidar.ray_directions_L, dtype=float),
-                      X_BL.GetAsMatrix4(), np.asarray(scene.task.goal, dtype=float)[:2])
+    inputs at each control step (`bench_dwa.record_lidar_drive`)."""
+    return record_lidar_drive(environment, task, seed, duration_s, config or MppiBaselineConfig(), "mppi")
 
 
 def _cloud(p_LP: np.ndarray) -> PointCloud:
