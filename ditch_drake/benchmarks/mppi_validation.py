@@ -32,6 +32,7 @@ from pydrake.math import RollPitchYaw
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 
+from ditch_drake.common.files import save_figure
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, SceneConfig
 from ditch_drake.diagrams.lidar_rig import AddLidar
 from ditch_drake.diagrams.rollout import AddController, ExpertConfig, RunEpisode
@@ -207,12 +208,8 @@ def draw_traces(traces: list[AttitudeTrace], path: str | Path) -> Path:
         axis.set_xlabel("time (s)")
     figure.suptitle("Predicted chassis attitude on the elevation map built on the fly vs the simulator's "
                     "(scripted expert drives)", fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     figure.tight_layout()
-    figure.savefig(path, dpi=70)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=70)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -58,6 +58,16 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     return atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def save_figure(figure, path: str | os.PathLike, dpi: int = 80) -> Path:
+    """Saves a matplotlib figure as a PNG at `path` atomically, closes it and returns `path`."""
+    import matplotlib.pyplot as plt
+
+    with atomic_output(path) as file:
+        figure.savefig(file, format="png", dpi=dpi)
+    plt.close(figure)
+    return Path(path)
+
+
 def _fsync_folder(folder: Path) -> None:
     """Makes a rename into `folder` durable (POSIX); a no-op where folders cannot be opened."""
     try:

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 from pydrake.systems.analysis import Simulator
 
+from ditch_drake.common.files import save_figure
 from ditch_drake.diagrams.ditch_scene import SceneConfig, chassis_pose
 from ditch_drake.diagrams.rollout import (
     DwaBaselineConfig,
@@ -253,12 +254,8 @@ def save_snapshot_figure(episode: DwaEpisode, out_dir: str | Path) -> Path:
     axis.set_title(f"{episode.environment}, task {episode.task}, seed {episode.seed}: DWA at t = {snapshot.time_s:.1f} s, "
                    f"{snapshot.edge_distance_m:.1f} m from the edge\ncommand v = {v:.2f} m/s, w = {w:.2f} rad/s",
                    fontsize=10)
-    path = Path(out_dir) / f"dwa_{episode.environment}.png"
-    path.parent.mkdir(parents=True, exist_ok=True)
     figure.tight_layout()
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, Path(out_dir) / f"dwa_{episode.environment}.png", dpi=80)
 
 
 def dwa_figure(environment: str, out_dir: str | Path, task: int = 0, seed: int = 0) -> Path:
@@ -289,12 +286,8 @@ def save_tracks_figure(episodes: list[DwaEpisode], path: str | Path) -> Path:
         axis.set_title(f"{episode.environment}: {episode.outcome.status} at {episode.outcome.time_s:.0f} s", fontsize=10)
         axis.set_xlabel("x (m)")
     axes[0][0].set_ylabel("y (m)")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     figure.tight_layout()
-    figure.savefig(path, dpi=70)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=70)
 
 
 # ----- geometry: how long is the way around? -------------------------------------------

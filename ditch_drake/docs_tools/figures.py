@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ditch_drake.common.files import atomic_write_text
+from ditch_drake.common.files import atomic_write_text, save_figure
 from ditch_drake.demos.collect import record_demonstration
 
 
@@ -34,11 +34,7 @@ def normal_image_figure(environment: str, out_dir: str | Path, seed: int = 0) ->
         axis.set_yticks([])
     figure.colorbar(shown, ax=axes, fraction=0.02, label="normal z (1 = flat, 0.57 = 55 deg wall)")
     figure.suptitle(f"{environment}: surface-normal images (paper Fig. 1a), forward is up, seed {seed}")
-    path = Path(out_dir) / f"normal_image_{environment}.png"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, Path(out_dir) / f"normal_image_{environment}.png", dpi=80)
 
 
 def diagram_figure(out_dir: str | Path, environment: str = "wide", controller: str = "learned",
@@ -126,9 +122,5 @@ def cost_curve_figure(out_dir: str | Path) -> Path:
     axis.set_title("Slope cost of a costmap cell, per DWA baseline\n(vertical obstacles: lethal in both, "
                    "dwa_paper by step height)", fontsize=10)
     axis.legend(loc="center left", fontsize=9)
-    path = Path(out_dir) / "costmap_cost_curves.png"
-    path.parent.mkdir(parents=True, exist_ok=True)
     figure.tight_layout()
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, Path(out_dir) / "costmap_cost_curves.png", dpi=80)

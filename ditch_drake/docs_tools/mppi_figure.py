@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 from pydrake.systems.analysis import Simulator
 
+from ditch_drake.common.files import save_figure
 from ditch_drake.diagrams.ditch_scene import SceneConfig, chassis_pose
 from ditch_drake.diagrams.rollout import MakeRolloutDiagram, MppiBaselineConfig, RolloutConfig, RunEpisode
 from ditch_drake.planning.attitude import predict_attitude
@@ -200,12 +201,8 @@ def draw_mppi_picture(picture: MppiPicture, path: str | Path, terrain: DitchTerr
     figure.suptitle(f"{picture.environment}, task {picture.task}, seed {picture.seed}: MPPI at t = {picture.time_s:.1f} s, "
                     f"{picture.edge_distance_m:+.2f} m from the hinge line; command v = {v:.2f} m/s, w = {w:.2f} rad/s"
                     f" (label {result.label})", fontsize=10)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     figure.tight_layout()
-    figure.savefig(path, dpi=80)
-    plt.close(figure)
-    return path
+    return save_figure(figure, path, dpi=80)
 
 
 def mppi_figure(environment: str, out_dir: str | Path, task: int = 1, seed: int = 0) -> Path:

@@ -52,7 +52,7 @@ import matplotlib.pyplot as plt
 from scipy.stats import boschloo_exact
 
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.common.files import atomic_output, atomic_write_text, remove_stale_temporaries
+from ditch_drake.common.files import atomic_write_text, remove_stale_temporaries, save_figure
 from ditch_drake.evaluation.results import RolloutRecord, current_records, read_records
 from ditch_drake.evaluation.summary import AROUND_TILT_DEG, GroupSummary, summarize
 from ditch_drake.world.regions import REGIONS
@@ -596,7 +596,7 @@ def _figure_environment(env: str, scalability: dict, generalization: dict, path:
     right.set(title=f"{env}: models from each environment")
     _success_axis(right)
     _legend_below(fig, right)
-    _save(fig, path)
+    save_figure(fig, path, dpi=110)
     named = [(m, s) for _, m, s in points]
     caption = (f"Figure {number}: {env}. Left: success rate of the {env} models against the number of "
                f"demonstrations ({_counts(named)}). Right: models evaluated in {env}: "
@@ -635,7 +635,7 @@ def _figure_baseline(scalability: dict, baseline: dict, path: Path, number: int,
     ax.set_title("open field (the ditch can be bypassed): learned policy vs move_base")
     _success_axis(ax)
     _legend_below(fig, ax)
-    _save(fig, path)
+    save_figure(fig, path, dpi=110)
     models = ", ".join(f"{owns[env]}" for env in envs if owns[env]) or "none evaluated"
     named = [(f"{shipped[env][0]} in {env}", shipped[env][1]) for env in envs if env in shipped]
     named += [(f"{m} in {env}", s) for env, m, s in zip(envs, [owns[e] for e in envs], learned) if m]
@@ -681,7 +681,7 @@ def _figure_must_cross(must_cross: MustCross, path: Path, number: int) -> _Figur
     ax.set_title("walled (every route crosses the ditch): learned models vs move_base")
     _success_axis(ax)
     _legend_below(fig, ax)
-    _save(fig, path)
+    save_figure(fig, path, dpi=110)
     named = [(f"{m} in {env}", s) for bars, _, _ in series for (m, s), env in zip(bars, envs) if m]
     caption = (f"Figure {number}: the paper's Figure 5e like for like: per walled environment (the ditch and tasks "
                "of its base environment, fenced so that every route crosses the ditch), the learned models "
@@ -707,7 +707,7 @@ def _figure_amalgam(env: str, amalgam: dict, singles: dict, path: Path, number: 
     ax.set_title(f"amalgam vs single-environment models in {env}")
     _success_axis(ax)
     _legend_below(fig, ax)
-    _save(fig, path)
+    save_figure(fig, path, dpi=110)
     named = mixes + others
     caption = (f"Figure {number}: in {env}, the amalgam model (orange, cross-hatched) against the single-environment "
                f"models with as many demonstrations (grey) ({_counts(named)}; n above each bar). {_CI_TEXT}."
@@ -730,18 +730,12 @@ def _figure_study(study: str, summaries: dict, path: Path, number: int) -> _Figu
     ax.set_title(f"{study}: success per model and environment")
     _success_axis(ax)
     _legend_below(fig, ax)
-    _save(fig, path)
+    save_figure(fig, path, dpi=110)
     named = [(f"{m} in {e}", s) for (m, e), s in sorted(summaries.items())]
     caption = (f"Figure {number}: {study}: success rate of each model (bars) in each environment (groups) "
                f"({_counts(named)}; n above each bar, 'none': not evaluated there). {_CI_TEXT}."
                + _around_sentence(named))
     return _Figure(path, caption)
-
-
-def _save(fig, path: Path) -> None:
-    with atomic_output(path) as file:
-        fig.savefig(file, format="png", dpi=110)
-    plt.close(fig)
 
 
 def _figures(data: ReportData, figures_dir: Path,
