@@ -111,12 +111,12 @@ def test_experiment_files_with_a_typo_or_an_unknown_environment_are_refused(tmp_
         load_experiment(fp16)
 
 
-def test_the_paper_protocol_plans_13_models_and_29_evaluations_and_24_where_the_ditch_must_be_crossed():
+def test_the_paper_protocol_plans_13_models_and_29_evaluations_and_32_where_the_ditch_must_be_crossed():
     config = load_experiment("experiments/paper.yaml")
     models, evaluations = plan(config)
     assert len(models) == 13  # 4 x (10, 20, 40) + the amalgam; must_cross's 40-demonstration models are among them
     studies = Counter(e.study for e in evaluations)
-    assert studies == {"scalability": 12, "generalization": 12, "baseline": 4, "amalgam": 1, "must_cross": 24}
+    assert studies == {"scalability": 12, "generalization": 12, "baseline": 4, "amalgam": 1, "must_cross": 32}
     models, evaluations = plan(config, only=["wide"])
     assert {m.name for m in models} >= {"wide_10", "wide_20", "wide_40", "crater+narrow+sine_40"}
     assert all("wide" in (e.environment, e.environment.removesuffix("_walled"),
@@ -127,25 +127,25 @@ WALLED = ["crater_walled", "wide_walled", "narrow_walled", "sine_walled"]
 OPEN = ["crater", "wide", "narrow", "sine"]
 
 
-def test_must_cross_runs_both_dwas_and_both_learned_models_in_every_walled_environment_and_more_in_the_open():
+def test_must_cross_runs_both_dwas_the_mppi_and_both_learned_models_in_every_walled_environment_and_more_in_the_open():
     config = load_experiment("experiments/paper.yaml")
     _, evaluations = plan(config)
     must_cross = [e for e in evaluations if e.study == "must_cross"]
     walled = [e for e in must_cross if e.environment in WALLED]
-    # Per walled environment: dwa, dwa_paper, the shipped model (no model to train) and the paper-method one.
-    assert Counter(e.environment for e in walled) == dict.fromkeys(WALLED, 4)
+    # Per walled environment: dwa, dwa_paper, mppi, the shipped model (no model to train) and the paper-method one.
+    assert Counter(e.environment for e in walled) == dict.fromkeys(WALLED, 5)
     for env, base in zip(WALLED, OPEN):
         here = [(e.controller, e.model) for e in walled if e.environment == env]
-        assert here == [("dwa", None), ("dwa_paper", None), ("learned", None),
+        assert here == [("dwa", None), ("dwa_paper", None), ("mppi", None), ("learned", None),
                         ("learned", ModelSpec((base,), 40))]
     # Each paper-method model is the experiment's own file, the one the generalization study trains.
     paths = {model_path(config, e.model) for e in walled if e.model}
     assert paths == {Path("models/paper") / f"{env}_40.pt" for env in OPEN}
     generalization = {e.model for e in evaluations if e.study == "generalization"}
     assert {e.model for e in walled if e.model} <= generalization
-    # The open field on the same seeds: the paper's move_base and the shipped models.
+    # The open field on the same seeds: the paper's move_base, the MPPI and the shipped models.
     assert [(e.controller, e.environment) for e in must_cross if e.environment in OPEN] == [
-        (controller, env) for env in OPEN for controller in ("dwa_paper", "learned")]
+        (controller, env) for env in OPEN for controller in ("dwa_paper", "mppi", "learned")]
     # 3 tasks x 10 rollouts each; the shipped model is the walled environment's base's.
     shipped = next(e for e in walled if e.controller == "learned" and e.model is None and e.environment == "wide_walled")
     specs = evaluation_specs(config, shipped)
@@ -161,8 +161,8 @@ def test_only_an_open_environment_keeps_its_walled_variant_and_an_untrained_mode
     models, evaluations = plan(config, only=["wide"])
     assert models == [ModelSpec(("wide",), 40)]  # The train stage trains it when it is missing.
     assert [(e.controller, e.environment) for e in evaluations] == [
-        ("dwa", "wide_walled"), ("dwa_paper", "wide_walled"), ("learned", "wide_walled"), ("learned", "wide_walled"),
-        ("dwa_paper", "wide"), ("learned", "wide")]
+        ("dwa", "wide_walled"), ("dwa_paper", "wide_walled"), ("mppi", "wide_walled"), ("learned", "wide_walled"),
+        ("learned", "wide_walled"), ("dwa_paper", "wide"), ("mppi", "wide"), ("learned", "wide")]
     models, evaluations = plan(config, only=["wide_walled"])
     assert models == [ModelSpec(("wide",), 40)] and {e.environment for e in evaluations} == {"wide_walled"}
     untrained = next(e for e in evaluations if e.model)
@@ -227,7 +227,7 @@ def test_a_study_alone_plans_its_own_models_and_evaluations():
     config = load_experiment("experiments/paper.yaml")
     models, evaluations = plan(config, only_studies=["must_cross"])
     assert [m.name for m in models] == ["crater_40", "wide_40", "narrow_40", "sine_40"]
-    assert {e.study for e in evaluations} == {"must_cross"} and len(evaluations) == 24
+    assert {e.study for e in evaluations} == {"must_cross"} and len(evaluations) == 32
     models, evaluations = plan(config, only=["wide"], only_studies=["must_cross", "amalgam"])
     assert [m.name for m in models] == ["crater+narrow+sine_40", "wide_40"]
-    assert Counter(e.study for e in evaluations) == {"must_cross": 6, "amalgam": 1}
+    assert Counter(e.study for e in evaluations) == {"must_cross": 8, "amalgam": 1}
