@@ -35,7 +35,6 @@ from ditch_drake.spec.observation_layout import (
     BEARING_STACK_SIZE,
     DISTANCE_STACK_SIZE,
     IMAGE_STACK_SHAPE,
-    IMU_SIZE,
     STACK_DEPTH,
 )
 
@@ -89,7 +88,7 @@ def observation_space(imu_noise_std_rad: float = 0.0) -> spaces.Dict:
     [-pi/2, pi/2] (unbounded once Gaussian noise is added); distance: [0, inf) m; bearing:
     [-pi, pi] rad (the stacks start as zeros, which every bound admits).
     """
-    roll_pitch_high = np.tile([np.pi, np.pi / 2], STACK_DEPTH // 1 * IMU_SIZE // 2).astype(np.float32)
+    roll_pitch_high = np.tile([np.pi, np.pi / 2], STACK_DEPTH).astype(np.float32)  # [roll, pitch] per step
     if imu_noise_std_rad > 0:
         roll_pitch_high = np.full_like(roll_pitch_high, np.inf)
     return spaces.Dict({
@@ -101,17 +100,16 @@ def observation_space(imu_noise_std_rad: float = 0.0) -> spaces.Dict:
 
 
 def make_scenario(env: str | None = None, task: int | None = None, scenario: str | Path | Scenario | None = None,
-                  scenario_name: str | None = None, override: str | None = None, seed: int | None = None) -> Scenario:
+                  scenario_name: str | None = None, override: str | None = None) -> Scenario:
     """The Scenario an environment wraps: `scenario` (a Scenario, a Scenario YAML file or None
-    for the default one, with `scenario_name` and `override` as for `load_scenario`), then `env`,
-    `task` and `seed` where given.
+    for the default one, with `scenario_name` and `override` as for `load_scenario`), then `env`
+    and `task` where given. (Its seed is not the episodes': `reset(seed=...)` gives those.)
 
     Raises:
         ConfigError: an unknown environment or task, or a bad scenario file, naming the value.
     """
     base = scenario if isinstance(scenario, Scenario) else load_scenario(scenario, scenario_name, override)
-    changes = {name: value for name, value in (("environment", env), ("task", task), ("seed", seed))
-               if value is not None}
+    changes = {name: value for name, value in (("environment", env), ("task", task)) if value is not None}
     result = dataclasses.replace(base, **changes)
     check_scenario(result)
     return result
