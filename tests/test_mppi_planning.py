@@ -174,3 +174,130 @@ def test_planner_config_out_of_range_names_the_key(key, value):
 def test_map_config_out_of_range_names_the_key(key, value):
     with pytest.raises(ConfigError, match=key):
         ElevationGrid(ElevationMapConfig(**{key: value}))
+
+
+def test_unknown_cells_next_to_known_ground_are_presumed_to_drop_away():
+    from ditch_drake.planning.elevation_map import presume_drops
+
+    heights = np.full((40, 40), np.nan)
+    heights[:20] = 0.5  # Known rows 0..19, unknown beyond.
+    presumed = presume_drops(heights, 0.1, 55.0, 1.0)
+    np.testing.assert_array_equal(presumed[:20], heights[:20])  # Known cells keep their heights.
+    drop = 0.5 - presumed[20:30, 7]
+    np.testing.assert_allclose(drop, np.arange(1, 11) * 0.1 * math.tan(math.radians(55.0)))
+    assert np.isnan(presumed[31:]).all()  # Beyond max_distance_m: still unknown.
+    assert np.isnan(presume_drops(np.full((8, 8), np.nan), 0.1, 55.0, 1.0)).all()
+    np.testing.assert_array_equal(presume_drops(heights, 0.1, 55.0, 0.0)[20:], heights[20:])  # Off.
+
+
+def shadowed_map(pose):
+    """The wide ditch mapped as the lidar sees it from its near side: the flat field up to the
+    hinge is known, the wall below the hinge (in the lidar's shadow) and beyond it unknown."""
+    grid = ElevationGrid()
+    origin = grid.window_origin(pose[:2])
+    cloud = terrain_cloud(TERRAIN, pose[:2])
+    cloud = cloud[(cloud[:, 2] > -0.02) & (cloud[:, 1] < 0.0)]
+    return grid, grid.fuse(grid.empty(), origin, cloud), origin
+
+
+def test_a_presumed_drop_lines_up_a_shallow_angle_before_the_hinge():
+    planner = MppiPlanner()
+    pose = np.array([0.0, -TERRAIN.hinge_distance_m - 3.0, math.pi / 2])  # Head-on, 3 m before the edge.
+    goal = np.array([0.0, 11.0])
+    nominal, last_w = planner.initial_nominal(), 0.0
+    for update in range(80):
+        grid, heights, origin = shadowed_map(pose)
+        if update == 0:  # Head-on into the shadow: inadmissible, as a presumed 55 deg wall.
+            head_on = rollout(pose, np.zeros((1, planner.steps)), 1.0, 0.1)
+            assert planner.costs(grid, planner.planning_heights(grid, heights), origin, head_on,
+                                 np.zeros((1, planner.steps)), 0.0, goal)[0][0] == np.inf
+        result = planner.plan(grid, heights, origin, pose, goal, nominal, last_w, np.random.default_rng(update))
+        assert result.admissible
+        nominal, last_w = result.next_nominal, result.command[1]
+        pose = rollout(pose, np.array([result.command[1]]), 1.0, 0.1)[0, 1]
+        if TERRAIN.height(pose[None, :2])[0] < -0.3:  # Over the edge, onto the (unseen) wall.
+            break
+    else:
+        pytest.fail("it never went over the edge")
+    assert heading_to_edge_deg(pose[2]) < 30.0  # Already shallow when the wall comes.
+
+
+def test_with_no_admissible_sample_it_drives_the_least_bad_one_or_stops():
+    # On the 55 deg wall heading along the edge: the sideways margin (6.6 deg) is below the
+    # threshold from the first step on, so no sample is admissible.
+    pose = np.array([0.0, -TERRAIN.hinge_distance_m + 1.4, 0.0])
+    grid, heights, origin = mapped(TERRAIN, pose)
+    now = predict_attitude(grid, heights, origin, pose[None])
+    assert math.degrees(now.side_margin[0]) < 8.0
+    for fallback in (True, False):
+        planner = MppiPlanner(MppiPlannerConfig(fallback=fallback, margin_threshold_deg=10.0))
+        result = planner.plan(grid, heights, origin, pose, np.array([0.0, 11.0]), planner.initial_nominal(), 0.0,
+                              np.random.default_rng(0))
+        assert not result.admissible and result.fallback == fallback
+        if fallback:
+            # Driven, not stopped: at the label speed, its margins no worse than going straight on.
+            assert result.command[0] == 1.0 and result.label in range(actions.NUM_LABELS)
+            straight = rollout(pose, np.zeros((1, planner.steps)), 1.0, 0.1)
+            along = predict_attitude(grid, heights, origin, straight[:, 1:])
+            assert np.nanmin(result.margins) >= np.nanmin(along.margin) - 1e-9
+        else:
+            assert result.label == -1 and np.array_equal(result.command, [0.0, 0.0])
+
+
+def test_turn_then_hold_samples_are_in_every_update():
+    from ditch_drake.planning.mppi import HOLD_TURNS
+
+    planner = MppiPlanner(MppiPlannerConfig(samples=128))
+    pose = np.zeros(3)
+    grid = ElevationGrid()
+    result = planner.plan(grid, np.zeros(grid.shape), grid.window_origin(pose[:2]), pose, np.array([5.0, 0.0]),
+                          planner.initial_nominal(), 0.0, np.random.default_rng(0))
+    final_yaw = np.degrees(result.sample_poses[:, -1, 2])
+    for _rate, angle in HOLD_TURNS:  # A sample that turned by about each angle and then held it.
+        for sign in (1, -1):
+            assert np.min(np.abs(final_yaw - sign * angle)) < 3.0
+    assert len(HOLD_TURNS) * 2 + actions.NUM_LABELS + 2 <= 64
+    # Fewer samples: as many structured ones as fit, labels first, one noisy sample kept.
+    assert len(MppiPlanner(MppiPlannerConfig(samples=40))._fixed) == 40 - 2
+    assert len(MppiPlanner(MppiPlannerConfig(samples=40, hold_samples=False))._fixed) == actions.NUM_LABELS
+
+
+def test_edge_following_samples_hold_an_angle_to_the_contour_of_a_slope():
+    # A 30 deg plane falling to +y (its contours run along x); the robot on it heading along +x.
+    grid = ElevationGrid()
+    pose = np.array([0.0, 0.0, 0.0])
+    origin = grid.window_origin(pose[:2])
+    _, ys = grid.cell_centers(origin)
+    heights = np.broadcast_to(-math.tan(math.radians(30.0)) * ys[:, None], grid.shape).copy()
+    planner = MppiPlanner(MppiPlannerConfig(contour_samples=True))
+    w = planner.contour_sequences(grid, heights, origin, pose, np.array([0.0, 20.0]))
+    final_yaw = np.degrees(rollout(pose, w, 1.0, 0.1)[:, -1, 2])
+    # Along +x: down the slope (toward +y) and up it at 12, 20, 28 deg to the contour; the samples
+    # along -x are still turning round (from +x) at the horizon's end.
+    for angle in (12.0, 20.0, 28.0):
+        for target in (angle, -angle):
+            assert np.min(np.abs(final_yaw - target)) < 1.0
+    assert (np.abs(final_yaw) > 140.0).sum() == 6
+
+
+def test_drop_ahead_cost_charges_driving_at_an_edge_not_along_it():
+    pose_at = np.array([0.0, -TERRAIN.hinge_distance_m - 2.0, math.pi / 2])
+    grid, heights, origin = shadowed_map(pose_at)
+    steps = MppiPlanner().steps
+    at_edge = rollout(pose_at, np.zeros((1, steps)), 1.0, 0.1)[:, :16]  # 1.5 s straight at the edge.
+    along = rollout(np.array([0.0, pose_at[1], 0.0]), np.zeros((1, steps)), 1.0, 0.1)[:, :16]
+    for poses in (at_edge, along):
+        costs = [MppiPlanner(MppiPlannerConfig(drop_ahead_cost=cost, presumed_drop_m=1.5)).costs(
+            grid, MppiPlanner().planning_heights(grid, heights), origin, poses, np.zeros((1, 15)), 0.0,
+            np.array([0.0, 11.0]))[0][0] for cost in (0.0, 6.0)]
+        assert (costs[1] > costs[0]) == (poses is at_edge)
+
+
+def test_turning_lean_narrows_the_sideways_margin():
+    pose = np.array([0.0, -TERRAIN.hinge_distance_m + 1.4, math.radians(10.0)])  # On the wall, 10 deg down.
+    grid, heights, origin = mapped(TERRAIN, pose)
+    w = np.full((1, 5), 0.85)
+    poses = rollout(pose, w, 1.0, 0.1)
+    plain, lean = (MppiPlanner(MppiPlannerConfig(turn_lean=flag, margin_threshold_deg=8.0))._costs(
+        grid, heights, origin, poses, w, 0.85, np.array([0.0, 11.0]), 0)[2][0] for flag in (False, True))
+    assert lean > plain  # The same turn falls further short of the sideways threshold when turning.

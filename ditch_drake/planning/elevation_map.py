@@ -168,3 +168,32 @@ class ElevationGrid:
         with np.errstate(invalid="ignore", divide="ignore"):
             out = total / weight
         return np.where(inside & (weight >= 0.5), out, np.nan)
+
+
+def presume_drops(heights: np.ndarray, resolution_m: float, slope_deg: float, max_distance_m: float,
+                  within: np.ndarray | None = None) -> np.ndarray:
+    """The map with its unknown cells near known ones presumed to fall away at `slope_deg`.
+
+    A ditch's wall below its hinge is in the lidar's shadow until the robot is almost at the
+    edge: the map shows flat ground ending in unknown cells. Read as "unknown", a planner drives
+    head-on into it; read as the worst the terrain can be (a wall as steep as the ditches',
+    falling away from the last known ground), the planner lines up a shallow angle to the edge
+    *before* it reaches the hinge. Each unknown cell within `max_distance_m` of a known cell
+    gets the height of its nearest known cell minus tan(slope) times the distance between the two
+    cell centres; cells further out stay unknown (NaN), and so do those outside the mask `within`
+    (where given: the caller's sensor range, so that the edge of what the lidar can reach on open
+    ground is not taken for a drop).
+    This is a planning view, computed per update; the stored map keeps unknown cells unknown.
+    """
+    unknown = ~np.isfinite(heights)
+    if not unknown.any() or unknown.all() or not max_distance_m > 0:
+        return heights
+    from scipy.ndimage import distance_transform_edt
+
+    distance, (iy, ix) = distance_transform_edt(unknown, return_indices=True)
+    distance = distance * resolution_m
+    presumed = heights[iy, ix] - math.tan(math.radians(slope_deg)) * distance
+    presume = unknown & (distance <= max_distance_m)
+    if within is not None:
+        presume &= within
+    return np.where(presume, presumed, heights)

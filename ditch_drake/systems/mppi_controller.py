@@ -22,11 +22,12 @@ class MppiMode(enum.IntEnum):
     GOAL_REACHED = 1  # Within the goal tolerance: stopped for good.
     HALTED = 2  # No sampled sequence kept the tip margins: stopped.
     NO_DATA = 3  # No return in the cloud yet, or none at all this step: stopped.
+    FALLBACK = 4  # No sample kept the tip margins: the least-bad one is driven (stopping on a wall fails too).
 
 
 # Layout of the bookkeeping state.
-_MODE, _UPDATES, _HALTS, _NO_DATA, _GOAL_REACHED, _WX, _WY, _WINDOW_VALID, _LAST_W = range(9)
-_STATUS_SIZE = 9
+_MODE, _UPDATES, _HALTS, _NO_DATA, _GOAL_REACHED, _WX, _WY, _WINDOW_VALID, _LAST_W, _FALLBACKS = range(10)
+_STATUS_SIZE = 10
 _STATUS_OUTPUT = (_MODE, _UPDATES, _HALTS, _NO_DATA)
 # Points within this of the chassis box in plan belong to the robot (m).
 _SELF_MARGIN_M = 0.05
@@ -40,8 +41,9 @@ class MppiController(LeafSystem):
     unknown cells under the robot with the plane of its wheels, and runs one MPPI update
     (`ditch_drake.planning.mppi`) warm-started from the stored nominal sequence, with a random
     generator seeded by (planner seed, update count), so a run repeats exactly. Its command is the
-    first step quantized to the action labels. It commands [0, 0] within the goal tolerance (for
-    good), while no sample is admissible, and while the cloud holds no return (empty, all NaN):
+    first step quantized to the action labels. While no sample is admissible it drives the least
+    bad one (the planner's `fallback`; with it off, it stops). It commands [0, 0] within the goal
+    tolerance (for good), and while the cloud holds no return (empty, all NaN):
     the map then keeps what it had. The map, its window, the nominal sequence, the command and
     the counters live in the discrete state; the outputs read it. Points within the chassis
     box in plan (the robot itself) are dropped.
@@ -115,10 +117,11 @@ class MppiController(LeafSystem):
         return value[:2].copy(), value[2:].reshape(self._grid.shape).copy()
 
     def planner_status(self, context) -> dict[str, int]:
-        """Counters of this system's `context`: mode, updates, halts, no_data, goal_reached."""
+        """Counters of this system's `context`: mode, updates, halts, no_data, goal_reached, fallbacks."""
         status = context.get_discrete_state(self._status_index).get_value()
         return {"mode": int(status[_MODE]), "updates": int(status[_UPDATES]), "halts": int(status[_HALTS]),
-                "no_data": int(status[_NO_DATA]), "goal_reached": int(status[_GOAL_REACHED])}
+                "no_data": int(status[_NO_DATA]), "goal_reached": int(status[_GOAL_REACHED]),
+                "fallbacks": int(status[_FALLBACKS])}
 
     def _calc_map(self, context, output) -> None:
         status = context.get_discrete_state(self._status_index).get_value()
@@ -170,6 +173,10 @@ class MppiController(LeafSystem):
             if result.admissible:
                 command = result.command
                 status[_MODE] = MppiMode.DRIVING
+            elif result.fallback:
+                command = result.command
+                status[_FALLBACKS] += 1
+                status[_MODE] = MppiMode.FALLBACK
             else:
                 status[_HALTS] += 1
                 status[_MODE] = MppiMode.HALTED
