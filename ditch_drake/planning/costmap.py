@@ -102,6 +102,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
+from ditch_drake.planning.rolling_window import RollingWindow
 from ditch_drake.spec import robot
 
 FREE_SPACE = 0
@@ -414,7 +415,7 @@ def _rays_passing_over(cells: np.ndarray, start: np.ndarray, span_x: np.ndarray,
     return nearest[ray_bin] <= reach
 
 
-class SlopeCostmap:
+class SlopeCostmap(RollingWindow):
     """The grid geometry and the update steps of the rolling slope costmap (no map inside).
 
     Every method takes the arrays it works on and returns new ones; `layer` is the
@@ -425,9 +426,10 @@ class SlopeCostmap:
     def __init__(self, config: CostmapConfig | None = None):
         self.config = config or CostmapConfig()
         self.config.validate()
-        self.resolution = float(self.config.resolution)
-        self.shape = (round(self.config.height / self.resolution), round(self.config.width / self.resolution))
-        self.size = self.shape[0] * self.shape[1]
+        resolution = float(self.config.resolution)
+        self.unknown_value = float(NO_INFORMATION if self.config.track_unknown_space else FREE_SPACE)
+        super().__init__(resolution, (round(self.config.height / resolution), round(self.config.width / resolution)),
+                         self.unknown_value)
         footprint = np.asarray(self.config.footprint, dtype=float)
         x, y = footprint.T
         if np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y) < 0.0:
@@ -438,47 +440,13 @@ class SlopeCostmap:
         # Distance from B's origin to each edge line (the footprint contains B's origin).
         self.inscribed_radius = float(np.min(np.abs(np.sum(normals * self.footprint, axis=1))))
         self.circumscribed_radius = float(np.max(np.linalg.norm(self.footprint, axis=1)))
-        self.unknown_value = float(NO_INFORMATION if self.config.track_unknown_space else FREE_SPACE)
 
     # ----- geometry -----------------------------------------------------------------
     def empty_layer(self) -> np.ndarray:
         """A layer with nothing observed."""
         return np.full(self.shape, self.unknown_value)
 
-    def window_origin(self, xy: np.ndarray) -> np.ndarray:
-        """Origin (cells, (2,) int) of the window centred on the planar point `xy` (m)."""
-        cell = np.floor(np.asarray(xy, dtype=float)[:2] / self.resolution).astype(int)
-        return cell - np.array([self.shape[1] // 2, self.shape[0] // 2])
-
-    def origin_m(self, origin: np.ndarray) -> np.ndarray:
-        """World xy (m) of the window's lower-left corner."""
-        return np.asarray(origin, dtype=float) * self.resolution
-
-    def world_to_cell(self, origin: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Cells (iy, ix) of world points xy (..., 2), and a mask of those inside the window."""
-        cells = np.floor(np.asarray(xy, dtype=float) / self.resolution).astype(int) - np.asarray(origin)
-        ix, iy = cells[..., 0], cells[..., 1]
-        inside = (ix >= 0) & (ix < self.shape[1]) & (iy >= 0) & (iy < self.shape[0])
-        return iy, ix, inside
-
-    def cell_centers(self, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World x (nx,) and y (ny,) of the cell centres (m)."""
-        ox, oy = self.origin_m(origin)
-        return (ox + (np.arange(self.shape[1]) + 0.5) * self.resolution,
-                oy + (np.arange(self.shape[0]) + 0.5) * self.resolution)
-
     # ----- update steps ---------------------------------------------------------------
-    def roll(self, layer: np.ndarray, old_origin: np.ndarray, new_origin: np.ndarray) -> np.ndarray:
-        """Moves the window: cells in both windows keep their values, new cells are unobserved."""
-        out = self.empty_layer()
-        dx, dy = (int(v) for v in np.asarray(new_origin) - np.asarray(old_origin))
-        ny, nx = self.shape
-        if abs(dx) >= nx or abs(dy) >= ny:
-            return out
-        out[max(-dy, 0):ny + min(-dy, 0), max(-dx, 0):nx + min(-dx, 0)] = \
-            layer[max(dy, 0):ny + min(dy, 0), max(dx, 0):nx + min(dx, 0)]
-        return out
-
     def estimate_normals(self, points_W: np.ndarray) -> np.ndarray:
         """Unit normals (N, 3), oriented +z, of world points (N, 3); NaN where undefined."""
         points_W = np.asarray(points_W, dtype=float).reshape(-1, 3)

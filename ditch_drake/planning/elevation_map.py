@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ditch_drake.common.errors import ConfigError
+from ditch_drake.planning.rolling_window import RollingWindow
 
 
 @dataclass
@@ -65,56 +66,26 @@ class ElevationMapConfig:
             raise ConfigError(f"elevation map reset_jump_m={self.reset_jump_m!r}: expected > 0 (inf: never)")
 
 
-class ElevationGrid:
+class ElevationGrid(RollingWindow):
     """The geometry and update rules of the rolling map; it holds no heights itself."""
 
     def __init__(self, config: ElevationMapConfig | None = None):
         self.config = config or ElevationMapConfig()
         self.config.validate()
-        self.resolution = float(self.config.resolution_m)
-        n = max(4, int(round(self.config.size_m / self.resolution)))
-        self.shape = (n, n)
-        self.size = n * n
+        n = max(4, round(self.config.size_m / self.config.resolution_m))
+        super().__init__(self.config.resolution_m, (n, n), np.nan)
 
     def empty(self) -> np.ndarray:
         """An all-unknown (NaN) map of `shape`."""
         return np.full(self.shape, np.nan)
 
-    def window_origin(self, xy: np.ndarray) -> np.ndarray:
-        """Origin (cells, (2,) int: [ox, oy]) of the window centred on the planar point `xy` (m)."""
-        cell = np.floor(np.asarray(xy, dtype=float)[:2] / self.resolution).astype(int)
-        return cell - np.array([self.shape[1] // 2, self.shape[0] // 2])
-
-    def origin_m(self, origin: np.ndarray) -> np.ndarray:
-        """World xy (m) of the window's lower-left corner."""
-        return np.asarray(origin, dtype=float) * self.resolution
-
-    def cell_centers(self, origin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """World x (nx,) and y (ny,) of the cell centres (m)."""
-        ox, oy = self.origin_m(origin)
-        return (ox + (np.arange(self.shape[1]) + 0.5) * self.resolution,
-                oy + (np.arange(self.shape[0]) + 0.5) * self.resolution)
-
-    def roll(self, heights: np.ndarray, old_origin: np.ndarray, new_origin: np.ndarray) -> np.ndarray:
-        """Moves the window: cells in both windows keep their heights, new cells are unknown."""
-        out = self.empty()
-        dx, dy = (int(v) for v in np.asarray(new_origin) - np.asarray(old_origin))
-        ny, nx = self.shape
-        if abs(dx) >= nx or abs(dy) >= ny:
-            return out
-        out[max(-dy, 0):ny + min(-dy, 0), max(-dx, 0):nx + min(-dx, 0)] = \
-            heights[max(dy, 0):ny + min(dy, 0), max(dx, 0):nx + min(dx, 0)]
-        return out
-
     def scan_heights(self, origin: np.ndarray, points_W: np.ndarray) -> np.ndarray:
         """One scan's map: the highest finite point (N, 3) in W of each cell, NaN where none."""
         points_W = np.asarray(points_W, dtype=float).reshape(-1, 3)
         points_W = points_W[np.isfinite(points_W).all(axis=1)]
-        cells = np.floor(points_W[:, :2] / self.resolution).astype(np.int64) - np.asarray(origin)
-        ny, nx = self.shape
-        inside = (cells[:, 0] >= 0) & (cells[:, 0] < nx) & (cells[:, 1] >= 0) & (cells[:, 1] < ny)
+        iy, ix, inside = self.world_to_cell(origin, points_W[:, :2])
         flat = np.full(self.size, -np.inf)
-        np.maximum.at(flat, cells[inside, 1] * nx + cells[inside, 0], points_W[inside, 2])
+        np.maximum.at(flat, iy[inside] * self.shape[1] + ix[inside], points_W[inside, 2])
         flat[flat == -np.inf] = np.nan
         return flat.reshape(self.shape)
 

@@ -179,7 +179,7 @@ class MppiPlannerConfig:
 
     @property
     def steps(self) -> int:
-        return int(round(self.horizon_s / self.step_s))
+        return round(self.horizon_s / self.step_s)
 
 
 @dataclass
