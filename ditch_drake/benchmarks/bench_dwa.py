@@ -86,10 +86,18 @@ def record_lidar_drive(environment: str = "wide", task: int = 0, seed: int = 0, 
                       X_BL.GetAsMatrix4(), np.asarray(scene.task.goal, dtype=float)[:2])
 
 
-def _cloud(p_LP: np.ndarray) -> PointCloud:
+def recorded_cloud(p_LP: np.ndarray) -> PointCloud:
+    """A recorded step's points (N, 3) in L as the PointCloud the lidar gave."""
     cloud = PointCloud(len(p_LP), Fields(BaseField.kXYZs))
     cloud.mutable_xyzs()[:] = p_LP.T
     return cloud
+
+
+def timed_update(controller, context) -> tuple[float, float]:
+    """Runs `controller`'s periodic update on `context` in place; its wall and CPU seconds."""
+    start_wall, start_cpu = time.perf_counter(), time.process_time()
+    context.SetDiscreteState(controller.EvalUniquePeriodicDiscreteUpdate(context))
+    return time.perf_counter() - start_wall, time.process_time() - start_cpu
 
 
 def measure_dwa_ms(drive: LidarDrive | None = None, repeats: int = 3) -> dict:
@@ -110,7 +118,7 @@ def measure_dwa_ms(drive: LidarDrive | None = None, repeats: int = 3) -> dict:
     drive = drive if drive is not None else record_lidar_drive()
     X_BL = RigidTransform(drive.X_BL)
     controller = DwaController(drive.goal_xy, 1, X_BL, ray_directions_L=drive.ray_directions_L)
-    clouds = [_cloud(p_LP) for p_LP in drive.clouds]
+    clouds = [recorded_cloud(p_LP) for p_LP in drive.clouds]
     steps = len(clouds)
     wall, cpu = np.full((repeats, steps), np.inf), np.full((repeats, steps), np.inf)
     planned = np.zeros(steps, dtype=bool)
@@ -122,9 +130,7 @@ def measure_dwa_ms(drive: LidarDrive | None = None, repeats: int = 3) -> dict:
             controller.GetInputPort("body_poses").FixValue(context, [RigidTransform(), RigidTransform(X_WB)])
             context.SetTime(step * robot.CONTROL_PERIOD_S)
             plans = controller.planner_status(context)["plans"]
-            start_wall, start_cpu = time.perf_counter(), time.process_time()
-            context.SetDiscreteState(controller.EvalUniquePeriodicDiscreteUpdate(context))
-            wall[repeat, step], cpu[repeat, step] = time.perf_counter() - start_wall, time.process_time() - start_cpu
+            wall[repeat, step], cpu[repeat, step] = timed_update(controller, context)
             planned[step] = controller.planner_status(context)["plans"] > plans
             if repeat == 0:
                 origin, costs = controller.unpack_costmap(controller.GetOutputPort("costmap").Eval(context))

@@ -17,13 +17,11 @@ single-threaded anyway.
 """
 
 import sys
-import time
 
 import numpy as np
 from pydrake.math import RigidTransform
-from pydrake.perception import BaseField, Fields, PointCloud
 
-from ditch_drake.benchmarks.bench_dwa import LidarDrive, record_lidar_drive
+from ditch_drake.benchmarks.bench_dwa import LidarDrive, record_lidar_drive, recorded_cloud, timed_update
 from ditch_drake.diagrams.rollout import MppiBaselineConfig
 from ditch_drake.spec import robot
 from ditch_drake.systems.mppi_controller import MppiController
@@ -34,12 +32,6 @@ def record_mppi_drive(environment: str = "wide_walled", task: int = 1, seed: int
     """Drives the MPPI baseline for `duration_s` (s), or until the episode ends, and records its
     inputs at each control step (`bench_dwa.record_lidar_drive`)."""
     return record_lidar_drive(environment, task, seed, duration_s, config or MppiBaselineConfig(), "mppi")
-
-
-def _cloud(p_LP: np.ndarray) -> PointCloud:
-    cloud = PointCloud(len(p_LP), Fields(BaseField.kXYZs))
-    cloud.mutable_xyzs()[:] = p_LP.T
-    return cloud
 
 
 def measure_mppi_ms(drive: LidarDrive | None = None, repeats: int = 3, config: MppiBaselineConfig | None = None) -> dict:
@@ -60,7 +52,7 @@ def measure_mppi_ms(drive: LidarDrive | None = None, repeats: int = 3, config: M
     config = config or MppiBaselineConfig()
     controller = MppiController(drive.goal_xy, 1, RigidTransform(drive.X_BL), config.planner, config.elevation_map,
                                 goal_tolerance_m=config.goal_tolerance_m)
-    clouds = [_cloud(p_LP) for p_LP in drive.clouds]
+    clouds = [recorded_cloud(p_LP) for p_LP in drive.clouds]
     steps = len(clouds)
     wall, cpu = np.full((repeats, steps), np.inf), np.full((repeats, steps), np.inf)
     for repeat in range(repeats):
@@ -69,9 +61,7 @@ def measure_mppi_ms(drive: LidarDrive | None = None, repeats: int = 3, config: M
             controller.GetInputPort("point_cloud").FixValue(context, cloud)
             controller.GetInputPort("body_poses").FixValue(context, [RigidTransform(), RigidTransform(X_WB)])
             context.SetTime(step * robot.CONTROL_PERIOD_S)
-            start_wall, start_cpu = time.perf_counter(), time.process_time()
-            context.SetDiscreteState(controller.EvalUniquePeriodicDiscreteUpdate(context))
-            wall[repeat, step], cpu[repeat, step] = time.perf_counter() - start_wall, time.process_time() - start_cpu
+            wall[repeat, step], cpu[repeat, step] = timed_update(controller, context)
     wall, cpu = 1e3 * wall.min(axis=0)[1:], 1e3 * cpu.min(axis=0)[1:]
     return {
         "mppi_update_ms": float(np.median(wall)),
