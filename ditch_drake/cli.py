@@ -438,6 +438,88 @@ def cmd_experiment(args) -> int:
     return 0
 
 
+def cmd_benchmark(args) -> int:
+    """A controller over a split's procedural ditches (or the paper's four), appended to a results file."""
+    check_workers(args.workers, "--workers")
+    from ditch_drake.benchmark.run import BenchmarkConfig, benchmark_specs
+    from ditch_drake.benchmark.splits import check_split
+    from ditch_drake.evaluation.batch import evaluate, load_results
+    from ditch_drake.evaluation.results import current_records
+    from ditch_drake.evaluation.summary import summarize
+
+    check_split(args.split)
+    check_seed(args.seed, max(1, args.rollouts))
+    config = BenchmarkConfig(split=args.split, controller=args.controller, checkpoint=args.checkpoint or "",
+                             geometries=args.geometries, rollouts=args.rollouts, seed=args.seed, out=args.out,
+                             ranges=args.ranges or "", time_limit_s=args.time_limit, workers=args.workers,
+                             backend=args.backend, address=args.address)
+    if args.rollouts < 1:
+        raise ConfigError(f"--rollouts {args.rollouts}: expected a positive integer")
+    from pathlib import Path
+
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    specs = benchmark_specs(config)
+    environments = sorted({spec.environment for spec in specs})
+    print(f"{specs[0].controller} on split {args.split}: {len(environments)} ditches x 3 tasks x {args.rollouts} "
+          f"rollouts = {len(specs)} (seeds {args.seed}..{args.seed + args.rollouts - 1})", file=sys.stderr, flush=True)
+    report = evaluate(specs, args.out, workers=args.workers, backend=args.backend, address=args.address)
+    for warning in report.warnings:
+        print(f"warning: {warning}", file=sys.stderr)
+    keys = {spec.key for spec in specs}
+    records, _ = current_records([record for record in load_results([args.out]) if record.key in keys])
+    summary = summarize(records) if records else None
+    print(json.dumps({"out": str(args.out), "split": args.split, "controller": specs[0].controller,
+                      "checkpoint": specs[0].checkpoint, "geometries": len(environments),
+                      "requested": report.requested, "skipped": report.skipped, "recorded": report.recorded,
+                      "successes": summary.successes if summary else 0, "trials": summary.trials if summary else 0,
+                      "wilson95": [round(summary.low, 3), round(summary.high, 3)] if summary else None,
+                      "errors_recorded": report.errors, "wall_s": round(report.wall_s, 1),
+                      "rollouts_per_minute": round(report.rollouts_per_minute, 2), "interrupted": report.interrupted}))
+    if report.interrupted:
+        print(f"interrupted: {report.recorded} rollouts recorded by this run, {report.skipped + report.recorded} of "
+              f"{report.requested} in {args.out}; run the same command again to continue", file=sys.stderr)
+        return report.exit_code
+    return 0
+
+
+def cmd_benchmark_report(args) -> int:
+    """The benchmark's page: success per split and controller, against the ditch's parameters,
+    failure regions and the failed geometries with their replay commands."""
+    from pathlib import Path
+
+    from ditch_drake.benchmark.results_page import write_benchmark_report
+
+    missing = [entry for entry in args.results if not Path(entry).exists()]
+    if missing:
+        raise ConfigError(f"no results file at {', '.join(missing)}")
+    page = write_benchmark_report(args.results, args.out, args.figures, title=args.title,
+                                  command="ditch-drake " + " ".join(shlex.quote(a) for a in sys.argv[1:]))
+    print(f"wrote {page}", file=sys.stderr)
+    return 0
+
+
+def cmd_train_generalist(args) -> int:
+    """The generalist: demonstrations and DAgger over the train split, the best round on val."""
+    check_workers(args.workers, "--workers")
+    check_seed(args.seed)
+    from ditch_drake.benchmark.generalist import GeneralistConfig, train_generalist
+    from ditch_drake.benchmark.splits import split_seeds
+
+    split_seeds("train", args.train_geometries)
+    split_seeds("val", args.val_geometries)
+    config = GeneralistConfig(out=args.out, work_dir=args.work_dir, train_geometries=args.train_geometries,
+                              demos_per_task=args.demos_per_task, dagger_rounds=args.dagger_rounds,
+                              val_geometries=args.val_geometries, epochs=args.epochs, seed=args.seed,
+                              workers=args.workers, ranges=args.ranges or "")
+    try:
+        summary = train_generalist(config)
+    except KeyboardInterrupt as error:
+        print("interrupted; finished stages are kept, run the same command again to continue", file=sys.stderr)
+        return interrupt_exit_code(error)
+    print(json.dumps(summary))
+    return 0
+
+
 def cmd_report(args) -> int:
     """The results page and its figures from the current records of results files, its success
     tables also printed; by default beside the results, and never over a file git tracks unless
@@ -704,6 +786,54 @@ def build_parser() -> argparse.ArgumentParser:
                             help="local process pool, or a Ray cluster (pip install -e '.[ray]')")
     evaluation.add_argument("--address", default=None, help="Ray cluster address (default None: start Ray here)")
     evaluation.set_defaults(run=cmd_evaluate)
+
+    benchmark = add("benchmark", "a controller over the procedural ditches of a split (train, val, test) or the paper's "
+                                 "four, appended to a results file (rerun to resume; Ctrl-C keeps what finished)")
+    benchmark.add_argument("--split", default="test",
+                           help="train (seeds 0-199), val (1000-1049), test (2000-2099; for reporting only, never a "
+                                "choice) or paper (the four packaged environments)")
+    benchmark.add_argument("--controller", default="expert", choices=controller_names(), help=controllers_help)
+    benchmark.add_argument("--checkpoint", default=None,
+                           help="the learned policy, a shipped name or a .pt file (default: generalist)")
+    benchmark.add_argument("--geometries", type=int, default=None,
+                           help="the split's first N ditches (default: all of them)")
+    benchmark.add_argument("--rollouts", type=int, default=1, help="seeded rollouts per task (3 tasks per ditch)")
+    benchmark.add_argument("--seed", type=int, default=0, help="first rollout seed; rollout i of each task uses seed + i")
+    benchmark.add_argument("--ranges", default=None,
+                           help="a ranges YAML file (default: the packaged ditch_drake/benchmark/ranges.yaml)")
+    benchmark.add_argument("--time-limit", type=float, default=120.0, help="episode timeout in s")
+    benchmark.add_argument("--out", default="results/benchmark/benchmark.jsonl",
+                           help="results file (JSON Lines), appended; the ditches go to <stem>.ditches.yaml beside it")
+    add_workers(benchmark, "rollouts")
+    benchmark.add_argument("--backend", default="local", choices=["local", "ray"],
+                           help="local process pool, or a Ray cluster (pip install -e '.[ray]')")
+    benchmark.add_argument("--address", default=None, help="Ray cluster address (default None: start Ray here)")
+    benchmark.set_defaults(run=cmd_benchmark)
+
+    benchmark_report = add("benchmark-report", "the benchmark's page from its results files: success per split with "
+                                               "Wilson intervals, against slope, width, depth and curvature, failure "
+                                               "regions, the failed ditches with replay commands")
+    benchmark_report.add_argument("results", nargs="+", help="benchmark results files (*.jsonl)")
+    benchmark_report.add_argument("--out", default="results/benchmark/report.md", help="the Markdown page")
+    benchmark_report.add_argument("--figures", default=None,
+                                  help="folder of the PNG figures (default: <page stem>_img beside the page)")
+    benchmark_report.add_argument("--title", default="Procedural ditch benchmark", help="the page's title")
+    benchmark_report.set_defaults(run=cmd_benchmark_report)
+
+    generalist = add("train-generalist", "the generalist policy: expert demonstrations and DAgger over the train "
+                                         "split's ditches, the best round on the val split (resumable)")
+    generalist.add_argument("--out", default="ditch_drake/models/generalist.pt", help="the chosen checkpoint")
+    generalist.add_argument("--work-dir", default="data/generalist",
+                            help="demonstrations, each round's checkpoint and the val results")
+    generalist.add_argument("--train-geometries", type=int, default=40, help="the train split's first N ditches")
+    generalist.add_argument("--demos-per-task", type=int, default=1, help="expert demonstrations per task")
+    generalist.add_argument("--dagger-rounds", type=int, default=1, help="DAgger rounds after the first clone")
+    generalist.add_argument("--val-geometries", type=int, default=50, help="the val split's first N ditches")
+    generalist.add_argument("--epochs", type=int, default=12, help="most epochs per training")
+    generalist.add_argument("--seed", type=int, default=0, help="seeds demonstrations, training and val rollouts")
+    generalist.add_argument("--ranges", default=None, help="a ranges YAML file (default: the packaged one)")
+    add_workers(generalist, "demonstrations and val rollouts")
+    generalist.set_defaults(run=cmd_train_generalist)
 
     experiment = add("experiment", "the paper's pipeline from an experiment YAML: collect, train, evaluate, report")
     experiment.add_argument("file", help="experiment file, e.g. experiments/paper.yaml")

@@ -31,6 +31,12 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     from ditch_drake.benchmarks import bench_gym
 
     monkeypatch.setattr(bench_gym.measure_gym_env, "__defaults__", ("wide", 0, 0, 1))
+    from ditch_drake.benchmarks import bench_scene
+
+    monkeypatch.setattr(bench_scene, "build_cases", lambda: [("narrow", None, "narrow")])
+    monkeypatch.setattr(bench_scene, "RSS_ENVIRONMENTS", ("narrow",))
+    monkeypatch.setattr(bench_scene.measure_diagram_rss, "__defaults__", (("narrow",),))
+    monkeypatch.setattr(bench_scene.measure_benchmark_rollouts_per_min, "__defaults__", (1,))
     assert main(["bench", "--json", "--env", "narrow"]) == 0
     figures = json.loads(capsys.readouterr().out)
     assert set(figures) >= {"plant_narrow_rtf", "scene_build_narrow_s", "plant_min_rtf", "peak_rss_mib",
@@ -41,6 +47,8 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     assert {"train_samples_per_s", "evaluate_rollouts_per_min", "train_wide_40_demos_s"} <= set(figures)
     assert figures["gym_env_steps_per_s"] > 0 and figures["gym_env_step_time_ratio"] > 0
     assert figures["plant_narrow_rtf"] > 0
+    assert figures["scene_build_max_s"] > 0 and figures["diagram_rss_mib"] > 0
+    assert figures["benchmark_rollouts_per_min"] > 0
 
 
 def test_training_on_cuda_without_a_gpu_is_a_clear_error(capsys, tmp_path):

@@ -164,7 +164,7 @@ def test_a_reused_rig_records_what_a_fresh_build_records():
     seed = 7
     delay = draw_expert_style(seed).reaction_delay_steps
     other = next(s for s in range(20, 60) if draw_expert_style(s).reaction_delay_steps == delay)
-    rig = _worker_rig(config, 1, delay)
+    rig = _worker_rig(config, "narrow", 1, delay)
     record_demonstration("narrow", 1, other, rig=rig)  # Another style first, on the same rig.
     reused = record_demonstration("narrow", 1, seed, rig=rig)
     fresh = record_demonstration("narrow", 1, seed)

@@ -21,7 +21,7 @@ LAYERS = [
     {"diagrams"},
     {"demos"},
     {"evaluation"},
-    {"gym"},
+    {"gym", "benchmark"},
     {"benchmarks"},
     {"docs_tools"},
     {"cli"},

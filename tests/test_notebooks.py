@@ -9,9 +9,10 @@ from nbclient import NotebookClient
 NOTEBOOKS = sorted((Path(__file__).resolve().parent.parent / "notebooks").glob("*.ipynb"))
 
 
-def test_there_are_the_four_notebooks():
+def test_there_are_the_five_notebooks():
     assert [path.name for path in NOTEBOOKS] == [
-        "01_environments.ipynb", "02_perception.ipynb", "03_demonstrations.ipynb", "04_train_and_evaluate.ipynb"]
+        "01_environments.ipynb", "02_perception.ipynb", "03_demonstrations.ipynb", "04_train_and_evaluate.ipynb",
+        "05_benchmark.ipynb"]
 
 
 @pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from ditch_drake.world.environments import get_environment
-from ditch_drake.world.terrain import DitchTerrain, TerrainError, TerrainParams
+from ditch_drake.world.terrain import DitchTerrain, TerrainError, TerrainParams, min_bend_radius_m
 
 ENVIRONMENTS = ["crater", "wide", "narrow", "sine"]
 
@@ -76,3 +76,88 @@ def test_out_of_range_parameters_are_named(field, value, expected):
 def test_sine_too_tight_for_the_ditch_is_refused():
     with pytest.raises(TerrainError, match="bend radius"):
         DitchTerrain(TerrainParams(course="sine", sine_amplitude_m=6.0, sine_wavelength_m=12.0))
+
+
+@pytest.mark.parametrize("name", ENVIRONMENTS)
+def test_collision_pieces_are_fewer_and_match_the_visual_ones_away_from_the_ends(name):
+    """Issue 22: the collision set (mitred bends) has fewer boxes where the course bends and
+    stays within the visual pieces' accuracy everywhere."""
+    terrain = DitchTerrain(get_environment(name).terrain)
+    collision = terrain.collision_pieces()
+    visual = terrain.box_pieces()
+    assert len(collision) < len(visual) if terrain.params.course == "sine" else len(collision) == len(visual)
+    rng = np.random.default_rng(1)
+    reach = terrain.half_width_m + 2.0
+    near = terrain.course_xy[rng.integers(0, len(terrain.course_xy), 6000)] + rng.uniform(-reach, reach, (6000, 2))
+    error = terrain.pieces_height(near, collision) - terrain.height(near)
+    assert np.max(np.abs(error)) < 0.03
+    if terrain.params.course == "line":  # no bends: the crossing's pieces are the visual ones
+        visual = terrain.box_pieces()
+        swept = [p for p in visual if p.kind == "wall"][:len([p for p in collision if p.kind == "wall"])]
+        assert all(np.array_equal(a.p_WP, b.p_WP) and np.array_equal(a.size, b.size)
+                   for a, b in zip(swept[:20], [p for p in collision if p.kind == "wall"][:20]))
+
+
+def _pieces_error_near(terrain, centre_xy, count=2500):
+    """max |pieces_height - height| at random points within the hinge + 1 m of centre_xy, over
+    the visual pieces and the collision pieces (mitred bends), the worse of the two."""
+    rng = np.random.default_rng(2)
+    reach = terrain.half_width_m + 1.0
+    points = np.asarray(centre_xy) + rng.uniform(-reach, reach, (count, 2))
+    return max(np.max(np.abs(terrain.pieces_height(points, pieces) - terrain.height(points)))
+               for pieces in (terrain.box_pieces(), terrain.collision_pieces()))
+
+
+def test_arc_course_builds_and_its_pieces_match_the_height():
+    params = TerrainParams(course="arc", arc_radius_m=12.0, length_m=12.0 * math.pi / 2, max_turn_deg=3.0)
+    terrain = DitchTerrain(params)
+    assert terrain.max_curvature_per_m == pytest.approx(1 / 12.0)
+    # Midpoint at the origin heading +x; every course point on the circle round (0, R).
+    assert np.allclose(np.linalg.norm(terrain.course_xy - [0.0, 12.0], axis=1), 12.0)
+    assert float(terrain.height(np.array([0.0, 0.0]))) == pytest.approx(-params.depth_m)
+    assert float(terrain.height(np.array([0.0, 12.0]))) == 0.0
+    for centre in ([0.0, 0.0], terrain.course_xy[-1], [0.0, 12.0 - terrain.hinge_distance_m]):
+        assert _pieces_error_near(terrain, centre) < 0.03
+
+
+def test_max_curvature_of_each_course_kind():
+    assert DitchTerrain(TerrainParams(course="line")).max_curvature_per_m == 0.0
+    assert DitchTerrain(TerrainParams(course="point")).max_curvature_per_m == 0.0
+    sine = TerrainParams(course="sine", sine_amplitude_m=3.0, sine_wavelength_m=30.0)
+    assert DitchTerrain(sine).max_curvature_per_m == pytest.approx(3.0 * (2 * math.pi / 30.0) ** 2)
+
+
+def _sine_with_bend(radius_m, **kw):
+    k = 2 * math.pi / 30.0
+    return TerrainParams(course="sine", sine_amplitude_m=1 / (radius_m * k * k), sine_wavelength_m=30.0, **kw)
+
+
+def test_sine_at_the_bend_limit_builds_and_its_pieces_match_the_height():
+    limit = min_bend_radius_m(TerrainParams(course="sine"))
+    assert limit < DitchTerrain(TerrainParams(course="sine")).hinge_distance_m  # tighter than the old limit
+    terrain = DitchTerrain(_sine_with_bend(limit, max_turn_deg=2.0))
+    assert 1 / terrain.max_curvature_per_m == pytest.approx(limit)
+    apex = [7.5, terrain.params.sine_amplitude_m]  # the bend; its inner side is toward -y
+    assert _pieces_error_near(terrain, apex) < 0.03
+
+
+def test_bends_just_under_the_limit_are_refused():
+    limit = min_bend_radius_m(TerrainParams(course="sine"))
+    with pytest.raises(TerrainError, match=r"sine_amplitude_m=.*bend radius .*min_bend_radius_m"):
+        DitchTerrain(_sine_with_bend(0.98 * limit))
+    arc_limit = min_bend_radius_m(TerrainParams(course="arc"))
+    with pytest.raises(TerrainError, match=r"arc_radius_m=.*bend radius .*min_bend_radius_m"):
+        DitchTerrain(TerrainParams(course="arc", arc_radius_m=0.98 * arc_limit, length_m=10.0))
+    DitchTerrain(TerrainParams(course="arc", arc_radius_m=arc_limit, length_m=10.0))
+
+
+@pytest.mark.parametrize("changes, name, expected", [
+    ({"arc_radius_m": 0.0}, "arc_radius_m", "arc_radius_m > 0"),
+    ({"arc_radius_m": -3.0}, "arc_radius_m", "arc_radius_m > 0"),
+    ({"arc_radius_m": float("inf")}, "arc_radius_m", "a finite number"),
+    ({"arc_radius_m": 10.0, "length_m": 32.0}, "length_m", "length_m / arc_radius_m <= pi"),
+])
+def test_arc_parameters_out_of_range_are_named(changes, name, expected):
+    with pytest.raises(TerrainError) as error:
+        DitchTerrain(TerrainParams(course="arc", **changes))
+    assert f"{name}=" in str(error.value) and expected in str(error.value)

@@ -17,7 +17,7 @@ from ditch_drake.diagrams.lidar_rig import AddLidar
 from ditch_drake.diagrams.rollout import ConstantCommandConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
 from ditch_drake.learning.checkpoint import environment_model
 from ditch_drake.world.bypass import check_no_bypass, rasterize_field
-from ditch_drake.world.environments import _validate_environment, environment_names, get_environment
+from ditch_drake.world.environments import environment_names, get_environment, validate_environment
 from ditch_drake.world.terrain import DitchTerrain, TerrainParams, Wall
 
 WALLED = ["crater_walled", "wide_walled", "narrow_walled", "sine_walled"]
@@ -56,7 +56,7 @@ def test_a_short_wall_leaves_a_bypass_and_is_refused():
     # The wall from the ditch's east end to the field's side stops 1.2 m short of the ditch.
     environment.terrain.walls[1].points[0] = [22.5, 0.0]
     with pytest.raises(ConfigError, match=r"task 'straight_across': the walls leave a bypass") as error:
-        _validate_environment(environment)
+        validate_environment(environment)
     x, y = (float(v) for v in str(error.value).split("passes (")[1].split(")")[0].split(", "))
     assert x > 21.3 and abs(y) < 2.0  # Round the ditch's east end (which reaches x = 21.3 m).
 
@@ -67,7 +67,7 @@ def test_a_gap_on_one_side_lets_the_robot_out_and_is_refused():
     environment.terrain.walls[0].points = [[-5.0, -14.0], [-27.0, -14.0], [-27.0, 14.0], [27.0, 14.0],
                                            [27.0, -14.0], [5.0, -14.0]]
     with pytest.raises(ConfigError, match=r"task 'straight_across': start \[0.0, -11.0\] is outside the walls"):
-        _validate_environment(environment)
+        validate_environment(environment)
 
 
 def test_a_wall_across_the_ditch_is_refused():
@@ -81,7 +81,7 @@ def test_a_wall_through_a_task_is_refused():
     environment = _wide_walled()
     environment.terrain.walls[0].points = [[-27.0, -11.3], [27.0, -11.3], [27.0, 14.0], [-27.0, 14.0], [-27.0, -11.3]]
     with pytest.raises(ConfigError, match=r"task 'straight_across': start \[0.0, -11.0\] is 0.20 m from a wall"):
-        _validate_environment(environment)
+        validate_environment(environment)
 
 
 @pytest.mark.parametrize("field, value, expected", [

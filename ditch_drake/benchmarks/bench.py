@@ -204,6 +204,16 @@ def run_bench(environments: list[str] | None = None, training: bool = False, env
     figures.update(shipped_model_figures())
     figures.update(measure_rollouts_per_minute())
     figures.update(measure_gym_figures())
+    from ditch_drake.benchmarks.bench_scene import (
+        measure_benchmark_rollouts_per_min,
+        measure_diagram_rss,
+        measure_scene_build,
+    )
+
+    figures["scene_build_max_s"] = measure_scene_build()["scene_build_max_s"]
+    rss = measure_diagram_rss()
+    figures.update({key: value for key, value in rss.items() if key.endswith("_mib")})
+    figures.update(measure_benchmark_rollouts_per_min())
     if training:
         from ditch_drake.benchmarks.bench_training import measure_training_memory_mib
 

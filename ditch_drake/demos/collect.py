@@ -5,6 +5,7 @@ SIGTERM kills the workers at once (`ditch_drake.common.parallel`) and the report
 kept, so the same command run again records only the missing ones.
 """
 
+import collections
 import time
 from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field
@@ -77,6 +78,9 @@ class CollectConfig:
             and every rollout is kept, one per seed, whatever its outcome (a rollover's
             last `ROLLOVER_TRIM_S` dropped).
         environments_file: a YAML file of environments that `environment` may name ("": packaged).
+        environments: several environments (of `environments_file` or packaged) instead of
+            `environment`: demonstration i drives the i-th (environment, task) pair, in order
+            environment by environment, wrapping round (`slot_pairs`).
     """
 
     environment: str = "wide"
@@ -88,6 +92,7 @@ class CollectConfig:
     variation: ExpertVariation = field(default_factory=ExpertVariation)
     learner: str | None = None
     environments_file: str = ""
+    environments: list[str] = field(default_factory=list)
 
 
 @dataclass
@@ -207,25 +212,40 @@ def demo_path(out: str | Path, index: int) -> Path:
     return Path(out) / f"demo_{index:03d}.npz"
 
 
-# A collection worker's built rigs, reused across its demonstrations: building a scene
-# costs up to several seconds (the sine ditch's ~2000 terrain pieces), more than a
-# demonstration's simulation. Keyed by everything the diagram is built from; a rig
-# holds no episode state (each demonstration simulates in a fresh Context).
-_WORKER_RIGS: dict[tuple, DemonstrationRig] = {}
+# A collection worker's built rigs, most recently used last, reused across its
+# demonstrations: building a scene costs up to a second or more, about a demonstration's
+# simulation. Keyed by everything the diagram is built from; a rig holds no episode state
+# (each demonstration simulates in a fresh Context). A collection over many environments
+# keeps only the last few (each holds a scene, a renderer and perhaps a network).
+MAX_WORKER_RIGS = 4
+_WORKER_RIGS: collections.OrderedDict[tuple, DemonstrationRig] = collections.OrderedDict()
+# Demonstrations a pool's worker processes run before a fresh pool replaces them: a worker's
+# memory grows with every diagram it has built and dropped (`ditch_drake.evaluation.batch`).
+DEMOS_PER_WORKER = 40
 
 
-def _worker_rig(config: CollectConfig, task: int, reaction_delay_steps: int) -> DemonstrationRig:
-    key = (config.environment, task, reaction_delay_steps, repr(config.observation), repr(config.variation),
-           config.learner,
-           config.environments_file)
-    if key not in _WORKER_RIGS:
-        # Any seed with this delay builds the same diagram; each demonstration sets its own style.
-        style_seed = next(seed for seed in range(10_000)
-                          if draw_expert_style(seed, config.variation).reaction_delay_steps == reaction_delay_steps)
-        _WORKER_RIGS[key] = MakeDemonstrationDiagram(SceneConfig(environment=config.environment, task=task,
-                                                                 environments_file=config.environments_file),
-                                                     style_seed, config.observation, config.variation,
-                                                     learner=config.learner)
+def slot_pairs(config: CollectConfig) -> list[tuple[str, int]]:
+    """The (environment, task) pairs demonstration i drives the (i mod count)-th of."""
+    names = config.environments or [config.environment]
+    return [(name, task) for name in names
+            for task in range(len(get_environment(name, config.environments_file or None).tasks))]
+
+
+def _worker_rig(config: CollectConfig, environment: str, task: int, reaction_delay_steps: int) -> DemonstrationRig:
+    key = (environment, task, reaction_delay_steps, repr(config.observation), repr(config.variation),
+           config.learner, config.environments_file)
+    if key in _WORKER_RIGS:
+        _WORKER_RIGS.move_to_end(key)
+        return _WORKER_RIGS[key]
+    while len(_WORKER_RIGS) >= MAX_WORKER_RIGS:
+        _WORKER_RIGS.popitem(last=False)
+    # Any seed with this delay builds the same diagram; each demonstration sets its own style.
+    style_seed = next(seed for seed in range(10_000)
+                      if draw_expert_style(seed, config.variation).reaction_delay_steps == reaction_delay_steps)
+    _WORKER_RIGS[key] = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task,
+                                                             environments_file=config.environments_file),
+                                                 style_seed, config.observation, config.variation,
+                                                 learner=config.learner)
     return _WORKER_RIGS[key]
 
 
@@ -239,11 +259,12 @@ def trim_rollover(demonstration: Demonstration) -> Demonstration:
 
 
 def _collect_slot(config: CollectConfig, index: int) -> dict:
-    tasks = len(get_environment(config.environment, config.environments_file or None).tasks)
+    pairs = slot_pairs(config)
+    environment, task = pairs[index % len(pairs)]
     if config.learner is not None:
         seed = config.seed + index
-        rig = _worker_rig(config, index % tasks, draw_expert_style(seed, config.variation).reaction_delay_steps)
-        demonstration = trim_rollover(record_demonstration(config.environment, index % tasks, seed, config.observation,
+        rig = _worker_rig(config, environment, task, draw_expert_style(seed, config.variation).reaction_delay_steps)
+        demonstration = trim_rollover(record_demonstration(environment, task, seed, config.observation,
                                                            config.variation, rig, config.learner))
         save_demonstration(demo_path(config.out, index), demonstration)
         return {"index": index, "seed": seed, "steps": len(demonstration), "failures": [],
@@ -251,9 +272,8 @@ def _collect_slot(config: CollectConfig, index: int) -> dict:
     failures = []
     for attempt in range(ATTEMPTS_PER_DEMO):
         seed = config.seed + index + 1000 * attempt
-        rig = _worker_rig(config, index % tasks, draw_expert_style(seed, config.variation).reaction_delay_steps)
-        demonstration = record_demonstration(config.environment, index % tasks, seed,
-                                             config.observation, config.variation, rig)
+        rig = _worker_rig(config, environment, task, draw_expert_style(seed, config.variation).reaction_delay_steps)
+        demonstration = record_demonstration(environment, task, seed, config.observation, config.variation, rig)
         status = demonstration.metadata["outcome"]["status"]
         if status == "reached_goal":
             save_demonstration(demo_path(config.out, index), demonstration)
@@ -293,7 +313,7 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     (KeyboardInterrupt) or SIGTERM stops it within a second or two: the report then has
     `interrupted` True and the shell's `exit_code` (130 or 143), and is not re-raised.
     """
-    get_environment(config.environment, config.environments_file or None)
+    slot_pairs(config)  # An unknown environment fails here, naming it.
     if not isinstance(config.demos, int) or config.demos <= 0:
         raise ConfigError(f"demos={config.demos!r} must be a positive integer")
     check_workers(config.workers)
@@ -310,7 +330,8 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     missing = [index for index in range(config.demos) if not _existing_demo(demo_path(config.out, index), set_aside)]
     workers = worker_count(config.workers)
     results = []
-    bar = tqdm(total=len(missing), desc=f"collect {config.environment}", disable=not progress)
+    label = config.environment if not config.environments else f"{len(config.environments)} environments"
+    bar = tqdm(total=len(missing), desc=f"collect {label}", disable=not progress)
 
     def keep(result: dict) -> None:
         results.append(result)
@@ -327,9 +348,12 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
                 for index in missing:
                     keep(_collect_slot(config, index))
             else:
-                with WorkerPool(min(workers, len(missing))) as pool:
-                    for future in as_completed([pool.submit(_collect_slot, config, index) for index in missing]):
-                        keep(future.result())
+                chunk = workers * DEMOS_PER_WORKER
+                for begin in range(0, len(missing), chunk):
+                    part = missing[begin:begin + chunk]
+                    with WorkerPool(min(workers, len(part))) as pool:
+                        for future in as_completed([pool.submit(_collect_slot, config, index) for index in part]):
+                            keep(future.result())
     except KeyboardInterrupt as error:
         interrupted, exit_code = True, interrupt_exit_code(error)
     finally:
@@ -338,7 +362,7 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     wall_s = time.perf_counter() - start
     recorded = sum(result["seed"] is not None for result in results)
     return {
-        "environment": config.environment,
+        "environment": config.environment if not config.environments else config.environments,
         "out": str(config.out),
         "kept_before": config.demos - len(missing),
         "corrupt_files_set_aside": set_aside,

@@ -1,5 +1,6 @@
 """The Husky and a ditch in one MultibodyPlant, with drive and episode monitor."""
 
+import ctypes
 import math
 from dataclasses import dataclass, field
 from importlib import resources
@@ -106,22 +107,54 @@ def MakeParser(plant: MultibodyPlant) -> Parser:
 
 def AddDitchTerrain(plant: MultibodyPlant, terrain: DitchTerrain) -> int:
     """Welds the terrain's box pieces (named `terrain_*`) and its walls' (`barrier_*`) to the
-    world as collision and visual geometry.
+    world: `DitchTerrain.collision_pieces` as collision geometry, `DitchTerrain.box_pieces`
+    as visual geometry (illustration and perception: what Meshcat and the lidar see).
 
-    Returns the number of pieces.
+    The collision set is the smaller one: SceneGraph's collision filter costs memory and time
+    with the square of the number of collision geometries (see `collision_pieces`), visual
+    geometry only linearly.
+
+    Returns the number of visual pieces.
     """
     ground_friction = CoulombFriction(robot.TERRAIN_FRICTION, robot.TERRAIN_FRICTION)
     properties = ProximityProperties()
     properties.AddProperty("material", "coulomb_friction", ground_friction)
-    named = [(f"terrain_{piece.kind}_{index}", piece) for index, piece in enumerate(terrain.box_pieces())]
-    named += [(f"barrier_{index}", piece) for index, piece in enumerate(terrain.wall_pieces())]
+    walls = [(f"barrier_{index}", piece) for index, piece in enumerate(terrain.wall_pieces())]
+    visual = [(f"terrain_{piece.kind}_{index}", piece) for index, piece in enumerate(terrain.box_pieces())]
+    collision = [(f"terrain_{piece.kind}_{index}", piece) for index, piece in enumerate(terrain.collision_pieces())]
     world = plant.world_body()
-    for name, piece in named:
-        X_WP = RigidTransform(RotationMatrix(piece.R_WP), piece.p_WP)
-        shape = Box(*piece.size)
-        plant.RegisterCollisionGeometry(world, X_WP, shape, name, properties)
-        plant.RegisterVisualGeometry(world, X_WP, shape, name, TERRAIN_COLORS[piece.kind])
-    return len(named)
+    for name, piece in collision + walls:
+        plant.RegisterCollisionGeometry(world, _piece_pose(piece), Box(*piece.size), name, properties)
+    for name, piece in visual + walls:
+        plant.RegisterVisualGeometry(world, _piece_pose(piece), Box(*piece.size), name, TERRAIN_COLORS[piece.kind])
+    return len(visual) + len(walls)
+
+
+def _piece_pose(piece) -> RigidTransform:
+    return RigidTransform(RotationMatrix(piece.R_WP), piece.p_WP)
+
+
+def ReleaseSceneGraphModelCache(system) -> None:
+    """Frees the copy of the geometry model that a SceneGraph caches whenever it sets a
+    Context's parameters (Drake's "augmented model"): a third copy, beside the model and the
+    Context's own, of every collision filter entry, which cost as much as 230 MiB a diagram.
+
+    `system`: a SceneGraph, or a Diagram whose SceneGraphs to release. Call it after the
+    Context is set (`StartEpisode` does, after `SetRandomContext`): the next Context or
+    random draw makes the copy again (as fast as copying the cache), and nothing else
+    changes. (Asking SceneGraph for its model's collision filter manager drops the cache
+    and changes no filter.) glibc keeps the freed pages, so they are handed back to the
+    system (`malloc_trim`) where that exists.
+    """
+    graphs = [system] if isinstance(system, SceneGraph) else [
+        child for child in system.GetSystems() if isinstance(child, SceneGraph)]
+    for scene_graph in graphs:
+        scene_graph.collision_filter_manager()
+    if graphs:
+        try:
+            ctypes.CDLL(None).malloc_trim(0)
+        except (OSError, AttributeError):  # not glibc
+            pass
 
 
 def load_model_file(plant: MultibodyPlant, path: str | Path) -> list[ModelInstanceIndex]:

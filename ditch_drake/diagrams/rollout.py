@@ -15,7 +15,7 @@ from pydrake.systems.primitives import ConstantVectorSource
 from tqdm import tqdm
 
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
+from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, ReleaseSceneGraphModelCache, SceneConfig
 from ditch_drake.diagrams.lidar_rig import AddLidar
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
 from ditch_drake.learning.checkpoint import CheckpointError, environment_model, load_checkpoint, resolve_checkpoint_path
@@ -276,6 +276,7 @@ def StartEpisode(simulator: Simulator, diagram: Diagram, seed: int,
     context = simulator.get_mutable_context()
     context.SetTime(0.0)
     diagram.SetRandomContext(context, RandomGenerator(seed))
+    ReleaseSceneGraphModelCache(diagram)
     if before_start is not None:
         before_start(context)
     simulator.Initialize()

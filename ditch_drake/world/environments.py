@@ -75,7 +75,7 @@ def load_environments(path: str | Path | None = None, prove_walls: bool = True) 
         raise ConfigError(f"environments file {path} defines no environments")
     for name, environment in library.environments.items():
         try:
-            _validate_environment(environment, prove_walls)
+            validate_environment(environment, prove_walls)
         except (TerrainError, ConfigError) as error:
             raise ConfigError(f"environment {name!r} in {path}: {error}") from error
     names = set(library.environments) | (set() if path == _default_path() else set(environment_names(variants=True)))
@@ -86,7 +86,10 @@ def load_environments(path: str | Path | None = None, prove_walls: bool = True) 
     return library.environments
 
 
-def _validate_environment(environment: Environment, prove_walls: bool = True) -> None:
+def validate_environment(environment: Environment, prove_walls: bool = True) -> None:
+    """Raises TerrainError or ConfigError unless the terrain builds, every task's start and goal
+    keep `TASK_CLEARANCE_M` from the ditch's edge and the walls and lie on opposite sides, and
+    (with `prove_walls`) no route bypasses a walled ditch (`prove_no_bypass`)."""
     terrain = DitchTerrain(environment.terrain)
     if not environment.tasks:
         raise ConfigError("has no tasks")
@@ -147,6 +150,41 @@ def _proven_packaged(name: str) -> Environment:
     return environment
 
 
+def _file_key(path: Path) -> tuple:
+    try:
+        stat = path.stat()
+    except OSError:
+        return (str(path.resolve()), None, None)
+    return (str(path.resolve()), stat.st_mtime_ns, stat.st_size)
+
+
+def _file_environments(path: Path) -> dict[str, Environment]:
+    """An environments file's environments, validated but not yet proven (`load_environments`
+    with `prove_walls` False), read once per version of the file: a benchmark's file holds a
+    hundred ditches, and each rollout's worker asks for one of them."""
+    return _cached_file_environments(_file_key(path))
+
+
+@functools.lru_cache(maxsize=8)
+def _cached_file_environments(key: tuple) -> dict[str, Environment]:
+    return load_environments(key[0], prove_walls=False)
+
+
+@functools.lru_cache(maxsize=512)
+def _cached_proof(key: tuple, name: str) -> Environment:
+    environment = _cached_file_environments(key)[name]
+    try:
+        prove_no_bypass(environment)
+    except ConfigError as error:
+        raise ConfigError(f"environment {name!r} in {key[0]}: {error}") from error
+    return environment
+
+
+def _proven_from_file(path: Path, name: str) -> Environment:
+    """A file's environment, its walls proven (once per version of the file)."""
+    return _cached_proof(_file_key(path), name)
+
+
 def environment_names(variants: bool = False) -> list[str]:
     """Names of the packaged environments: the paper's four, and with `variants` also those
     based on them (`Environment.based_on`: the walled ones)."""
@@ -165,13 +203,13 @@ def get_environment(name: str, path: str | Path | None = None,
     """
     if inline and name in inline:
         try:
-            _validate_environment(inline[name])
+            validate_environment(inline[name])
         except (TerrainError, ConfigError) as error:
             raise ConfigError(f"environment {name!r} defined in the scenario: {error}") from error
         return inline[name]
-    environments = load_environments(path) if path else {}
+    environments = _file_environments(Path(path)) if path else {}
     if name in environments:
-        return environments[name]
+        return _proven_from_file(Path(path), name)
     packaged = _packaged_environments()
     if name not in packaged:
         known = [*environments, *(inline or {}), *packaged]

@@ -29,7 +29,7 @@ import numpy as np
 
 from ditch_drake.common.errors import TerrainError
 
-COURSE_KINDS = ("line", "sine", "point")
+COURSE_KINDS = ("line", "sine", "point", "arc")
 
 
 @dataclass
@@ -54,9 +54,12 @@ class TerrainParams:
     """Parameters of one ditch (lengths in m, angles in degrees).
 
     Attributes:
-        course: "line" (straight ditch along x), "sine" (course y = A sin(2 pi x / L_w))
-            or "point" (a round crater centred on the origin).
-        length_m: length of the course along x ("line" and "sine").
+        course: "line" (straight ditch along x), "sine" (course y = A sin(2 pi x / L_w)),
+            "point" (a round crater centred on the origin) or "arc" (a circular arc of
+            radius arc_radius_m, its midpoint at the origin heading +x, bending toward +y).
+            A sine's or an arc's tightest bend radius must be at least
+            `min_bend_radius_m` (docs/terrain_family.md).
+        length_m: length of the course along x ("line" and "sine"), its arc length ("arc").
         sine_amplitude_m: A, for "sine".
         sine_wavelength_m: L_w, for "sine".
         bottom_width_m: width of the flat bottom (the crater's bottom diameter).
@@ -67,6 +70,8 @@ class TerrainParams:
         arc_facets: flat facets per rounded edge in the collision geometry.
         max_turn_deg: largest heading change between course segments, and the
             angular width of the pieces revolved around bends and ends.
+        arc_radius_m: the arc's radius, for "arc" (its sweep length_m / arc_radius_m is at
+            most pi: 180 degrees).
         field_margin_m: flat ground kept around the ditch's outer edge.
         walls: fences on the ground (none: an open field).
     """
@@ -82,6 +87,7 @@ class TerrainParams:
     toe_radius_m: float = 0.5
     arc_facets: int = 4
     max_turn_deg: float = 6.0
+    arc_radius_m: float = 15.0
     field_margin_m: float = 20.0
     walls: list[Wall] = field(default_factory=list)
 
@@ -94,7 +100,8 @@ class TerrainParams:
         if self.course not in COURSE_KINDS:
             fail("course", self.course, f"one of {COURSE_KINDS}")
         for name in ("length_m", "sine_amplitude_m", "sine_wavelength_m", "bottom_width_m", "depth_m",
-                     "slope_deg", "hinge_radius_m", "toe_radius_m", "max_turn_deg", "field_margin_m"):
+                     "slope_deg", "hinge_radius_m", "toe_radius_m", "max_turn_deg", "field_margin_m",
+                     "arc_radius_m"):
             value = getattr(self, name)
             if not isinstance(value, (int, float)) or not math.isfinite(value):
                 fail(name, value, "a finite number")
@@ -131,11 +138,54 @@ class TerrainParams:
             if self.sine_wavelength_m <= 0.0:
                 fail("sine_wavelength_m", self.sine_wavelength_m, "sine_wavelength_m > 0")
             curvature = self.sine_amplitude_m * (2 * math.pi / self.sine_wavelength_m) ** 2
-            reach = self.bottom_width_m / 2 + _profile_width(self)
-            if curvature > 0 and 1.0 / curvature <= reach:
+            limit = min_bend_radius_m(self)
+            if curvature > 0 and 1.0 / curvature < limit:
                 fail("sine_amplitude_m", self.sine_amplitude_m,
-                     f"a bend radius ({1 / curvature:.2f} m) larger than the ditch's half-width "
-                     f"({reach:.2f} m); lower the amplitude or lengthen the wavelength")
+                     f"a bend radius 1 / (A (2 pi / L_w)^2) ({1 / curvature:.2f} m) of at least min_bend_radius_m "
+                     f"({limit:.2f} m); lower the amplitude or lengthen the wavelength")
+        if self.course == "arc":
+            if self.arc_radius_m <= 0.0:
+                fail("arc_radius_m", self.arc_radius_m, "arc_radius_m > 0")
+            if self.length_m / self.arc_radius_m > math.pi:
+                fail("length_m", self.length_m, f"an arc's sweep length_m / arc_radius_m <= pi (180 deg): "
+                     f"length_m <= {math.pi * self.arc_radius_m:.2f} m for arc_radius_m={self.arc_radius_m}")
+            limit = min_bend_radius_m(self)
+            if self.arc_radius_m < limit:
+                fail("arc_radius_m", self.arc_radius_m,
+                     f"a bend radius ({self.arc_radius_m:.2f} m) of at least min_bend_radius_m ({limit:.2f} m)")
+
+
+# How far the box pieces reach past the hinge onto flat ground (m), with `box_pieces`'
+# default 1 m ground cells: the cell's diagonal plus 5 cm.
+FLAT_REACH_M = math.sqrt(2.0) + 0.05
+
+
+def min_bend_radius_m(params: TerrainParams) -> float:
+    """The tightest bend radius (m) of a "sine" or "arc" course for which the collision
+    geometry (`DitchTerrain.box_pieces`) still matches the analytic `DitchTerrain.height`
+    (measured: `python -m ditch_drake.docs_tools.bend_limit`, docs/terrain_family.md).
+
+    On a bend's inner side the pieces of one segment reach straight out from it; past the
+    bend's centre of curvature they lie over ground nearer to another part of the course,
+    and stand too high: the wall folds over itself.
+    - "sine": the bend is tight only near its apex, and the fold grows slowly past it; the
+      limit is where the straight wall ends and the hinge's rounding begins,
+      hinge distance - hinge_radius_m * sin(slope_deg).
+    - "arc": the whole course bends at one radius; up to a half circle, the pieces
+      revolved round one end (and the segments next to it) reach across to ground nearest
+      the other end once the radius drops below hinge distance + FLAT_REACH_M / 2.
+    """
+    hinge = params.bottom_width_m / 2 + _profile_width(params)
+    if params.course == "arc":
+        return hinge + FLAT_REACH_M / 2
+    return hinge - params.hinge_radius_m * math.sin(math.radians(params.slope_deg))
+
+
+def _unchecked_terrain(params: TerrainParams) -> "DitchTerrain":
+    """A `DitchTerrain` built without `TerrainParams.validate` (for measuring the limits)."""
+    terrain = DitchTerrain.__new__(DitchTerrain)
+    terrain._build(params)
+    return terrain
 
 
 def _validate_wall(index: int, wall: Wall) -> None:
@@ -176,6 +226,9 @@ class DitchTerrain:
 
     def __init__(self, params: TerrainParams):
         params.validate()
+        self._build(params)
+
+    def _build(self, params: TerrainParams) -> None:
         self.params = params
         self._alpha = math.radians(params.slope_deg)
         self._half_bottom = params.bottom_width_m / 2
@@ -260,6 +313,17 @@ class DitchTerrain:
         return points[:, 0], points[:, 1]
 
     @property
+    def max_curvature_per_m(self) -> float:
+        """The course's largest curvature (1/m): 0 for a line or a point, A (2 pi / L_w)^2
+        for a sine, 1 / arc_radius_m for an arc."""
+        p = self.params
+        if p.course == "sine":
+            return p.sine_amplitude_m * (2 * math.pi / p.sine_wavelength_m) ** 2
+        if p.course == "arc":
+            return 1.0 / p.arc_radius_m
+        return 0.0
+
+    @property
     def half_width_m(self) -> float:
         """Distance from the course to the outer end of the hinge (m)."""
         return self._half_bottom + float(self._profile_s[-1])
@@ -292,6 +356,11 @@ class DitchTerrain:
         p = self.params
         if p.course == "point":
             return np.zeros((2, 2))  # a zero-length segment: distance to the origin
+        if p.course == "arc":
+            sweep = p.length_m / p.arc_radius_m
+            count = max(2, math.ceil(sweep / math.radians(p.max_turn_deg) - 1e-9))
+            phi = np.linspace(-sweep / 2, sweep / 2, count + 1)
+            return np.stack([p.arc_radius_m * np.sin(phi), p.arc_radius_m * (1 - np.cos(phi))], axis=1)
         if p.course == "line" or p.sine_amplitude_m == 0.0:
             return np.array([[-p.length_m / 2, 0.0], [p.length_m / 2, 0.0]])
         k = 2 * math.pi / p.sine_wavelength_m
@@ -404,8 +473,22 @@ class DitchTerrain:
         reach = self.half_width_m + self.params.field_margin_m
         return self.course_xy.min(axis=0) - reach, self.course_xy.max(axis=0) + reach
 
-    def box_pieces(self, ground_cell_m: float = 1.0, thickness_m: float = 0.5) -> list[BoxPiece]:
-        """The collision/visual geometry: boxes whose upper faces form the terrain."""
+    def box_pieces(self, ground_cell_m: float = 1.0, thickness_m: float = 0.5,
+                   mitre_bends: bool = False) -> list[BoxPiece]:
+        """Boxes whose upper faces form the terrain: the visual geometry, and with the defaults
+        the reference that `collision_pieces` approximates with fewer boxes.
+
+        Args:
+            ground_cell_m: cell size of the flat-ground boxes.
+            thickness_m: thickness of the profile's slabs.
+            mitre_bends: close the outer side of each bend of the course by lengthening the
+                two neighbouring segments' slabs until they meet (mitred) instead of by
+                revolved wedge pieces: the surface there is lower by at most
+                slope * d * (1 - cos(turn / 2)) (about 1 cm on the sine ditch's 6 degree
+                bends), and the bends need no pieces of their own.
+            end_turn_deg: angular step of the pieces revolved around the course's two ends
+                (None: `max_turn_deg`); a crater is always revolved at `max_turn_deg`.
+        """
         pieces = self._floor_piece()
         # The profile pieces reach past the hinge far enough to close the staircase
         # gap left by the flat-ground cells.
@@ -416,19 +499,27 @@ class DitchTerrain:
         course = self.course_xy
         segments = [(a, b) for a, b in itertools.pairwise(course) if np.linalg.norm(b - a) > 1e-9]
         headings = [math.atan2(*(b - a)[::-1]) for a, b in segments]
-        for (a, b), heading in zip(segments, headings):
+        # turns[i]: heading change where segment i starts (0 at the course's ends).
+        turns = [0.0] + [_wrap(headings[i] - headings[i - 1]) for i in range(1, len(segments))] + [0.0]
+        for i, ((a, b), heading) in enumerate(zip(segments, headings)):
             for side in (+1.0, -1.0):
                 normal_angle = heading + side * math.pi / 2
                 for facet in facets:
-                    pieces.append(_swept_piece(a, b, normal_angle, facet, thickness_m))
+                    if mitre_bends:
+                        pieces.append(_swept_piece(a, b, normal_angle, facet, thickness_m,
+                                                   _mitre(turns[i], side, facet[1]), _mitre(turns[i + 1], side, facet[1])))
+                    else:
+                        pieces.append(_swept_piece(a, b, normal_angle, facet, thickness_m))
         step = math.radians(self.params.max_turn_deg)
         if not segments:  # a crater: revolve the profile all the way round
             pieces += _revolved_pieces(course[0], 0.0, 2 * math.pi, step, facets, thickness_m)
         else:
-            # Ends: half turns; bends: the wedge on the outer side.
-            pieces += _revolved_pieces(segments[0][0], headings[0] + math.pi / 2, math.pi, step, facets, thickness_m)
-            pieces += _revolved_pieces(segments[-1][1], headings[-1] - math.pi / 2, math.pi, step, facets, thickness_m)
-            for i in range(1, len(segments)):
+            # Ends: half turns; bends: the wedge on the outer side (unless mitred).
+            pieces += _revolved_pieces(segments[0][0], headings[0] + math.pi / 2, math.pi, step, facets,
+                                       thickness_m)
+            pieces += _revolved_pieces(segments[-1][1], headings[-1] - math.pi / 2, math.pi, step, facets,
+                                       thickness_m)
+            for i in range(1, len(segments) if not mitre_bends else 0):
                 turn = _wrap(headings[i] - headings[i - 1])
                 if abs(turn) < 1e-9:
                     continue
@@ -440,6 +531,19 @@ class DitchTerrain:
                 pieces += _revolved_pieces(segments[i][0], start, abs(turn), step, facets, thickness_m)
         pieces += self._ground_pieces(ground_cell_m)
         return pieces
+
+    def collision_pieces(self) -> list[BoxPiece]:
+        """The collision geometry: `box_pieces` with mitred bends (no wedge pieces at the bends),
+        a winding ditch's boxes cut by a quarter (the packaged sine's 1975 to 1535).
+
+        Drake's collision filter keeps an entry for every pair of proximity geometries, in the
+        geometry model and again in each Context, so a scene's memory and build time grow with
+        the square of the number of boxes (`ditch_drake.benchmarks.bench_scene`, docs/benchmark.md).
+        The ends and a crater keep `box_pieces`' revolved pieces: coarser ones changed where
+        crossings run along the edge into the rounded end. The visual geometry stays
+        `box_pieces`, so the lidar sees the same terrain.
+        """
+        return self.box_pieces(mitre_bends=True)
 
     def _floor_piece(self) -> list[BoxPiece]:
         low, high = self.course_xy.min(axis=0) - self.half_width_m, self.course_xy.max(axis=0) + self.half_width_m
@@ -527,9 +631,23 @@ def _facet_piece(origin: np.ndarray, normal_angle: float, facet, along_m: float,
     return BoxPiece(np.array([along_m, width, thickness_m]), R, top_center - up * thickness_m / 2, "wall")
 
 
-def _swept_piece(a, b, normal_angle, facet, thickness_m) -> BoxPiece:
+def _swept_piece(a, b, normal_angle, facet, thickness_m, extend_start_m: float = 0.005,
+                 extend_end_m: float = 0.005) -> BoxPiece:
+    """A slab along the segment a -> b, reaching past a and b by the given lengths (m)."""
     length = float(np.linalg.norm(b - a))
-    return _facet_piece((a + b) / 2, normal_angle, facet, length + 0.01, thickness_m)
+    if extend_start_m == extend_end_m == 0.005:  # the unmitred pieces, in their own arithmetic
+        return _facet_piece((a + b) / 2, normal_angle, facet, length + 0.01, thickness_m)
+    origin = (a + b) / 2 + (b - a) / length * (extend_end_m - extend_start_m) / 2
+    return _facet_piece(origin, normal_angle, facet, length + extend_start_m + extend_end_m, thickness_m)
+
+
+def _mitre(turn: float, side: float, outer_distance_m: float) -> float:
+    """How far a slab on `side` (+1 left, -1 right) of a segment reaches past a course vertex
+    where the course turns by `turn` (rad, > 0 left): on the bend's outer side (a left turn's
+    right) until it meets the other segment's slab at `outer_distance_m`, else 5 mm."""
+    if turn * side < 0:
+        return outer_distance_m * math.tan(abs(turn) / 2) + 0.005
+    return 0.005
 
 
 def _revolved_pieces(center, start_angle, sweep, step, facets, thickness_m) -> list[BoxPiece]:

@@ -1,0 +1,1 @@
+"""The procedural ditch benchmark: seeded ditches in named splits, and their evaluation."""

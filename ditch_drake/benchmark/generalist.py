@@ -1,0 +1,164 @@
+"""The generalist policy: behavioural cloning over the train split, DAgger, chosen on val.
+
+    ditch-drake train-generalist --out ditch_drake/models/generalist.pt
+
+Stages, each skipping what an earlier run finished (so the command resumes):
+
+1. the train split's first `train_geometries` ditches, written to `<work>/train.ditches.yaml`;
+2. expert demonstrations, `demos_per_task` per task of each (`<work>/demos`), the expert making
+   room along the ditch first as in the benchmark (`ExpertVariation.lead_in`);
+3. round 0: a clone of those (`<work>/round0.pt`);
+4. each DAgger round r: the previous round's clone drives once per task, the expert labels
+   what it sees (`<work>/dagger<r>`), and a clone of everything so far (`<work>/round<r>.pt`);
+5. every round's clone runs the val split's first `val_geometries` ditches
+   (`<work>/val.jsonl`); the most successful (the later round on a tie) is copied to `out`.
+
+The test split plays no part.
+"""
+
+import json
+import sys
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+from ditch_drake.benchmark.ranges import load_ranges
+from ditch_drake.benchmark.run import BenchmarkConfig, run_benchmark
+from ditch_drake.benchmark.splits import split_ditches, write_ditches
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.files import atomic_write_bytes, atomic_write_text
+from ditch_drake.evaluation.batch import load_results
+from ditch_drake.evaluation.results import current_records
+
+# DAgger rollouts use seeds from here on, apart from the demonstrations' (whose failed
+# attempts use seed + 1000 k).
+DAGGER_SEED = 50_000
+
+
+@dataclass
+class GeneralistConfig:
+    """What `train_generalist` does (see the module docstring).
+
+    Attributes:
+        out: where the chosen checkpoint is copied.
+        work_dir: demonstrations, each round's checkpoint and the val results.
+        train_geometries: the train split's first N ditches.
+        demos_per_task: expert demonstrations per task of each.
+        dagger_rounds: DAgger rounds after round 0.
+        val_geometries: the val split's first N ditches each candidate runs (one rollout per task).
+        epochs, patience: training's.
+        seed: seeds the demonstrations, training and the val rollouts.
+        workers: processes for collection and evaluation (None: one per core).
+        ranges: a ranges YAML file ("": the packaged one).
+    """
+
+    out: str = "ditch_drake/models/generalist.pt"
+    work_dir: str = "data/generalist"
+    train_geometries: int = 40
+    demos_per_task: int = 1
+    dagger_rounds: int = 1
+    val_geometries: int = 50
+    epochs: int = 12
+    patience: int = 6
+    seed: int = 0
+    workers: int | None = None
+    ranges: str = ""
+
+
+def _log(progress: bool, line: str) -> None:
+    if progress:
+        print(line, file=sys.stderr, flush=True)
+
+
+def _collect(config: GeneralistConfig, names: list[str], ditches: str, out: Path, learner: str | None,
+             seed: int, progress: bool) -> None:
+    from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect
+    from ditch_drake.systems.expert import ExpertVariation
+
+    variation = replace(LABELLER_VARIATION if learner else ExpertVariation(), lead_in=True)
+    report = collect(CollectConfig(environment=names[0], environments=names, environments_file=ditches,
+                                   demos=len(names) * 3 * (1 if learner else config.demos_per_task), seed=seed,
+                                   out=str(out), workers=config.workers, variation=variation, learner=learner),
+                     progress)
+    _log(progress, f"collect {out}: {report['kept_before']} kept, {report['recorded']} recorded, "
+                   f"unfilled {report['unfilled_slots']}")
+    if report["interrupted"]:
+        raise KeyboardInterrupt
+
+
+def _train(config: GeneralistConfig, data: list[Path], out: Path, progress: bool) -> None:
+    from ditch_drake.demos.dataset import load_dataset, to_array_set
+    from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
+    from ditch_drake.learning.config import TrainConfig
+    from ditch_drake.learning.train import available_device, available_precision, resume_path, train
+
+    if out.exists() and not resume_path(out).exists():
+        try:
+            if not load_checkpoint(out).metrics.get("interrupted", False):
+                _log(progress, f"train {out}: exists, kept")
+                return
+        except CheckpointError as error:
+            _log(progress, f"train {out}: {error}; training again")
+    demonstrations = []
+    for directory in data:
+        demonstrations += load_dataset(directory)
+    device = available_device()
+    train_config = TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, device=device,
+                               precision=available_precision(device))
+    result = train(to_array_set(demonstrations), train_config, progress=progress, output_path=out, resume=True)
+    if result.interrupted:
+        raise KeyboardInterrupt
+
+
+def _val_success(results: Path, checkpoint: Path) -> tuple[int, int]:
+    records, _ = current_records([r for r in load_results([results]) if r.checkpoint == str(checkpoint)])
+    valid = [r for r in records if r.status != "error"]
+    return sum(r.success for r in valid), len(valid)
+
+
+def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
+    """Runs the stages (module docstring); returns each candidate's val success and the choice.
+
+    Raises:
+        ConfigError: counts out of range, a bad ranges file.
+        KeyboardInterrupt: Ctrl-C or SIGTERM during a stage (what finished is kept).
+    """
+    if config.dagger_rounds < 0 or config.demos_per_task < 1:
+        raise ConfigError(f"dagger_rounds={config.dagger_rounds} must be >= 0 and demos_per_task="
+                          f"{config.demos_per_task} >= 1")
+    ranges = load_ranges(config.ranges or None)
+    work = Path(config.work_dir)
+    work.mkdir(parents=True, exist_ok=True)
+    ditches = split_ditches("train", config.train_geometries, ranges)
+    ditches_path = str(write_ditches(work / "train.ditches.yaml", ditches))
+    names = [ditch.name for ditch in ditches]
+    _collect(config, names, ditches_path, work / "demos", None, config.seed, progress)
+    data = [work / "demos"]
+    candidates = [work / "round0.pt"]
+    _train(config, data, candidates[0], progress)
+    for round_index in range(1, config.dagger_rounds + 1):
+        dagger = work / f"dagger{round_index}"
+        _collect(config, names, ditches_path, dagger, str(candidates[-1]), DAGGER_SEED + 1000 * round_index,
+                 progress)
+        data.append(dagger)
+        candidates.append(work / f"round{round_index}.pt")
+        _train(config, data, candidates[-1], progress)
+    val_results = work / "val.jsonl"
+    scores = {}
+    for candidate in candidates:
+        report = run_benchmark(BenchmarkConfig(split="val", controller="learned", checkpoint=str(candidate),
+                                               geometries=config.val_geometries, rollouts=1, seed=config.seed,
+                                               out=str(val_results), ranges=config.ranges, workers=config.workers),
+                               progress)
+        if report.interrupted:
+            raise KeyboardInterrupt
+        scores[str(candidate)] = _val_success(val_results, candidate)
+        _log(progress, f"val {candidate}: {scores[str(candidate)][0]}/{scores[str(candidate)][1]}")
+    chosen = max(reversed(candidates), key=lambda c: scores[str(c)][0] / max(scores[str(c)][1], 1))
+    Path(config.out).parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(config.out, chosen.read_bytes())
+    summary = {"config": asdict(config), "val_success": {k: list(v) for k, v in scores.items()},
+               "chosen": str(chosen), "out": config.out}
+    atomic_write_text(work / "choice.json", json.dumps(summary, indent=2) + "\n")
+    return summary
+
+

@@ -1,0 +1,104 @@
+"""The ranges the procedural ditch generator draws from, as data (`ranges.yaml`).
+
+A `BenchmarkRanges` is read with `yaml_load_typed`; every `[low, high]` must be ordered and
+lie inside `LIMITS` (the terrain family's and the task layout's reach), else a ConfigError
+names the key, the value and the allowed interval.
+"""
+
+import math
+from dataclasses import dataclass, field, fields
+from importlib import resources
+from pathlib import Path
+
+from ditch_drake.common.config_yaml import load_typed_yaml
+from ditch_drake.common.errors import ConfigError
+
+# The course kinds the generator lays out (each a `TerrainParams.course`).
+GENERATED_COURSE_KINDS = ("line", "sine", "arc", "point")
+
+# Where each range may lie: [allowed low, allowed high].
+LIMITS = {
+    "slope_deg": (20.0, 70.0),
+    "bottom_width_m": (1.0, 12.0),
+    "depth_m": (1.0, 6.0),
+    "hinge_radius_m": (0.0, 1.5),
+    "course_length_m": (15.0, 60.0),
+    "sine_amplitude_m": (0.0, 10.0),
+    "sine_wavelength_m": (10.0, 80.0),
+    "arc_radius_m": (5.0, 100.0),
+    "crater_diameter_m": (2.0, 20.0),
+    "crossing_angle_deg": (0.0, 60.0),
+    "approach_m": (3.0, 15.0),
+}
+
+
+@dataclass
+class BenchmarkRanges:
+    """What the generator draws, uniformly within each [low, high] (m, deg).
+
+    Attributes:
+        course_kinds: the course kinds to draw from, equally likely: "line" (straight),
+            "sine", "arc" (a circular arc) and "point" (a round crater).
+        slope_deg: the walls' angle from horizontal.
+        bottom_width_m: the flat bottom's width (line, sine, arc).
+        depth_m: depth below the surrounding ground.
+        hinge_radius_m: rounding of the top edge (the toe's rounding is the same).
+        course_length_m: length of the course (line, sine along x, arc along the arc).
+        sine_amplitude_m, sine_wavelength_m: the sine's; a draw bending tighter than the
+            family allows (`terrain.min_bend_radius_m`) is redrawn.
+        arc_radius_m: the arc's radius of curvature (its sweep is length / radius, at most
+            180 deg; longer arcs are shortened to it).
+        crater_diameter_m: a crater's flat-bottom diameter.
+        crossing_angle_deg: how far each task's straight line from start to goal turns
+            away from the course's normal where it crosses (0: square across).
+        approach_m: flat ground between the ditch's edge and each task's start and goal.
+    """
+
+    course_kinds: list[str] = field(default_factory=lambda: list(GENERATED_COURSE_KINDS))
+    slope_deg: list[float] = field(default_factory=lambda: [45.0, 57.0])
+    bottom_width_m: list[float] = field(default_factory=lambda: [2.0, 8.0])
+    depth_m: list[float] = field(default_factory=lambda: [3.0, 5.0])
+    hinge_radius_m: list[float] = field(default_factory=lambda: [0.3, 0.7])
+    course_length_m: list[float] = field(default_factory=lambda: [26.0, 36.0])
+    sine_amplitude_m: list[float] = field(default_factory=lambda: [1.0, 5.0])
+    sine_wavelength_m: list[float] = field(default_factory=lambda: [20.0, 40.0])
+    arc_radius_m: list[float] = field(default_factory=lambda: [12.0, 30.0])
+    crater_diameter_m: list[float] = field(default_factory=lambda: [8.0, 12.0])
+    crossing_angle_deg: list[float] = field(default_factory=lambda: [0.0, 35.0])
+    approach_m: list[float] = field(default_factory=lambda: [5.0, 8.0])
+
+    def validate(self) -> None:
+        """Raises ConfigError naming the first key out of bounds, inverted, or unknown."""
+        if not self.course_kinds:
+            raise ConfigError(f"ranges: course_kinds=[] is empty: expected some of {list(GENERATED_COURSE_KINDS)}")
+        for kind in self.course_kinds:
+            if kind not in GENERATED_COURSE_KINDS:
+                raise ConfigError(f"ranges: course_kinds has {kind!r}: expected some of {list(GENERATED_COURSE_KINDS)}")
+        for item in fields(self):
+            if item.name == "course_kinds":
+                continue
+            value = getattr(self, item.name)
+            allowed_low, allowed_high = LIMITS[item.name]
+            allowed = f"[low, high] with {allowed_low:g} <= low <= high <= {allowed_high:g}"
+            if (len(value) != 2 or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in value)):
+                raise ConfigError(f"ranges: {item.name}={value!r} is not a range: expected {allowed}")
+            low, high = value
+            if low > high:
+                raise ConfigError(f"ranges: {item.name}={value!r} is inverted: expected {allowed}")
+            if low < allowed_low or high > allowed_high:
+                raise ConfigError(f"ranges: {item.name}={value!r} is out of bounds: expected {allowed}")
+
+
+def default_ranges_path() -> Path:
+    return Path(str(resources.files("ditch_drake.benchmark") / "ranges.yaml"))
+
+
+def load_ranges(path: str | Path | None = None) -> BenchmarkRanges:
+    """The ranges of a YAML file (the packaged `ranges.yaml` by default), validated.
+
+    Raises:
+        ConfigError: unreadable, unknown keys, wrong types, or a range out of bounds or inverted.
+    """
+    ranges = load_typed_yaml(path or default_ranges_path(), BenchmarkRanges, "benchmark ranges")
+    ranges.validate()
+    return ranges

@@ -1,0 +1,173 @@
+"""The benchmark's page: `ditch-drake benchmark-report RESULTS... --out PAGE.md`.
+
+From benchmark results files (and the ditches file beside each, `splits.ditches_file`):
+- success per controller and split, with 95 % Wilson intervals;
+- success against each ditch's slope, bottom width, depth and course curvature (a figure:
+  per controller, the rate in bins of each parameter, pooled over the generated splits);
+- failure regions (status @ where the robot ended) per controller;
+- every failed generated ditch, with the command that replays the rollout.
+"""
+
+import math
+import os
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from ditch_drake.benchmark.run import replay_command
+from ditch_drake.benchmark.splits import PAPER_SPLIT, SPLITS, ditches_file, split_of_environment
+from ditch_drake.common.files import atomic_write_text, save_figure
+from ditch_drake.evaluation.batch import load_results
+from ditch_drake.evaluation.report import model_label
+from ditch_drake.evaluation.results import RolloutRecord, current_records
+from ditch_drake.evaluation.summary import summarize
+from ditch_drake.world.environments import Environment, get_environment, load_environments
+from ditch_drake.world.terrain import DitchTerrain
+
+# The ditch parameters success is plotted against: (name, axis label, bin edges).
+FEATURES = (
+    ("slope_deg", "wall slope (deg)", np.linspace(45.0, 60.0, 4)),
+    ("bottom_width_m", "bottom width or crater diameter (m)", np.linspace(2.0, 12.0, 6)),
+    ("depth_m", "depth (m)", np.linspace(2.5, 5.0, 6)),
+    ("curvature_per_m", "course curvature (1/m; 0: straight or crater)", np.array([0.0, 1e-9, 0.04, 0.08, 0.2])),
+)
+
+
+def ditch_features(environment: Environment) -> dict[str, float | str]:
+    """The parameters a report groups by: course kind, slope, bottom width, depth, curvature."""
+    terrain = environment.terrain
+    return {"course": terrain.course, "slope_deg": terrain.slope_deg, "bottom_width_m": terrain.bottom_width_m,
+            "depth_m": terrain.depth_m, "curvature_per_m": DitchTerrain(terrain).max_curvature_per_m}
+
+
+def _environments_of(results_path: Path) -> dict[str, Environment]:
+    path = ditches_file(results_path)
+    return dict(load_environments(path, prove_walls=False)) if path.exists() else {}
+
+
+def load_benchmark(results: list[str | os.PathLike]) -> tuple[list[RolloutRecord], dict[str, Environment], list[str]]:
+    """The current records of the results files, the environments they ran in, and notes."""
+    records, environments, notes = [], {}, []
+    for path in results:
+        path = Path(path)
+        records += load_results([path])
+        environments.update(_environments_of(path))
+    records, notes = current_records(records)
+    for record in records:
+        if record.environment not in environments and split_of_environment(record.environment) == PAPER_SPLIT:
+            environments[record.environment] = get_environment(record.environment)
+    return records, environments, notes
+
+
+def _pct(value: float) -> str:
+    return "-" if math.isnan(value) else f"{100 * value:.0f}%"
+
+
+def _success_table(groups: dict[tuple[str, str], list[RolloutRecord]], controllers: list[str]) -> list[str]:
+    splits = [split for split in SPLITS if any(key[1] == split for key in groups)]
+    lines = ["| controller | " + " | ".join(splits) + " |", "| --- |" + " --- |" * len(splits)]
+    for controller in controllers:
+        cells = []
+        for split in splits:
+            group = groups.get((controller, split), [])
+            if not group:
+                cells.append("-")
+                continue
+            summary = summarize(group)
+            cells.append(f"{summary.successes}/{summary.trials} ({_pct(summary.rate)}, "
+                         f"{_pct(summary.low)}-{_pct(summary.high)})" + (f", {summary.errors} errors" if summary.errors else ""))
+        lines.append(f"| {controller} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _figure(records: list[RolloutRecord], features: dict[str, dict], controllers: list[str], path: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(FEATURES), figsize=(4.0 * len(FEATURES), 3.6), sharey=True)
+    for ax, (name, label, edges) in zip(axes, FEATURES):
+        centres = (edges[:-1] + edges[1:]) / 2
+        for controller in controllers:
+            values = [(features[r.environment][name], r.success) for r in records
+                      if model_label(r) == controller and r.status != "error" and r.environment in features]
+            if not values:
+                continue
+            x = np.array([v for v, _ in values], dtype=float)
+            ok = np.array([s for _, s in values], dtype=float)
+            index = np.clip(np.digitize(x, edges) - 1, 0, len(centres) - 1)
+            rates = [ok[index == k].mean() if np.any(index == k) else np.nan for k in range(len(centres))]
+            ax.plot(centres, rates, marker="o", label=controller)
+        ax.set_xlabel(label)
+        ax.set_ylim(-0.05, 1.05)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel("success rate")
+    axes[-1].legend(fontsize=7, loc="lower left")
+    fig.suptitle("Success against the ditch's parameters (generated splits pooled; bins of the ranges)")
+    fig.tight_layout()
+    return save_figure(fig, path)
+
+
+def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathLike,
+                           figures_dir: str | os.PathLike | None = None, title: str = "Procedural ditch benchmark",
+                           command: str = "") -> Path:
+    """Writes the page (and its figure) from benchmark results files; returns the page's path."""
+    records, environments, notes = load_benchmark(results)
+    out = Path(out)
+    figures = Path(figures_dir) if figures_dir else out.with_name(out.stem + "_img")
+    groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
+    for record in records:
+        groups[(model_label(record), split_of_environment(record.environment))].append(record)
+    controllers = sorted({key[0] for key in groups})
+    generated = [r for r in records if split_of_environment(r.environment) not in ("", PAPER_SPLIT)]
+    features = {name: ditch_features(env) for name, env in environments.items()}
+    lines = [f"# {title}", ""]
+    if command:
+        lines += ["Made by", "", f"    {command}", ""]
+    lines += ["## Success per split", "",
+              "successes/trials (rate, 95 % Wilson interval); the test split is reported, never tuned on.", ""]
+    lines += _success_table(groups, controllers) + [""]
+    by_kind: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
+    for record in generated:
+        by_kind[(model_label(record), str(features[record.environment]["course"]))].append(record)
+    kinds = sorted({kind for _, kind in by_kind})
+    if kinds:
+        lines += ["## Success per course kind (generated splits pooled)", "",
+                  "| controller | " + " | ".join(kinds) + " |", "| --- |" + " --- |" * len(kinds)]
+        for controller in controllers:
+            cells = []
+            for kind in kinds:
+                summary = summarize(by_kind.get((controller, kind), [])) if by_kind.get((controller, kind)) else None
+                cells.append(f"{summary.successes}/{summary.trials}" if summary else "-")
+            lines.append(f"| {controller} | " + " | ".join(cells) + " |")
+        lines.append("")
+    if generated:
+        figure = _figure(generated, features, controllers, figures / "benchmark_success_by_parameter.png")
+        lines += ["## Success against the ditch's parameters", "",
+                  f"![success against slope, width, depth, curvature]({os.path.relpath(figure, out.parent)})", ""]
+    lines += ["## Failure regions", "", "status@region of the failed rollouts (the region where the robot ended).", "",
+              "| controller | split | failures |", "| --- | --- | --- |"]
+    for (controller, split), group in sorted(groups.items()):
+        regions = summarize(group).failure_regions
+        text = ", ".join(f"{name} {count}" for name, count in sorted(regions.items(), key=lambda item: -item[1]))
+        lines.append(f"| {controller} | {split} | {text or '-'} |")
+    lines += ["", "## Failed generated ditches", "",
+              "Each replays as a standalone HTML page with the command beside it.", "",
+              "| controller | ditch (seed) | task | rollout seed | status@region | parameters | replay |",
+              "| --- | --- | --- | --- | --- | --- | --- |"]
+    for record in sorted(generated, key=lambda r: (model_label(r), r.environment, r.task, r.seed)):
+        if record.success:
+            continue
+        feature = features[record.environment]
+        parameters = (f"{feature['course']}, {feature['slope_deg']:.1f} deg, {feature['bottom_width_m']:.1f} m wide, "
+                      f"{feature['depth_m']:.1f} m deep")
+        replay = f"`{replay_command(record)}`"
+        lines.append(f"| {model_label(record)} | {record.environment} | {record.task} | {record.seed} | "
+                     f"{record.status}@{record.failure_region} | {parameters} | {replay} |")
+    if notes:
+        lines += ["", "## Notes", ""] + [f"- {note}" for note in notes]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out, "\n".join(lines) + "\n")
+    return out

@@ -1,0 +1,130 @@
+"""`ditch-drake benchmark`: a controller's seeded rollouts over the ditches of a split.
+
+The split's first `geometries` ditches are sampled (`sample_ditch`), written beside the
+results as an environments file (`splits.ditches_file`), and every task of each runs
+`rollouts` times (seeds seed .. seed + rollouts - 1) through the batch evaluation
+(`ditch_drake.evaluation.batch.evaluate`): resumable, in parallel, on the local pool or Ray.
+The paper split runs the four packaged environments instead.
+"""
+
+import shlex
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from ditch_drake.benchmark.generator import SampledDitch, sample_ditch
+from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges
+from ditch_drake.benchmark.splits import PAPER_SPLIT, ditches_file, split_seeds, write_ditches
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.evaluation.batch import EvaluationReport, evaluate, make_specs
+from ditch_drake.evaluation.results import RolloutRecord, RolloutSpec
+from ditch_drake.learning.checkpoint import GENERALIST_MODEL as GENERALIST
+from ditch_drake.systems.episode_monitor import EpisodeConfig
+from ditch_drake.world.environments import environment_names
+
+
+@dataclass
+class BenchmarkConfig:
+    """One benchmark run.
+
+    Attributes:
+        split: "train", "val", "test" or "paper" (`splits.SPLITS`).
+        controller: a registered controller's name.
+        checkpoint: the learned policy's ("": `GENERALIST`).
+        geometries: the split's first N ditches (None: all); ignored for "paper".
+        rollouts: seeded rollouts per task.
+        seed: rollout i of each task uses seed + i.
+        out: the results file (JSON Lines); its ditches go to `<stem>.ditches.yaml` beside it.
+        ranges: a ranges YAML file ("": the packaged `ranges.yaml`).
+        time_limit_s: each episode's limit.
+        workers, backend, address: as for `evaluate`.
+    """
+
+    split: str = "test"
+    controller: str = "expert"
+    checkpoint: str = ""
+    geometries: int | None = None
+    rollouts: int = 1
+    seed: int = 0
+    out: str = "results/benchmark/test_expert.jsonl"
+    ranges: str = ""
+    time_limit_s: float = EpisodeConfig.time_limit_s
+    workers: int | None = None
+    backend: str = "local"
+    address: str | None = None
+
+
+def benchmark_controller(name: str):
+    """A registered controller's name, or the config the benchmark runs for it: the expert makes
+    room along the ditch before crossing (`ExpertVariation.lead_in`), as the generated tasks
+    cross anywhere in the middle 40 % of a course, some of them too near its end for a crossing
+    that runs along the edge."""
+    if name != "expert":
+        return name
+    from ditch_drake.diagrams.rollout import ExpertConfig
+    from ditch_drake.systems.expert import ExpertVariation
+
+    return ExpertConfig(variation=ExpertVariation(lead_in=True))
+
+
+def replay_command(record: RolloutRecord, out: str = "") -> str:
+    """The `ditch-drake replay` command that records `record`'s rollout as an HTML page: its
+    environment (and ditches file), task and seed, and its controller: by name where the name's
+    default config is the record's, else the record's whole config as a `--override`."""
+    import yaml
+
+    from ditch_drake.common.config_yaml import config_to_yaml
+    from ditch_drake.diagrams.controllers import controller_config
+
+    parts = ["ditch-drake", "replay"]
+    if record.environments_file:
+        parts += ["--environments", record.environments_file]
+    parts += ["--env", record.environment, "--task", str(record.task), "--seed", str(record.seed)]
+    if config_to_yaml(controller_config(record.controller, record.checkpoint)) == record.controller_config:
+        parts += ["--controller", record.controller] + (["--checkpoint", record.checkpoint] if record.checkpoint else [])
+    else:
+        body = yaml.safe_dump(yaml.safe_load(record.controller_config), default_flow_style=True, width=10_000).strip()
+        parts += ["--override", f"{{controller: !{record.controller_type.rpartition(':')[2]} {body}}}"]
+    parts += ["--out", out or f"{record.environment}_{record.task}_{record.seed}.html"]
+    return shlex.join(parts)
+
+
+def sample_split(split: str, geometries: int | None, ranges: BenchmarkRanges,
+                 progress: bool = True) -> list[SampledDitch]:
+    seeds = split_seeds(split, geometries)
+    return [sample_ditch(seed, ranges) for seed in tqdm(seeds, desc=f"sample {split}", disable=not progress,
+                                                        file=sys.stderr)]
+
+
+def benchmark_specs(config: BenchmarkConfig, progress: bool = True) -> list[RolloutSpec]:
+    """The run's rollouts; writes (adds to) its ditches file first.
+
+    Raises:
+        ConfigError: a bad split, count, controller, checkpoint or ranges file, each named.
+    """
+    ranges = load_ranges(config.ranges or None)
+    checkpoint = (config.checkpoint or GENERALIST) if config.controller == "learned" else ""
+    if config.split == PAPER_SPLIT:
+        names, environments_file = environment_names(), ""
+    else:
+        ditches = sample_split(config.split, config.geometries, ranges, progress)
+        environments_file = str(write_ditches(ditches_file(config.out), ditches))
+        names = [ditch.name for ditch in ditches]
+    controller = benchmark_controller(config.controller)
+    specs = []
+    for name in names:
+        specs += make_specs(controller, checkpoint, name, None, config.rollouts, config.seed,
+                            config.time_limit_s, environments_file)
+    return specs
+
+
+def run_benchmark(config: BenchmarkConfig, progress: bool = True) -> EvaluationReport:
+    """Runs the rollouts of `config` not yet in its results file (see the module docstring)."""
+    if not isinstance(config.rollouts, int) or config.rollouts < 1:
+        raise ConfigError(f"rollouts={config.rollouts!r} must be a positive integer")
+    Path(config.out).parent.mkdir(parents=True, exist_ok=True)
+    specs = benchmark_specs(config, progress)
+    return evaluate(specs, config.out, workers=config.workers, progress=progress, backend=config.backend,
+                    address=config.address)

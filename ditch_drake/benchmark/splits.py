@@ -1,0 +1,107 @@
+"""The benchmark's named splits, and the file of ditches a benchmark run drives in.
+
+| split | what | use |
+| --- | --- | --- |
+| train | seeds 0-199 | demonstrations and DAgger rounds |
+| val | seeds 1000-1049 | every choice: checkpoints, recipes, ranges |
+| test | seeds 2000-2099 | the reported result only: never a choice |
+| paper | the four packaged environments | the paper's ditches, beside the generated ones |
+
+The seed ranges are disjoint, so a seed names its split. A run's ditches are written, as an
+environments file in the packaged schema (`ditch_drake/world/environments.yaml`), beside its
+results: `<results>.ditches.yaml`. Its environments are the `sample_ditch` draws of their
+seeds, so `ditch-drake replay --environments <that file> --env ditch_2013 --task 1 --seed 0`
+replays any rollout.
+"""
+
+from pathlib import Path
+
+from pydrake.common.yaml import yaml_dump_typed
+
+from ditch_drake.benchmark.generator import SampledDitch, sample_ditch
+from ditch_drake.benchmark.ranges import BenchmarkRanges
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.files import atomic_write_text
+from ditch_drake.world.environments import Environment, EnvironmentLibrary, environment_names, load_environments
+
+SEED_SPLITS = {"train": range(200), "val": range(1000, 1050), "test": range(2000, 2100)}
+PAPER_SPLIT = "paper"
+SPLITS = (*SEED_SPLITS, PAPER_SPLIT)
+
+
+def check_split(split: str) -> None:
+    if split not in SPLITS:
+        raise ConfigError(f"unknown split {split!r}: expected one of {list(SPLITS)}")
+
+
+def split_seeds(split: str, geometries: int | None = None) -> list[int]:
+    """The first `geometries` seeds of a generated split (all of them for None).
+
+    Raises:
+        ConfigError: an unknown split, the paper split (it has no seeds), or a count outside
+            1..the split's size.
+    """
+    check_split(split)
+    if split == PAPER_SPLIT:
+        raise ConfigError(f"split {split!r} holds the packaged environments {environment_names()}, not seeds")
+    seeds = SEED_SPLITS[split]
+    if geometries is not None and not 1 <= geometries <= len(seeds):
+        raise ConfigError(f"geometries={geometries} is out of range for split {split!r}: expected 1..{len(seeds)}")
+    return list(seeds[:geometries])
+
+
+def split_of_seed(seed: int) -> str:
+    """The split a generated ditch's seed belongs to ("" for none)."""
+    return next((split for split, seeds in SEED_SPLITS.items() if seed in seeds), "")
+
+
+def split_of_environment(name: str) -> str:
+    """The split of an environment name: a packaged one is "paper", `ditch_<seed>` its seed's."""
+    if name in environment_names(variants=True):
+        return PAPER_SPLIT
+    prefix, _, number = name.partition("_")
+    return split_of_seed(int(number)) if prefix == "ditch" and number.isdigit() else ""
+
+
+def split_ditches(split: str, geometries: int | None = None,
+                  ranges: BenchmarkRanges | None = None) -> list[SampledDitch]:
+    """The sampled ditches of the first `geometries` seeds of a generated split."""
+    return [sample_ditch(seed, ranges) for seed in split_seeds(split, geometries)]
+
+
+def ditches_file(results_path: str | Path) -> Path:
+    """Where a run's ditches are written: `<results without .jsonl>.ditches.yaml`."""
+    path = Path(results_path)
+    return path.with_name(path.stem + ".ditches.yaml")
+
+
+def write_ditches(path: str | Path, ditches: list[SampledDitch]) -> Path:
+    """Adds `ditches` to the environments file at `path` (created if missing), atomically.
+
+    Raises:
+        ConfigError: the file holds a ditch of the same name that differs (drawn from other
+            ranges): results would mix two ditches under one name.
+    """
+    path = Path(path)
+    environments: dict[str, Environment] = dict(load_environments(path, prove_walls=False)) if path.exists() else {}
+    changed = False
+    for ditch in ditches:
+        if ditch.name in environments:
+            if repr(environments[ditch.name]) != repr(_as_written(ditch.environment)):
+                raise ConfigError(f"{path} holds a different {ditch.name} (drawn from other ranges?): write this "
+                                  "run's results and ditches elsewhere (--out)")
+            continue
+        environments[ditch.name] = ditch.environment
+        changed = True
+    if changed or not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        header = "# Procedural ditches (ditch_drake/benchmark): written by `ditch-drake benchmark`.\n"
+        atomic_write_text(path, header + yaml_dump_typed(EnvironmentLibrary(environments=environments)))
+    return path
+
+
+def _as_written(environment: Environment) -> Environment:
+    """The environment as it reads back from YAML (floats and lists as written)."""
+    from pydrake.common.yaml import yaml_load_typed
+
+    return yaml_load_typed(schema=Environment, data=yaml_dump_typed(environment))

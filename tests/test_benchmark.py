@@ -1,0 +1,179 @@
+"""The procedural ditch benchmark (issue 22): the seeded generator, its ranges and splits, the
+`benchmark` command, its report, and the generalist's pipeline pieces."""
+
+import json
+
+import numpy as np
+import pytest
+
+from ditch_drake.benchmark.generator import MAX_DRAWS, sample_ditch
+from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges
+from ditch_drake.benchmark.run import replay_command
+from ditch_drake.benchmark.splits import (
+    SEED_SPLITS,
+    ditches_file,
+    split_of_environment,
+    split_seeds,
+    write_ditches,
+)
+from ditch_drake.cli import main
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.diagrams.ditch_scene import MakeDitchDiagram, SceneConfig
+from ditch_drake.evaluation.results import read_records
+from ditch_drake.world.bypass import check_no_bypass, rasterize_field
+from ditch_drake.world.environments import crosses_ditch, load_environments, validate_environment
+from ditch_drake.world.terrain import DitchTerrain
+
+
+def test_the_same_seed_always_gives_the_same_ditch():
+    for seed in (0, 7, 1003, 2042):
+        first, second = sample_ditch(seed), sample_ditch(seed)
+        assert first == second
+        assert first.name == f"ditch_{seed:04d}"
+    assert sample_ditch(1).environment != sample_ditch(2).environment
+
+
+def test_the_splits_are_disjoint_and_a_seed_names_its_split():
+    seeds = {name: set(values) for name, values in SEED_SPLITS.items()}
+    assert seeds["train"] == set(range(200)) and seeds["val"] == set(range(1000, 1050))
+    assert seeds["test"] == set(range(2000, 2100))
+    for a, values_a in seeds.items():
+        for b, values_b in seeds.items():
+            assert a == b or not values_a & values_b
+    assert split_of_environment("ditch_0012") == "train" and split_of_environment("ditch_2099") == "test"
+    assert split_of_environment("sine") == "paper" and split_of_environment("ditch_0500") == ""
+    assert split_seeds("val", 3) == [1000, 1001, 1002]
+    with pytest.raises(ConfigError, match="expected one of"):
+        split_seeds("holdout")
+    with pytest.raises(ConfigError, match="1..100"):
+        split_seeds("test", 101)
+
+
+def test_fifty_sampled_ditches_build_and_every_task_crosses_its_ditch():
+    kinds = set()
+    for seed in range(50):
+        ditch = sample_ditch(seed)
+        environment = ditch.environment
+        validate_environment(environment)  # the family's limits, the clearances and the bypass proof
+        terrain = DitchTerrain(environment.terrain)
+        kinds.add(environment.terrain.course)
+        grid = rasterize_field(terrain)
+        assert len(environment.tasks) == 3
+        for task in environment.tasks:
+            assert crosses_ditch(terrain, task.start[:2], task.goal)
+            check_no_bypass(terrain, task.start[:2], task.goal, grid)
+        params = environment.terrain
+        ranges = BenchmarkRanges()
+        assert ranges.slope_deg[0] <= params.slope_deg <= ranges.slope_deg[1]
+        assert ranges.depth_m[0] <= params.depth_m <= ranges.depth_m[1]
+        if seed % 10 == 0:  # the plant builds (each ditch's geometry in a MultibodyPlant)
+            MakeDitchDiagram(SceneConfig(environment=ditch.name, environments={ditch.name: environment}))
+    assert kinds == {"line", "sine", "arc", "point"}
+
+
+def test_a_ditch_the_family_cannot_build_is_redrawn_and_the_draw_recorded():
+    draws = [sample_ditch(seed).draw for seed in range(60)]
+    assert max(draws) >= 1  # some first draws (tight sine bends, tasks that do not fit) were replaced
+    assert all(draw < MAX_DRAWS for draw in draws)
+    impossible = BenchmarkRanges(course_kinds=["sine"], sine_amplitude_m=[10.0, 10.0], sine_wavelength_m=[10.0, 10.0])
+    with pytest.raises(ConfigError, match="seed 5: none of"):
+        sample_ditch(5, impossible)
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("slope_deg", [60.0, 45.0], "slope_deg=.*inverted"),
+    ("depth_m", [0.5, 4.0], "depth_m=.*out of bounds: expected .*1 <= low"),
+    ("course_kinds", ["line", "spiral"], "course_kinds has 'spiral': expected some of"),
+    ("bottom_width_m", [2.0], "bottom_width_m=.*not a range"),
+])
+def test_bad_ranges_name_the_key_and_the_allowed_values(field, value, message):
+    ranges = BenchmarkRanges(**{field: value})
+    with pytest.raises(ConfigError, match=message):
+        ranges.validate()
+
+
+def test_the_cli_refuses_a_bad_split_or_ranges_file_with_exit_2(tmp_path, capsys):
+    out = str(tmp_path / "b.jsonl")
+    assert main(["benchmark", "--split", "holdout", "--out", out]) == 2
+    assert "unknown split 'holdout': expected one of ['train', 'val', 'test', 'paper']" in capsys.readouterr().err
+    ranges = tmp_path / "ranges.yaml"
+    ranges.write_text("slope_deg: [50.0, 40.0]\n")
+    assert main(["benchmark", "--split", "val", "--ranges", str(ranges), "--out", out]) == 2
+    assert "slope_deg=[50.0, 40.0] is inverted" in capsys.readouterr().err
+    ranges.write_text("course_kinds: [line, zigzag]\n")
+    assert main(["benchmark", "--split", "val", "--ranges", str(ranges), "--out", out]) == 2
+    assert "'zigzag': expected some of ['line', 'sine', 'arc', 'point']" in capsys.readouterr().err
+    ranges.write_text("slopes: [50.0, 55.0]\n")
+    assert main(["benchmark", "--split", "val", "--ranges", str(ranges), "--out", out]) == 2
+    assert "unknown key 'slopes'" in capsys.readouterr().err
+    assert main(["benchmark", "--split", "val", "--geometries", "0", "--out", out]) == 2
+    assert not (tmp_path / "b.jsonl").exists()
+
+
+def test_the_ditches_file_reads_back_and_refuses_a_different_ditch_of_the_same_name(tmp_path):
+    path = ditches_file(tmp_path / "run.jsonl")
+    assert path.name == "run.ditches.yaml"
+    ditches = [sample_ditch(seed) for seed in (1000, 1001)]
+    write_ditches(path, ditches[:1])
+    write_ditches(path, ditches)  # adds the second, keeps the first
+    environments = load_environments(path)
+    assert list(environments) == ["ditch_1000", "ditch_1001"]
+    assert environments["ditch_1001"].terrain.course == ditches[1].environment.terrain.course
+    other = sample_ditch(1000, BenchmarkRanges(course_kinds=["line"]))
+    with pytest.raises(ConfigError, match="holds a different ditch_1000"):
+        write_ditches(path, [other])
+    assert list(load_environments(path)) == ["ditch_1000", "ditch_1001"]
+
+
+def test_the_packaged_ranges_file_is_the_default():
+    assert load_ranges() == BenchmarkRanges()
+
+
+def test_a_benchmark_run_records_every_task_of_every_ditch_and_its_report_names_the_failures(tmp_path, capsys):
+    """The bar's command on the val split, in-process (the test split is for reports only)."""
+    out = tmp_path / "val_expert.jsonl"
+    assert main(["benchmark", "--split", "val", "--controller", "expert", "--geometries", "2", "--rollouts", "1",
+                 "--workers", "0", "--time-limit", "60", "--out", str(out)]) == 0
+    summary = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert summary["recorded"] == 6 and summary["geometries"] == 2
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert sorted((r["environment"], r["task"]) for r in records) == [
+        (f"ditch_{seed}", task) for seed in (1000, 1001) for task in range(3)]
+    assert all(r["environments_file"] == str(ditches_file(out)) for r in records)
+    page = tmp_path / "report.md"
+    assert main(["benchmark-report", str(out), "--out", str(page)]) == 0
+    text = page.read_text()
+    assert "| expert | " in text and "## Failed generated ditches" in text
+    assert (tmp_path / "report_img" / "benchmark_success_by_parameter.png").exists()
+    for record in records:
+        if not record["success"]:
+            assert f"--env {record['environment']} --task {record['task']} --seed {record['seed']}" in text
+    # The replay command names the benchmark's expert whole (it makes room along the ditch first).
+    recorded, _ = read_records(out)
+    command = replay_command(recorded[0])
+    assert "--override '{controller: !ExpertConfig {" in command and "lead_in: true" in command
+    assert f"--environments {ditches_file(out)} --env {recorded[0].environment}" in command
+    # Run again: nothing is recorded twice.
+    assert main(["benchmark", "--split", "val", "--controller", "expert", "--geometries", "2", "--workers", "0",
+                 "--time-limit", "60", "--out", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["recorded"] == 0
+
+
+def test_curvature_of_each_course_kind():
+    sine = sample_ditch(next(s for s in range(200) if sample_ditch(s).environment.terrain.course == "sine"))
+    params = sine.environment.terrain
+    k = 2 * np.pi / params.sine_wavelength_m
+    assert DitchTerrain(params).max_curvature_per_m == pytest.approx(params.sine_amplitude_m * k**2)
+
+
+def test_a_collection_over_several_environments_visits_each_task_in_order(tmp_path):
+    """The generalist's demonstrations: demo i drives the i-th (environment, task) pair."""
+    from ditch_drake.demos.collect import CollectConfig, slot_pairs
+
+    ditches = [sample_ditch(seed) for seed in (3, 4)]
+    path = write_ditches(tmp_path / "train.ditches.yaml", ditches)
+    config = CollectConfig(environments=[d.name for d in ditches], environments_file=str(path))
+    assert slot_pairs(config) == [(name, task) for name in ("ditch_0003", "ditch_0004") for task in range(3)]
+    assert slot_pairs(CollectConfig(environment="wide")) == [("wide", 0), ("wide", 1), ("wide", 2)]
+    with pytest.raises(ConfigError, match="unknown environment 'ditch_0009'"):
+        slot_pairs(CollectConfig(environments=["ditch_0009"], environments_file=str(path)))
