@@ -828,7 +828,7 @@ def build_parser() -> argparse.ArgumentParser:
     generalist.add_argument("--train-geometries", type=int, default=40, help="the train split's first N ditches")
     generalist.add_argument("--demos-per-task", type=int, default=1, help="expert demonstrations per task")
     generalist.add_argument("--dagger-rounds", type=int, default=1, help="DAgger rounds after the first clone")
-    generalist.add_argument("--val-geometries", type=int, default=50, help="the val split's first N ditches")
+    generalist.add_argument("--val-geometries", type=int, default=25, help="the val split's first N ditches")
     generalist.add_argument("--epochs", type=int, default=12, help="most epochs per training")
     generalist.add_argument("--seed", type=int, default=0, help="seeds demonstrations, training and val rollouts")
     generalist.add_argument("--ranges", default=None, help="a ranges YAML file (default: the packaged one)")

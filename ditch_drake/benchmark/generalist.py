@@ -56,7 +56,7 @@ class GeneralistConfig:
     train_geometries: int = 40
     demos_per_task: int = 1
     dagger_rounds: int = 1
-    val_geometries: int = 50
+    val_geometries: int = 25
     epochs: int = 12
     patience: int = 6
     seed: int = 0
