@@ -509,7 +509,8 @@ def cmd_train_generalist(args) -> int:
     split_seeds("val", args.val_geometries)
     config = GeneralistConfig(out=args.out, work_dir=args.work_dir, train_geometries=args.train_geometries,
                               demos_per_task=args.demos_per_task, dagger_rounds=args.dagger_rounds,
-                              val_geometries=args.val_geometries, epochs=args.epochs, seed=args.seed,
+                              val_geometries=args.val_geometries, dagger_stride=args.dagger_stride,
+                              epochs=args.epochs, seed=args.seed,
                               workers=args.workers, ranges=args.ranges or "")
     try:
         summary = train_generalist(config)
@@ -829,6 +830,8 @@ def build_parser() -> argparse.ArgumentParser:
     generalist.add_argument("--demos-per-task", type=int, default=1, help="expert demonstrations per task")
     generalist.add_argument("--dagger-rounds", type=int, default=1, help="DAgger rounds after the first clone")
     generalist.add_argument("--val-geometries", type=int, default=25, help="the val split's first N ditches")
+    generalist.add_argument("--dagger-stride", type=int, default=3,
+                            help="train on every k-th control step of the DAgger rollouts (memory)")
     generalist.add_argument("--epochs", type=int, default=12, help="most epochs per training")
     generalist.add_argument("--seed", type=int, default=0, help="seeds demonstrations, training and val rollouts")
     generalist.add_argument("--ranges", default=None, help="a ranges YAML file (default: the packaged one)")

@@ -45,6 +45,10 @@ class GeneralistConfig:
         demos_per_task: expert demonstrations per task of each.
         dagger_rounds: DAgger rounds after round 0.
         val_geometries: the val split's first N ditches each candidate runs (one rollout per task).
+        dagger_stride: train on every k-th control step of the DAgger rollouts. Each sample
+            is a 64 KiB image stack; a round of 120 learner rollouts, many of them timeouts
+            circling for 120 s, holds about 80 k steps, and all of them beside the
+            demonstrations' 52 k ran training out of memory (17 GiB) on a 24 GiB machine.
         epochs, patience: training's.
         seed: seeds the demonstrations, training and the val rollouts.
         workers: processes for collection and evaluation (None: one per core).
@@ -57,6 +61,7 @@ class GeneralistConfig:
     demos_per_task: int = 1
     dagger_rounds: int = 1
     val_geometries: int = 25
+    dagger_stride: int = 3
     epochs: int = 12
     patience: int = 6
     seed: int = 0
@@ -85,7 +90,15 @@ def _collect(config: GeneralistConfig, names: list[str], ditches: str, out: Path
         raise KeyboardInterrupt
 
 
+def _every_kth_step(demonstration, stride: int):
+    from ditch_drake.demos.dataset import Demonstration
+
+    arrays = {name: values[::stride] for name, values in demonstration.arrays.items()}
+    return Demonstration(arrays, {**demonstration.metadata, "step_stride": stride})
+
+
 def _train(config: GeneralistConfig, data: list[Path], out: Path, progress: bool) -> None:
+    """Trains on the demonstrations of data[0] and every dagger_stride-th step of the rest."""
     from ditch_drake.demos.dataset import load_dataset, to_array_set
     from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
     from ditch_drake.learning.config import TrainConfig
@@ -99,8 +112,9 @@ def _train(config: GeneralistConfig, data: list[Path], out: Path, progress: bool
         except CheckpointError as error:
             _log(progress, f"train {out}: {error}; training again")
     demonstrations = []
-    for directory in data:
-        demonstrations += load_dataset(directory)
+    for index, directory in enumerate(data):
+        loaded = load_dataset(directory)
+        demonstrations += loaded if index == 0 else [_every_kth_step(d, config.dagger_stride) for d in loaded]
     device = available_device()
     train_config = TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, device=device,
                                precision=available_precision(device))
@@ -122,9 +136,9 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
         ConfigError: counts out of range, a bad ranges file.
         KeyboardInterrupt: Ctrl-C or SIGTERM during a stage (what finished is kept).
     """
-    if config.dagger_rounds < 0 or config.demos_per_task < 1:
-        raise ConfigError(f"dagger_rounds={config.dagger_rounds} must be >= 0 and demos_per_task="
-                          f"{config.demos_per_task} >= 1")
+    if config.dagger_rounds < 0 or config.demos_per_task < 1 or config.dagger_stride < 1:
+        raise ConfigError(f"dagger_rounds={config.dagger_rounds} must be >= 0, demos_per_task="
+                          f"{config.demos_per_task} >= 1 and dagger_stride={config.dagger_stride} >= 1")
     ranges = load_ranges(config.ranges or None)
     work = Path(config.work_dir)
     work.mkdir(parents=True, exist_ok=True)

@@ -2,12 +2,13 @@
 
 From benchmark results files (and the ditches file beside each, `splits.ditches_file`):
 - success per controller and split, with 95 % Wilson intervals;
-- success against each ditch's slope, bottom width, depth and course curvature (a figure:
-  per controller, the rate in bins of each parameter, pooled over the generated splits);
+- success against each ditch's slope, bottom width, depth and course curvature (a figure and
+  its table: per controller, the rate in bins of each parameter, pooled over the generated splits);
 - failure regions (status @ where the robot ended) per controller;
 - every failed generated ditch, with the command that replays the rollout.
 """
 
+import itertools
 import math
 import os
 from collections import defaultdict
@@ -17,6 +18,7 @@ import numpy as np
 
 from ditch_drake.benchmark.run import replay_command
 from ditch_drake.benchmark.splits import PAPER_SPLIT, SPLITS, ditches_file, split_of_environment
+from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_write_text, save_figure
 from ditch_drake.evaluation.batch import load_results
 from ditch_drake.evaluation.report import model_label
@@ -27,7 +29,7 @@ from ditch_drake.world.terrain import DitchTerrain
 
 # The ditch parameters success is plotted against: (name, axis label, bin edges).
 FEATURES = (
-    ("slope_deg", "wall slope (deg)", np.linspace(45.0, 60.0, 4)),
+    ("slope_deg", "wall slope (deg)", np.array([45.0, 50.0, 55.0, 57.0, 60.0])),
     ("bottom_width_m", "bottom width or crater diameter (m)", np.linspace(2.0, 12.0, 6)),
     ("depth_m", "depth (m)", np.linspace(2.5, 5.0, 6)),
     ("curvature_per_m", "course curvature (1/m; 0: straight or crater)", np.array([0.0, 1e-9, 0.04, 0.08, 0.2])),
@@ -47,12 +49,21 @@ def _environments_of(results_path: Path) -> dict[str, Environment]:
 
 
 def load_benchmark(results: list[str | os.PathLike]) -> tuple[list[RolloutRecord], dict[str, Environment], list[str]]:
-    """The current records of the results files, the environments they ran in, and notes."""
+    """The current records of the results files, the environments they ran in, and notes.
+
+    Raises:
+        ConfigError: two files ran different ditches of the same name (other ranges).
+    """
     records, environments, notes = [], {}, []
+    source: dict[str, Path] = {}
     for path in results:
         path = Path(path)
         records += load_results([path])
-        environments.update(_environments_of(path))
+        for name, environment in _environments_of(path).items():
+            if name in environments and repr(environments[name]) != repr(environment):
+                raise ConfigError(f"{path}: its {name} differs from {source[name]}'s (ditches drawn from other "
+                                  "ranges?): report results of one ranges file together")
+            environments[name], source[name] = environment, path
     records, notes = current_records(records)
     for record in records:
         if record.environment not in environments and split_of_environment(record.environment) == PAPER_SPLIT:
@@ -81,6 +92,31 @@ def _success_table(groups: dict[tuple[str, str], list[RolloutRecord]], controlle
     return lines
 
 
+def _binned(records: list[RolloutRecord], features: dict[str, dict], controller: str, name: str,
+            edges: np.ndarray) -> list[tuple[int, int]]:
+    """(successes, trials) of `controller`'s rollouts in each bin of the ditches' `name`
+    (the last bin closed; values outside go to the nearest bin)."""
+    values = [(features[r.environment][name], r.success) for r in records
+              if model_label(r) == controller and r.status != "error" and r.environment in features]
+    counts = [(0, 0)] * (len(edges) - 1)
+    for value, success in values:
+        k = int(np.clip(np.digitize(value, edges) - 1, 0, len(edges) - 2))
+        counts[k] = (counts[k][0] + int(success), counts[k][1] + 1)
+    return counts
+
+
+def _binned_tables(records: list[RolloutRecord], features: dict[str, dict], controllers: list[str]) -> list[str]:
+    lines = []
+    for name, label, edges in FEATURES:
+        bins = [f"{low:g}-{high:g}" for low, high in itertools.pairwise(edges)]
+        lines += [f"| {label} | " + " | ".join(bins) + " |", "| --- |" + " --- |" * len(bins)]
+        for controller in controllers:
+            counts = _binned(records, features, controller, name, edges)
+            lines.append(f"| {controller} | " + " | ".join(f"{ok}/{n}" if n else "-" for ok, n in counts) + " |")
+        lines.append("")
+    return lines
+
+
 def _figure(records: list[RolloutRecord], features: dict[str, dict], controllers: list[str], path: Path) -> Path:
     import matplotlib
 
@@ -91,15 +127,10 @@ def _figure(records: list[RolloutRecord], features: dict[str, dict], controllers
     for ax, (name, label, edges) in zip(axes, FEATURES):
         centres = (edges[:-1] + edges[1:]) / 2
         for controller in controllers:
-            values = [(features[r.environment][name], r.success) for r in records
-                      if model_label(r) == controller and r.status != "error" and r.environment in features]
-            if not values:
+            counts = _binned(records, features, controller, name, edges)
+            if not any(n for _, n in counts):
                 continue
-            x = np.array([v for v, _ in values], dtype=float)
-            ok = np.array([s for _, s in values], dtype=float)
-            index = np.clip(np.digitize(x, edges) - 1, 0, len(centres) - 1)
-            rates = [ok[index == k].mean() if np.any(index == k) else np.nan for k in range(len(centres))]
-            ax.plot(centres, rates, marker="o", label=controller)
+            ax.plot(centres, [ok / n if n else np.nan for ok, n in counts], marker="o", label=controller)
         ax.set_xlabel(label)
         ax.set_ylim(-0.05, 1.05)
         ax.grid(alpha=0.3)
@@ -146,7 +177,9 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
     if generated:
         figure = _figure(generated, features, controllers, figures / "benchmark_success_by_parameter.png")
         lines += ["## Success against the ditch's parameters", "",
-                  f"![success against slope, width, depth, curvature]({os.path.relpath(figure, out.parent)})", ""]
+                  f"![success against slope, width, depth, curvature]({os.path.relpath(figure, out.parent)})", "",
+                  "The figure's numbers: successes/trials in each bin (generated splits pooled).", ""]
+        lines += _binned_tables(generated, features, controllers)
     lines += ["## Failure regions", "", "status@region of the failed rollouts (the region where the robot ended).", "",
               "| controller | split | failures |", "| --- | --- | --- |"]
     for (controller, split), group in sorted(groups.items()):

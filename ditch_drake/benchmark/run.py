@@ -24,6 +24,11 @@ from ditch_drake.learning.checkpoint import GENERALIST_MODEL as GENERALIST
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 from ditch_drake.world.environments import environment_names
 
+# Each generated ditch's rollouts build diagrams of their own, and a worker's memory grows by
+# tens of MB for every diagram it has built (`ditch_drake.evaluation.batch`): a learned
+# controller's worker held 5.3 GB after about 70 rollouts of the test split.
+ROLLOUTS_PER_WORKER = 30
+
 
 @dataclass
 class BenchmarkConfig:
@@ -127,4 +132,4 @@ def run_benchmark(config: BenchmarkConfig, progress: bool = True) -> EvaluationR
     Path(config.out).parent.mkdir(parents=True, exist_ok=True)
     specs = benchmark_specs(config, progress)
     return evaluate(specs, config.out, workers=config.workers, progress=progress, backend=config.backend,
-                    address=config.address)
+                    address=config.address, rollouts_per_worker=ROLLOUTS_PER_WORKER)

@@ -157,7 +157,8 @@ def check_checkpoint(checkpoint: str) -> str:
 
 
 def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers: int | None = None,
-             progress: bool = True, backend: str = "local", address: str | None = None) -> EvaluationReport:
+             progress: bool = True, backend: str = "local", address: str | None = None,
+             rollouts_per_worker: int = ROLLOUTS_PER_WORKER) -> EvaluationReport:
     """Runs the specs not yet recorded in `results_path`, appending each record as it ends.
 
     Args:
@@ -169,6 +170,9 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
         backend: "local" (a process pool on this machine) or "ray" (a Ray cluster; the
             optional `ray` extra). Records are appended here, by this process, either way.
         address: the Ray cluster's address (None or "local": start a Ray instance here).
+        rollouts_per_worker: the local pool's workers are replaced after about this many
+            rollouts each (the module docstring); fewer where most rollouts build a diagram
+            of their own (`ditch-drake benchmark`: every generated ditch is new).
 
     Returns:
         What was skipped, recorded, and how long it took; `interrupted` and `exit_code` when
@@ -212,7 +216,7 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
                 for spec in pending:
                     keep(writer, run_rollout(spec))
             else:
-                _run_in_pools(pending, local_workers, lambda record: keep(writer, record))
+                _run_in_pools(pending, local_workers, lambda record: keep(writer, record), rollouts_per_worker)
     except KeyboardInterrupt as error:
         report.interrupted = True
         report.exit_code = interrupt_exit_code(error)
@@ -222,7 +226,8 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
     return report
 
 
-def _run_in_pools(pending: list[RolloutSpec], workers: int, keep) -> None:
+def _run_in_pools(pending: list[RolloutSpec], workers: int, keep,
+                  rollouts_per_worker: int = ROLLOUTS_PER_WORKER) -> None:
     """Runs `pending` in process pools; see the module docstring for a worker that dies.
 
     A dead worker breaks its whole pool and fails every unfinished future, so which
@@ -233,7 +238,7 @@ def _run_in_pools(pending: list[RolloutSpec], workers: int, keep) -> None:
     broken_pools = 0
     while pending:
         isolated = broken_pools >= _ATTEMPTS
-        chunk = workers * ROLLOUTS_PER_WORKER
+        chunk = workers * rollouts_per_worker
         batches = [[spec] for spec in pending] if isolated else [
             pending[i:i + chunk] for i in range(0, len(pending), chunk)]
         pending = []
