@@ -190,3 +190,24 @@ def test_a_collection_over_several_environments_visits_each_task_in_order(tmp_pa
     assert slot_pairs(CollectConfig(environment="wide")) == [("wide", 0), ("wide", 1), ("wide", 2)]
     with pytest.raises(ConfigError, match="unknown environment 'ditch_0009'"):
         slot_pairs(CollectConfig(environments=["ditch_0009"], environments_file=str(path)))
+
+
+def test_the_paper_split_runs_the_four_packaged_ditches_and_its_report_has_a_column_each(tmp_path, capsys):
+    out = tmp_path / "paper_head_on.jsonl"
+    assert main(["benchmark", "--split", "paper", "--controller", "head_on", "--time-limit", "2", "--workers", "0",
+                 "--out", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["recorded"] == 12
+    page = tmp_path / "paper.md"
+    assert main(["benchmark-report", str(out), "--out", str(page)]) == 0
+    text = page.read_text()
+    assert "| controller | crater | narrow | sine | wide |" in text
+    assert "| head_on | 0/3 (0%-56%) | 0/3 (0%-56%) | 0/3 (0%-56%) | 0/3 (0%-56%) |" in text
+
+
+@pytest.mark.parametrize("option, value", [("--dagger-stride", "0"), ("--dagger-rounds", "-1"),
+                                           ("--demos-per-task", "0")])
+def test_train_generalist_refuses_a_bad_count_before_any_work(tmp_path, capsys, option, value):
+    work = tmp_path / "generalist"
+    assert main(["train-generalist", option, value, "--work-dir", str(work), "--out", str(tmp_path / "g.pt")]) == 2
+    assert f"{option.lstrip('-').replace('-', '_')}={value}: expected an integer >=" in capsys.readouterr().err
+    assert not work.exists()

@@ -59,7 +59,7 @@ class GeneralistConfig:
     work_dir: str = "data/generalist"
     train_geometries: int = 40
     demos_per_task: int = 1
-    dagger_rounds: int = 1
+    dagger_rounds: int = 2
     val_geometries: int = 25
     dagger_stride: int = 3
     epochs: int = 12
@@ -136,9 +136,10 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
         ConfigError: counts out of range, a bad ranges file.
         KeyboardInterrupt: Ctrl-C or SIGTERM during a stage (what finished is kept).
     """
-    if config.dagger_rounds < 0 or config.demos_per_task < 1 or config.dagger_stride < 1:
-        raise ConfigError(f"dagger_rounds={config.dagger_rounds} must be >= 0, demos_per_task="
-                          f"{config.demos_per_task} >= 1 and dagger_stride={config.dagger_stride} >= 1")
+    for name, lowest in (("dagger_rounds", 0), ("demos_per_task", 1), ("dagger_stride", 1)):
+        if getattr(config, name) < lowest:
+            raise ConfigError(f"{name}={getattr(config, name)}: expected an integer >= {lowest} "
+                              f"(--{name.replace('_', '-')})")
     ranges = load_ranges(config.ranges or None)
     work = Path(config.work_dir)
     work.mkdir(parents=True, exist_ok=True)

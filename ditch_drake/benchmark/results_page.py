@@ -1,7 +1,7 @@
 """The benchmark's page: `ditch-drake benchmark-report RESULTS... --out PAGE.md`.
 
 From benchmark results files (and the ditches file beside each, `splits.ditches_file`):
-- success per controller and split, with 95 % Wilson intervals;
+- success per controller and split, with 95 % Wilson intervals, and in each of the paper's ditches;
 - success against each ditch's slope, bottom width, depth and course curvature (a figure and
   its table: per controller, the rate in bins of each parameter, pooled over the generated splits);
 - failure regions (status @ where the robot ended) per controller;
@@ -172,6 +172,23 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
             for kind in kinds:
                 summary = summarize(by_kind.get((controller, kind), [])) if by_kind.get((controller, kind)) else None
                 cells.append(f"{summary.successes}/{summary.trials}" if summary else "-")
+            lines.append(f"| {controller} | " + " | ".join(cells) + " |")
+        lines.append("")
+    paper = [r for r in records if split_of_environment(r.environment) == PAPER_SPLIT]
+    if paper:
+        by_environment: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
+        for record in paper:
+            by_environment[(model_label(record), record.environment)].append(record)
+        names = sorted({name for _, name in by_environment})
+        lines += ["## Success in each of the paper's ditches", "",
+                  "| controller | " + " | ".join(names) + " |", "| --- |" + " --- |" * len(names)]
+        for controller in sorted({controller for controller, _ in by_environment}):
+            cells = []
+            for name in names:
+                group = by_environment.get((controller, name))
+                summary = summarize(group) if group else None
+                cells.append(f"{summary.successes}/{summary.trials} ({_pct(summary.low)}-{_pct(summary.high)})"
+                             if summary else "-")
             lines.append(f"| {controller} | " + " | ".join(cells) + " |")
         lines.append("")
     if generated:

@@ -3,6 +3,7 @@
 
     python -m ditch_drake.benchmarks.bench_scene               # the bench's keys and details
     python -m ditch_drake.benchmarks.bench_scene --breakdown   # where a diagram's memory goes
+    python -m ditch_drake.benchmarks.bench_scene --profile sine  # where a build's time goes
 
 - `scene_build_max_s`: the slowest `MakeRolloutDiagram` (learned controller) over 20
   ditches: the four packaged ones and the benchmark generator's train-split ditches of
@@ -163,11 +164,32 @@ def measure_scene_figures() -> dict:
     return {**measure_scene_build(), **measure_diagram_rss(), **measure_benchmark_rollouts_per_min()}
 
 
+def profile_scene_build(environment: str = "sine", lines: int = 12) -> str:
+    """cProfile of one `MakeRolloutDiagram` (learned controller) of a packaged environment,
+    after a warm-up build: the calls that take the time, by cumulative time."""
+    import cProfile
+    import io
+    import pstats
+
+    from ditch_drake.diagrams.rollout import MakeRolloutDiagram
+
+    config = _rollout_config(environment, None, environment)
+    MakeRolloutDiagram(_rollout_config("wide", None, "wide"))
+    profiler = cProfile.Profile()
+    profiler.runcall(MakeRolloutDiagram, config)
+    text = io.StringIO()
+    pstats.Stats(profiler, stream=text).sort_stats("cumulative").print_stats(lines)
+    return text.getvalue()
+
+
 def main(argv: list[str] | None = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--rss"]:
         _apply_variant(argv[2] if len(argv) > 2 else "default")
         print(json.dumps(measure_diagram_rss_here(argv[1])))
+        return
+    if argv[:1] == ["--profile"]:
+        print(profile_scene_build(*argv[1:2]))
         return
     if argv[:1] == ["--breakdown"]:
         print(json.dumps(measure_breakdown(), indent=2))
