@@ -86,10 +86,12 @@ def test_pending_rollouts_run_in_fresh_pools_of_workers_times_rollouts_per_worke
         return []
 
     monkeypatch.setattr(batch, "_run_pool", fake_pool)
-    monkeypatch.setattr(batch, "ROLLOUTS_PER_WORKER", 2)
     specs = make_specs("edge_angle", "", "wide", tasks=[0, 1], rollouts=3, time_limit_s=1.0)
-    report = evaluate(specs, tmp_path / "results.jsonl", workers=2, progress=False)
+    report = evaluate(specs, tmp_path / "results.jsonl", workers=2, progress=False, rollouts_per_worker=2)
     assert pools == [(4, 2), (2, 2)] and report.recorded == 6
+    pools.clear()  # by default a worker runs ROLLOUTS_PER_WORKER (100): one pool for all six
+    assert evaluate(specs, tmp_path / "default.jsonl", workers=2, progress=False).recorded == 6
+    assert pools == [(6, 2)] and batch.ROLLOUTS_PER_WORKER == 100
 
 
 def test_a_rollout_that_raises_is_recorded_as_an_error_and_the_run_goes_on(tmp_path):
