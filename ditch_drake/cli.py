@@ -355,6 +355,15 @@ def cmd_checkpoint_info(args) -> int:
     return 0
 
 
+def _evaluation_exit_code(report, out) -> int:
+    """0, or the interrupt's exit code after saying how far a stopped run got and how to go on."""
+    if report.interrupted:
+        print(f"interrupted: {report.recorded} rollouts recorded by this run, {report.skipped + report.recorded} of "
+              f"{report.requested} in {out}; run the same command again to continue", file=sys.stderr)
+        return report.exit_code
+    return 0
+
+
 def cmd_evaluate(args) -> int:
     """Seeded rollouts of one controller in one or more environments, appended to a results file."""
     check_workers(args.workers, "--workers")
@@ -413,11 +422,7 @@ def cmd_evaluate(args) -> int:
                       "errors_recorded": report.errors, "wall_s": round(report.wall_s, 1),
                       "rollouts_per_minute": round(report.rollouts_per_minute, 2),
                       "interrupted": report.interrupted}))
-    if report.interrupted:
-        print(f"interrupted: {report.recorded} rollouts recorded by this run, {report.skipped + report.recorded} of "
-              f"{report.requested} in {args.out}; run the same command again to continue", file=sys.stderr)
-        return report.exit_code
-    return 0
+    return _evaluation_exit_code(report, args.out)
 
 
 def cmd_experiment(args) -> int:
@@ -441,9 +446,9 @@ def cmd_experiment(args) -> int:
 def cmd_benchmark(args) -> int:
     """A controller over a split's procedural ditches (or the paper's four), appended to a results file."""
     check_workers(args.workers, "--workers")
-    from ditch_drake.benchmark.run import BenchmarkConfig, benchmark_specs
+    from ditch_drake.benchmark.run import BenchmarkConfig, benchmark_specs, run_benchmark
     from ditch_drake.benchmark.splits import check_split
-    from ditch_drake.evaluation.batch import evaluate, load_results
+    from ditch_drake.evaluation.batch import load_results
     from ditch_drake.evaluation.results import current_records
     from ditch_drake.evaluation.summary import summarize
 
@@ -455,14 +460,11 @@ def cmd_benchmark(args) -> int:
                              backend=args.backend, address=args.address)
     if args.rollouts < 1:
         raise ConfigError(f"--rollouts {args.rollouts}: expected a positive integer")
-    from pathlib import Path
-
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     specs = benchmark_specs(config)
     environments = sorted({spec.environment for spec in specs})
     print(f"{specs[0].controller} on split {args.split}: {len(environments)} ditches x 3 tasks x {args.rollouts} "
           f"rollouts = {len(specs)} (seeds {args.seed}..{args.seed + args.rollouts - 1})", file=sys.stderr, flush=True)
-    report = evaluate(specs, args.out, workers=args.workers, backend=args.backend, address=args.address)
+    report = run_benchmark(config, specs=specs)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
     keys = {spec.key for spec in specs}
@@ -475,11 +477,7 @@ def cmd_benchmark(args) -> int:
                       "wilson95": [round(summary.low, 3), round(summary.high, 3)] if summary else None,
                       "errors_recorded": report.errors, "wall_s": round(report.wall_s, 1),
                       "rollouts_per_minute": round(report.rollouts_per_minute, 2), "interrupted": report.interrupted}))
-    if report.interrupted:
-        print(f"interrupted: {report.recorded} rollouts recorded by this run, {report.skipped + report.recorded} of "
-              f"{report.requested} in {args.out}; run the same command again to continue", file=sys.stderr)
-        return report.exit_code
-    return 0
+    return _evaluation_exit_code(report, args.out)
 
 
 def cmd_benchmark_report(args) -> int:

@@ -125,11 +125,13 @@ def benchmark_specs(config: BenchmarkConfig, progress: bool = True) -> list[Roll
     return specs
 
 
-def run_benchmark(config: BenchmarkConfig, progress: bool = True) -> EvaluationReport:
-    """Runs the rollouts of `config` not yet in its results file (see the module docstring)."""
+def run_benchmark(config: BenchmarkConfig, progress: bool = True,
+                  specs: list[RolloutSpec] | None = None) -> EvaluationReport:
+    """Runs the rollouts of `config` (or `specs`, its `benchmark_specs` made already) not yet
+    in its results file (see the module docstring)."""
     if not isinstance(config.rollouts, int) or config.rollouts < 1:
         raise ConfigError(f"rollouts={config.rollouts!r} must be a positive integer")
     Path(config.out).parent.mkdir(parents=True, exist_ok=True)
-    specs = benchmark_specs(config, progress)
+    specs = benchmark_specs(config, progress) if specs is None else specs
     return evaluate(specs, config.out, workers=config.workers, progress=progress, backend=config.backend,
                     address=config.address, rollouts_per_worker=ROLLOUTS_PER_WORKER)
