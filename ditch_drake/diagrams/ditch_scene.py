@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 from pydrake.common.eigen_geometry import Quaternion_
-from pydrake.geometry import Box, Meshcat, ProximityProperties, SceneGraph
+from pydrake.geometry import Box, Convex, Meshcat, ProximityProperties, SceneGraph
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import (
@@ -27,7 +27,7 @@ from ditch_drake.spec.schedule import ScheduleConfig
 from ditch_drake.systems.episode_monitor import EpisodeConfig, EpisodeMonitor
 from ditch_drake.systems.skid_steer_drive import SkidSteerDrive
 from ditch_drake.world.environments import ConfigError, Environment, Task, get_environment, get_task
-from ditch_drake.world.terrain import DitchTerrain
+from ditch_drake.world.terrain import BoxPiece, ConvexPiece, DitchTerrain
 
 TERRAIN_COLORS = {
     "ground": np.array([0.45, 0.62, 0.33, 1.0]),
@@ -106,7 +106,7 @@ def MakeParser(plant: MultibodyPlant) -> Parser:
 
 
 def AddDitchTerrain(plant: MultibodyPlant, terrain: DitchTerrain) -> int:
-    """Welds the terrain's box pieces (named `terrain_*`) and its walls' (`barrier_*`) to the
+    """Welds the terrain's pieces (named `terrain_*`) and its walls' (`barrier_*`) to the
     world: `DitchTerrain.collision_pieces` as collision geometry, `DitchTerrain.box_pieces`
     as visual geometry (illustration and perception: what Meshcat and the lidar see).
 
@@ -124,14 +124,22 @@ def AddDitchTerrain(plant: MultibodyPlant, terrain: DitchTerrain) -> int:
     collision = [(f"terrain_{piece.kind}_{index}", piece) for index, piece in enumerate(terrain.collision_pieces())]
     world = plant.world_body()
     for name, piece in collision + walls:
-        plant.RegisterCollisionGeometry(world, _piece_pose(piece), Box(*piece.size), name, properties)
+        plant.RegisterCollisionGeometry(world, _piece_pose(piece), _piece_shape(piece, name), name, properties)
     for name, piece in visual + walls:
         plant.RegisterVisualGeometry(world, _piece_pose(piece), Box(*piece.size), name, TERRAIN_COLORS[piece.kind])
     return len(visual) + len(walls)
 
 
-def _piece_pose(piece) -> RigidTransform:
+def _piece_pose(piece: BoxPiece | ConvexPiece) -> RigidTransform:
+    if isinstance(piece, ConvexPiece):  # its vertices about their centroid: GJK's numbers stay small
+        return RigidTransform(piece.vertices_W.mean(axis=0))
     return RigidTransform(RotationMatrix(piece.R_WP), piece.p_WP)
+
+
+def _piece_shape(piece: BoxPiece | ConvexPiece, name: str) -> Box | Convex:
+    if isinstance(piece, ConvexPiece):
+        return Convex((piece.vertices_W - piece.vertices_W.mean(axis=0)).T, name)
+    return Box(*piece.size)
 
 
 def ReleaseSceneGraphModelCache(system) -> None:

@@ -12,7 +12,9 @@ The same description gives
 - collision and visual geometry: rotated `Box` pieces swept along the course
   segments and revolved around its bends and ends, a floor box, and flat-ground
   boxes. Boxes under point contact are exact and fast; a terrain `Mesh` would
-  collide as its convex hull (docs/physics.md).
+  collide as its convex hull (docs/physics.md), so a winding ditch's collision geometry
+  joins each section's wall, hinge and flat edge, whose solid is convex, into one
+  `Convex` (`ConvexPiece`).
 
 A ditch may also be fenced: `TerrainParams.walls` are straight wall segments on the
 ground (tall boxes, collision and visual geometry), so that every route from a start to
@@ -219,6 +221,34 @@ class BoxPiece:
     R_WP: np.ndarray
     p_WP: np.ndarray
     kind: str  # "floor", "wall" (the ditch's sides), "ground" or "barrier" (a fence), for colouring
+
+
+@dataclass(frozen=True)
+class ConvexPiece:
+    """One convex collision piece: the convex hull of `vertices_W` (N, 3), in world (m)."""
+
+    vertices_W: np.ndarray
+    kind: str
+
+    @staticmethod
+    def hull_of(boxes: list[BoxPiece]) -> "ConvexPiece":
+        """The piece whose hull holds the boxes' corners."""
+        corners = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)])
+        vertices = np.concatenate([(box.R_WP @ (corners * box.size).T).T + box.p_WP for box in boxes])
+        return ConvexPiece(vertices, boxes[0].kind)
+
+    def top_height(self, xy: np.ndarray) -> np.ndarray:
+        """Height (m) of the hull's upper surface over points xy (N, 2); -inf outside it."""
+        from scipy.spatial import ConvexHull
+
+        equations = ConvexHull(self.vertices_W).equations  # n . p + offset <= 0 inside
+        n_xy, n_z, offset = equations[:, :2], equations[:, 2], equations[:, 3]
+        level = xy @ n_xy.T + offset  # (N, faces): n_z * z + level <= 0
+        up, down, side = n_z > 1e-12, n_z < -1e-12, np.abs(n_z) <= 1e-12
+        top = np.min(-level[:, up] / n_z[up], axis=1)
+        bottom = np.max(-level[:, down] / n_z[down], axis=1) if down.any() else np.full(len(xy), -np.inf)
+        inside = (bottom <= top + 1e-9) & np.all(level[:, side] <= 1e-9, axis=1)
+        return np.where(inside, top, -np.inf)
 
 
 class DitchTerrain:
@@ -474,7 +504,7 @@ class DitchTerrain:
         return self.course_xy.min(axis=0) - reach, self.course_xy.max(axis=0) + reach
 
     def box_pieces(self, ground_cell_m: float = 1.0, thickness_m: float = 0.5,
-                   mitre_bends: bool = False) -> list[BoxPiece]:
+                   mitre_bends: bool = False, convex_sections: bool = False) -> list[BoxPiece | ConvexPiece]:
         """Boxes whose upper faces form the terrain: the visual geometry, and with the defaults
         the reference that `collision_pieces` approximates with fewer boxes.
 
@@ -486,8 +516,9 @@ class DitchTerrain:
                 revolved wedge pieces: the surface there is lower by at most
                 slope * d * (1 - cos(turn / 2)) (about 1 cm on the sine ditch's 6 degree
                 bends), and the bends need no pieces of their own.
-            end_turn_deg: angular step of the pieces revolved around the course's two ends
-                (None: `max_turn_deg`); a crater is always revolved at `max_turn_deg`.
+            convex_sections: each section's slabs (one segment's side, one revolved step) from
+                the wall up, where the profile only bends downwards so that the solid under
+                it is convex, as one `ConvexPiece` (their hull); the toe's slabs stay boxes.
         """
         pieces = self._floor_piece()
         # The profile pieces reach past the hinge far enough to close the staircase
@@ -501,24 +532,27 @@ class DitchTerrain:
         headings = [math.atan2(*(b - a)[::-1]) for a, b in segments]
         # turns[i]: heading change where segment i starts (0 at the course's ends).
         turns = [0.0] + [_wrap(headings[i] - headings[i - 1]) for i in range(1, len(segments))] + [0.0]
+        # The steepest facet is the wall: the profile bends only upwards before it (the toe)
+        # and only downwards from it on (the hinge, the flat edge).
+        first_convex = int(np.argmax([(h1 - h0) / (d1 - d0) for d0, d1, h0, h1 in facets]))
+        sections: list[list[BoxPiece]] = []
         for i, ((a, b), heading) in enumerate(zip(segments, headings)):
             for side in (+1.0, -1.0):
                 normal_angle = heading + side * math.pi / 2
-                for facet in facets:
-                    if mitre_bends:
-                        pieces.append(_swept_piece(a, b, normal_angle, facet, thickness_m,
-                                                   _mitre(turns[i], side, facet[1]), _mitre(turns[i + 1], side, facet[1])))
-                    else:
-                        pieces.append(_swept_piece(a, b, normal_angle, facet, thickness_m))
+                if mitre_bends:
+                    sections.append([_swept_piece(a, b, normal_angle, facet, thickness_m, _mitre(turns[i], side, facet[1]),
+                                                  _mitre(turns[i + 1], side, facet[1])) for facet in facets])
+                else:
+                    sections.append([_swept_piece(a, b, normal_angle, facet, thickness_m) for facet in facets])
         step = math.radians(self.params.max_turn_deg)
         if not segments:  # a crater: revolve the profile all the way round
-            pieces += _revolved_pieces(course[0], 0.0, 2 * math.pi, step, facets, thickness_m)
+            sections += _revolved_sections(course[0], 0.0, 2 * math.pi, step, facets, thickness_m)
         else:
             # Ends: half turns; bends: the wedge on the outer side (unless mitred).
-            pieces += _revolved_pieces(segments[0][0], headings[0] + math.pi / 2, math.pi, step, facets,
-                                       thickness_m)
-            pieces += _revolved_pieces(segments[-1][1], headings[-1] - math.pi / 2, math.pi, step, facets,
-                                       thickness_m)
+            sections += _revolved_sections(segments[0][0], headings[0] + math.pi / 2, math.pi, step, facets,
+                                           thickness_m)
+            sections += _revolved_sections(segments[-1][1], headings[-1] - math.pi / 2, math.pi, step, facets,
+                                           thickness_m)
             for i in range(1, len(segments) if not mitre_bends else 0):
                 turn = _wrap(headings[i] - headings[i - 1])
                 if abs(turn) < 1e-9:
@@ -528,22 +562,36 @@ class DitchTerrain:
                     start = headings[i - 1] - math.pi / 2
                 else:
                     start = headings[i - 1] + math.pi / 2 + turn
-                pieces += _revolved_pieces(segments[i][0], start, abs(turn), step, facets, thickness_m)
+                sections += _revolved_sections(segments[i][0], start, abs(turn), step, facets, thickness_m)
+        for section in sections:
+            if convex_sections:
+                pieces += section[:first_convex] + [ConvexPiece.hull_of(section[first_convex:])]
+            else:
+                pieces += section
         pieces += self._ground_pieces(ground_cell_m)
         return pieces
 
-    def collision_pieces(self) -> list[BoxPiece]:
-        """The collision geometry: `box_pieces` with mitred bends (no wedge pieces at the bends),
-        a winding ditch's boxes cut by a quarter (the packaged sine's 1975 to 1535).
+    @property
+    def winding(self) -> bool:
+        """Whether the course bends (a sine or an arc)."""
+        return len(self.course_xy) > 2
 
-        Drake's collision filter keeps an entry for every pair of proximity geometries, in the
-        geometry model and again in each Context, so a scene's memory and build time grow with
-        the square of the number of boxes (`ditch_drake.benchmarks.bench_scene`, docs/benchmark.md).
-        The ends and a crater keep `box_pieces`' revolved pieces: coarser ones changed where
-        crossings run along the edge into the rounded end. The visual geometry stays
-        `box_pieces`, so the lidar sees the same terrain.
+    def collision_pieces(self) -> list[BoxPiece | ConvexPiece]:
+        """The collision geometry. A straight ditch's or a crater's: `box_pieces`. A winding
+        ditch's: `box_pieces` with mitred bends (no wedge pieces at the bends) and convex
+        sections, the packaged sine's 1975 boxes cut to 785 pieces.
+
+        Drake's collision filter keeps an entry for every pair of proximity geometries, twice
+        in the geometry model and twice again in each Context, so a scene's memory and build
+        time grow with the square of the number of pieces (`ditch_drake.benchmarks.bench_scene`,
+        docs/benchmark.md). A convex section has the surface of its slabs' tops, and a sphere
+        touching it gets one contact point instead of one per slab it reaches. Straight ditches
+        and craters, a few hundred pieces, keep the slabs. The visual geometry stays
+        `box_pieces`, so the lidar sees the same terrain either way.
         """
-        return self.box_pieces(mitre_bends=True)
+        if not self.winding:
+            return self.box_pieces()
+        return self.box_pieces(mitre_bends=True, convex_sections=True)
 
     def _floor_piece(self) -> list[BoxPiece]:
         low, high = self.course_xy.min(axis=0) - self.half_width_m, self.course_xy.max(axis=0) + self.half_width_m
@@ -578,8 +626,8 @@ class DitchTerrain:
                                        np.array([(x0 + x1) / 2, (y0 + y1) / 2, -0.5]), "ground"))
         return pieces
 
-    def pieces_height(self, xy: np.ndarray, pieces: list[BoxPiece] | None = None) -> np.ndarray:
-        """Height of the union of box pieces' upper faces at points xy (N, 2).
+    def pieces_height(self, xy: np.ndarray, pieces: list[BoxPiece | ConvexPiece] | None = None) -> np.ndarray:
+        """Height of the union of the pieces' upper surfaces at points xy (N, 2).
 
         Used by tests to check the collision geometry against `height`.
         """
@@ -587,6 +635,9 @@ class DitchTerrain:
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
         top = np.full(len(xy), -np.inf)
         for piece in pieces:
+            if isinstance(piece, ConvexPiece):
+                top = np.maximum(top, piece.top_height(xy))
+                continue
             normal = piece.R_WP[:, 2]
             if normal[2] < 1e-6:
                 continue
@@ -626,7 +677,11 @@ def _facet_piece(origin: np.ndarray, normal_angle: float, facet, along_m: float,
     uphill /= width
     up = np.array([-n[0] * (h1 - h0), -n[1] * (h1 - h0), d1 - d0])
     up /= np.linalg.norm(up)
-    R = np.column_stack([np.cross(uphill, up), uphill, up])
+    # uphill x up, written out: np.cross costs more than the rest of a piece (the packaged
+    # sine builds thousands), and gives the same numbers.
+    across = np.array([uphill[1] * up[2] - uphill[2] * up[1], uphill[2] * up[0] - uphill[0] * up[2],
+                       uphill[0] * up[1] - uphill[1] * up[0]])
+    R = np.column_stack([across, uphill, up])
     top_center = np.array([*(origin + n * (d0 + d1) / 2), (h0 + h1) / 2])
     return BoxPiece(np.array([along_m, width, thickness_m]), R, top_center - up * thickness_m / 2, "wall")
 
@@ -650,14 +705,14 @@ def _mitre(turn: float, side: float, outer_distance_m: float) -> float:
     return 0.005
 
 
-def _revolved_pieces(center, start_angle, sweep, step, facets, thickness_m) -> list[BoxPiece]:
+def _revolved_sections(center, start_angle, sweep, step, facets, thickness_m) -> list[list[BoxPiece]]:
+    """The profile's slabs revolved around `center` in steps of at most `step` (rad), a list per step."""
     count = max(1, math.ceil(sweep / step - 1e-9))
     width = sweep / count
-    pieces = []
+    sections = []
     for k in range(count):
         angle = start_angle + (k + 0.5) * width
-        for facet in facets:
-            # The chord at the outer radius, so that neighbours leave no gap.
-            along = 2 * facet[1] * math.tan(width / 2) + 0.01
-            pieces.append(_facet_piece(np.asarray(center), angle, facet, along, thickness_m))
-    return pieces
+        # Each slab spans the chord at its outer radius, so that neighbours leave no gap.
+        sections.append([_facet_piece(np.asarray(center), angle, facet, 2 * facet[1] * math.tan(width / 2) + 0.01,
+                                      thickness_m) for facet in facets])
+    return sections
