@@ -9,13 +9,14 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 from pydrake.common import RandomGenerator
+from pydrake.geometry import Role
 from pydrake.math import RigidTransform, RollPitchYaw, RotationMatrix
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import CacheIndex, Diagram, DiagramBuilder
 from pydrake.systems.sensors import ImageDepth32F
 
-from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
-from ditch_drake.diagrams.lidar_rig import AddLidar, LidarHandles, MergeAnchoredPerceptionBoxes
+from ditch_drake.diagrams.ditch_scene import AddDitchScene, AddTerrainPerception, DitchScene, SceneConfig
+from ditch_drake.diagrams.lidar_rig import AddLidar, LidarHandles
 from ditch_drake.perception.lidar_model import LidarConfig, lidar_camera_info, lidar_camera_poses
 from ditch_drake.spec import robot
 from ditch_drake.systems.lidar import DepthImagesToLidarCloud
@@ -221,9 +222,32 @@ def test_merged_terrain_mesh_renders_like_the_boxes(environment, faces):
     assert differ <= 1e-3 * total
 
 
-def test_merge_rejects_unknown_faces(wide):
+def test_terrain_perception_rejects_unknown_faces():
+    builder = DiagramBuilder()
+    scene = AddDitchScene(builder, SceneConfig(environment="wide"))
     with pytest.raises(ValueError, match="faces='bottom'"):
-        MergeAnchoredPerceptionBoxes(wide.scene.scene_graph, wide.scene.plant.get_source_id(), faces="bottom")
+        AddTerrainPerception(scene, faces="bottom")
+
+
+def test_terrain_perception_is_added_once_by_the_first_lidar():
+    builder = DiagramBuilder()
+    scene = AddDitchScene(builder, SceneConfig(environment="wide"))
+    assert AddTerrainPerception(scene, faces="top") == 3  # floor, wall and ground meshes
+    assert AddTerrainPerception(scene, faces=None) == 0
+    AddLidar(builder, scene, LidarConfig(merge_terrain_geometry=False))
+    inspector = scene.scene_graph.model_inspector()
+    names = [inspector.GetName(g) for g in inspector.GetGeometries(inspector.world_frame_id(), Role.kPerception)]
+    assert sorted(n for n in names if n.startswith("terrain_")) == [
+        "terrain_perception_floor", "terrain_perception_ground", "terrain_perception_wall"]
+
+
+def test_unmerged_terrain_renders_every_box():
+    setup = _build("crater", LidarConfig(merge_terrain_geometry=False))
+    inspector = setup.scene.scene_graph.model_inspector()
+    perceived = [g for g in inspector.GetGeometries(inspector.world_frame_id(), Role.kPerception)
+                 if inspector.GetName(g).startswith("terrain_perception_")]
+    assert len(perceived) == len(setup.scene.terrain.box_pieces())
+    assert np.isfinite(_scan(setup)[1]).all(axis=0).sum() > 100
 
 
 def test_sees_into_the_ditch_from_its_edge(wide):

@@ -46,7 +46,7 @@ def test_the_page_embeds_the_animation_of_robot_and_lidar_and_the_path(replay):
         assert f"/replay/lidar/{index:04d}".encode() in animations[0]
     drawn = b"".join(command for command in commands if b"set_object" in command)
     assert b"/replay/path" in drawn and b"/replay/lidar/0000" in drawn
-    assert b"/drake/illustration/terrain_wall_" in drawn and b"/drake/illustration/terrain_floor_" in drawn  # The ditch.
+    assert b"/drake/illustration/terrain_wall" in drawn and b"/drake/illustration/terrain_floor" in drawn  # The ditch.
 
 
 def test_the_recording_renders_in_a_headless_browser(replay, tmp_path):

@@ -7,8 +7,23 @@ from importlib import resources
 from pathlib import Path
 
 import numpy as np
+from pydrake.common import MemoryFile
 from pydrake.common.eigen_geometry import Quaternion_
-from pydrake.geometry import Box, Convex, Meshcat, ProximityProperties, SceneGraph
+from pydrake.geometry import (
+    Box,
+    Convex,
+    GeometryInstance,
+    InMemoryMesh,
+    MakePhongIllustrationProperties,
+    Mesh,
+    Meshcat,
+    PerceptionProperties,
+    ProximityProperties,
+    RenderLabel,
+    Rgba,
+    Role,
+    SceneGraph,
+)
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import (
@@ -26,6 +41,7 @@ from ditch_drake.spec import robot
 from ditch_drake.spec.schedule import ScheduleConfig
 from ditch_drake.systems.episode_monitor import EpisodeConfig, EpisodeMonitor
 from ditch_drake.systems.skid_steer_drive import SkidSteerDrive
+from ditch_drake.world.box_mesh import FACE_CHOICES, boxes_obj
 from ditch_drake.world.environments import ConfigError, Environment, Task, get_environment, get_task
 from ditch_drake.world.terrain import BoxPiece, ConvexPiece, DitchTerrain
 
@@ -106,13 +122,17 @@ def MakeParser(plant: MultibodyPlant) -> Parser:
 
 
 def AddDitchTerrain(plant: MultibodyPlant, terrain: DitchTerrain) -> int:
-    """Welds the terrain's pieces (named `terrain_*`) and its walls' (`barrier_*`) to the
-    world: `DitchTerrain.collision_pieces` as collision geometry, `DitchTerrain.box_pieces`
-    as visual geometry (illustration and perception: what Meshcat and the lidar see).
+    """Welds the terrain and its walls to the world: `DitchTerrain.collision_pieces` as
+    collision geometry (named `terrain_*`), `DitchTerrain.box_pieces` for illustration as one
+    mesh per kind of piece (`terrain_<kind>`: what Meshcat shows), and the walls' boxes
+    (`barrier_*`) for collision, illustration and perception. The terrain's perception
+    geometry (what cameras see) is the lidar's to add, with the faces it renders
+    (`AddTerrainPerception`, called by `AddLidar`).
 
     The collision set is the smaller one: SceneGraph's collision filter costs memory and time
-    with the square of the number of collision geometries (see `collision_pieces`), visual
-    geometry only linearly.
+    with the square of the number of collision geometries (see `collision_pieces`); every
+    geometry registered costs time growing with those already registered, so the visual
+    pieces go in as a few meshes (`ditch_drake.world.box_mesh`).
 
     Returns the number of visual pieces.
     """
@@ -120,14 +140,76 @@ def AddDitchTerrain(plant: MultibodyPlant, terrain: DitchTerrain) -> int:
     properties = ProximityProperties()
     properties.AddProperty("material", "coulomb_friction", ground_friction)
     walls = [(f"barrier_{index}", piece) for index, piece in enumerate(terrain.wall_pieces())]
-    visual = [(f"terrain_{piece.kind}_{index}", piece) for index, piece in enumerate(terrain.box_pieces())]
     collision = [(f"terrain_{piece.kind}_{index}", piece) for index, piece in enumerate(terrain.collision_pieces())]
     world = plant.world_body()
     for name, piece in collision + walls:
         plant.RegisterCollisionGeometry(world, _piece_pose(piece), _piece_shape(piece, name), name, properties)
-    for name, piece in visual + walls:
+    visual = terrain.box_pieces()
+    for kind, boxes in _boxes_by_kind(visual).items():
+        name = f"terrain_{kind}"
+        mesh = Mesh(InMemoryMesh(mesh_file=MemoryFile(boxes_obj(boxes, "all"), ".obj", f"{name}.obj")))
+        instance = GeometryInstance(RigidTransform(), mesh, name)
+        instance.set_illustration_properties(MakePhongIllustrationProperties(TERRAIN_COLORS[kind]))
+        plant.RegisterVisualGeometry(world, instance)
+    for name, piece in walls:
         plant.RegisterVisualGeometry(world, _piece_pose(piece), Box(*piece.size), name, TERRAIN_COLORS[piece.kind])
     return len(visual) + len(walls)
+
+
+# The terrain's perception geometry: `terrain_perception_<kind>` meshes or, unmerged,
+# `terrain_perception_<kind>_<index>` boxes.
+TERRAIN_PERCEPTION_PREFIX = "terrain_perception_"
+
+
+def AddTerrainPerception(scene: "DitchScene", faces: str | None = "up") -> int:
+    """Adds the terrain's pieces (`DitchTerrain.box_pieces`) to `scene`'s scene graph for
+    perception (every camera's renderer), unless an earlier call did.
+
+    `faces`: the faces of the boxes rendered, as one mesh per kind of piece
+    (`ditch_drake.world.box_mesh.boxes_obj`: "up", "top" or "all"); None: every box on its
+    own. The properties are those `MultibodyPlant` gives the world's visual geometry: the
+    piece's colour and the world body's render label. Must run before a Context is created.
+
+    Raises:
+        ValueError: `faces` is not None, "top", "up" or "all".
+
+    Returns:
+        The number of geometries added (0: the terrain had its perception geometry already).
+    """
+    if faces is not None and faces not in FACE_CHOICES:
+        raise ValueError(f"faces={faces!r} must be one of {FACE_CHOICES} or None")
+    scene_graph, plant = scene.scene_graph, scene.plant
+    source_id = plant.get_source_id()
+    inspector = scene_graph.model_inspector()
+    for geometry_id in inspector.GetGeometries(inspector.world_frame_id(), Role.kPerception):
+        if inspector.GetName(geometry_id).rpartition("::")[2].startswith(TERRAIN_PERCEPTION_PREFIX):
+            return 0
+    label = RenderLabel(int(plant.world_body().index()))
+    added = 0
+    for kind, boxes in _boxes_by_kind(scene.terrain.box_pieces()).items():
+        properties = PerceptionProperties()
+        properties.AddProperty("phong", "diffuse", Rgba(*TERRAIN_COLORS[kind]))
+        properties.AddProperty("label", "id", label)
+        name = f"{TERRAIN_PERCEPTION_PREFIX}{kind}"
+        if faces is None:
+            instances = [GeometryInstance(RigidTransform(pose), Box(*size), f"{name}_{index}")
+                         for index, (size, pose) in enumerate(boxes)]
+        else:
+            mesh = InMemoryMesh(mesh_file=MemoryFile(boxes_obj(boxes, faces), ".obj", f"{name}.obj"))
+            instances = [GeometryInstance(RigidTransform(), Mesh(mesh), name)]
+        for instance in instances:
+            geometry_id = scene_graph.RegisterAnchoredGeometry(source_id, instance)
+            scene_graph.AssignRole(source_id, geometry_id, PerceptionProperties(properties))
+        added += len(instances)
+    return added
+
+
+def _boxes_by_kind(pieces: list[BoxPiece]) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """(size, X_WP as 3 x 4) of the pieces, by kind in the order each kind first appears."""
+    boxes: dict[str, list] = {}
+    for piece in pieces:
+        boxes.setdefault(piece.kind, []).append((piece.size, _piece_pose(piece).GetAsMatrix34()))
+    return boxes
 
 
 def _piece_pose(piece: BoxPiece | ConvexPiece) -> RigidTransform:

@@ -46,6 +46,7 @@ from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.systems.sensors import CameraInfo
 
 from ditch_drake.spec import robot
+from ditch_drake.world.box_mesh import FACE_CHOICES
 
 # `RenderEngineVtk` (Drake 1.51) renders pixel (u, v) along the ray through the image point
 # (u + 0.5, v + 0.5) of the `CameraInfo` pinhole model (the principal point counted from the
@@ -53,8 +54,8 @@ from ditch_drake.spec import robot
 # ground, the returns are exact with this offset and up to half a pixel off without it.
 PIXEL_CENTER = 0.5
 
-# The choices of `MergeAnchoredPerceptionBoxes`'s `faces` (and `LidarConfig.terrain_faces`).
-TERRAIN_FACE_CHOICES = ("top", "up", "all")
+# The choices of `LidarConfig.terrain_faces` (`ditch_drake.world.box_mesh.boxes_obj`'s `faces`).
+TERRAIN_FACE_CHOICES = FACE_CHOICES
 
 # Drake's camera frame C in a frame F with +x forward, +y left, +z up: columns are C's axes.
 _R_FC = RotationMatrix(np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]))
@@ -82,9 +83,10 @@ class LidarConfig:
         crop_self_occluded: leave out the image rows below the lowest ray that can miss the
             chassis: they only ever see the chassis top (see `lidar_camera_info`).
         renderer_name: the SceneGraph renderer the cameras use (added if missing).
-        merge_terrain_geometry: merge the anchored perception boxes for fast rendering.
+        merge_terrain_geometry: render the terrain's boxes as one mesh per kind of piece (fast)
+            instead of box by box (`ditch_drake.diagrams.ditch_scene.AddTerrainPerception`).
         terrain_faces: which of the merged boxes' faces are rendered: "top", "up" or "all"
-            (`MergeAnchoredPerceptionBoxes`).
+            (`ditch_drake.world.box_mesh.boxes_obj`).
         rasterizer_threads: worker threads of Mesa's llvmpipe, the CPU rasterizer behind
             headless EGL (its `LP_NUM_THREADS`; 0: rasterize in the rendering thread).
             `AddLidar` sets it for the process unless `LP_NUM_THREADS` is already set;

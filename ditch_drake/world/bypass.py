@@ -29,6 +29,7 @@ import numpy as np
 from scipy import ndimage
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import breadth_first_order
+from scipy.spatial import cKDTree
 
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.spec import robot
@@ -96,8 +97,11 @@ def rasterize_field(terrain: DitchTerrain, config: BypassConfig | None = None) -
     xs, ys = low[0] + r * np.arange(nx), low[1] + r * np.arange(ny)
     grid = np.stack(np.meshgrid(xs, ys, indexing="xy"), axis=-1).reshape(-1, 2)
     walls = terrain.distance_to_walls(grid).reshape(ny, nx) <= config.clearance_m
-    # Chunks bound the (points x course segments) temporaries of the terrain's queries.
-    normal_z = np.concatenate([terrain.normal(chunk)[:, 2] for chunk in np.array_split(grid, max(1, len(grid) // 20000))])
+    normal_z = np.ones(len(grid))
+    near = _near_course(terrain, grid, terrain.half_width_m + r)
+    if near.any():
+        normal_z[near] = np.concatenate([terrain.normal(chunk)[:, 2]
+                                         for chunk in np.array_split(grid[near], max(1, near.sum() // 20000))])
     steep = (normal_z < math.cos(math.radians(config.max_slope_deg))).reshape(ny, nx)
     grow = max(1, math.ceil(config.clearance_m / r))
     disk = np.hypot(*np.mgrid[-grow:grow + 1, -grow:grow + 1]) * r <= config.clearance_m
@@ -108,6 +112,20 @@ def rasterize_field(terrain: DitchTerrain, config: BypassConfig | None = None) -
     border = np.concatenate([walls_and_slopes[0], walls_and_slopes[-1], walls_and_slopes[:, 0],
                              walls_and_slopes[:, -1]])
     return FieldGrid(low, r, walls_only, walls_and_slopes, frozenset(int(v) for v in border if v))
+
+
+def _near_course(terrain: DitchTerrain, xy: np.ndarray, distance_m: float) -> np.ndarray:
+    """Which points (N, 2) may lie within `distance_m` of the course: all that do, and some
+    others. The ground is level beyond the hinge, so only these need the terrain's (points x
+    course segments) query."""
+    spacing = distance_m / 4
+    samples = [terrain.course_xy[:1]]
+    for a, b in zip(terrain.course_xy[:-1], terrain.course_xy[1:]):
+        count = max(1, math.ceil(np.linalg.norm(b - a) / spacing))
+        samples.append(a + np.outer(np.arange(1, count + 1) / count, b - a))
+    # Every course point lies within spacing / 2 of a sample.
+    gap, _ = cKDTree(np.concatenate(samples)).query(xy, distance_upper_bound=distance_m + spacing)
+    return gap <= distance_m + spacing / 2
 
 
 def route_between(labels: np.ndarray, start: tuple[int, int], goal: tuple[int, int]) -> np.ndarray:

@@ -269,6 +269,7 @@ class DitchTerrain:
         self._seg_vec = ends - starts
         self._seg_len2 = np.maximum(np.sum(self._seg_vec**2, axis=1), 1e-300)
         self._check_walls_off_the_floor()
+        self._pieces_made: dict[tuple, list] = {}
 
     # ----- walls ----------------------------------------------------------------------
     @property
@@ -519,7 +520,17 @@ class DitchTerrain:
             convex_sections: each section's slabs (one segment's side, one revolved step) from
                 the wall up, where the profile only bends downwards so that the solid under
                 it is convex, as one `ConvexPiece` (their hull); the toe's slabs stay boxes.
+
+        The pieces are made once per set of arguments (a scene asks twice: its illustration
+        and its lidar's perception geometry).
         """
+        key = (ground_cell_m, thickness_m, mitre_bends, convex_sections)
+        if key not in self._pieces_made:
+            self._pieces_made[key] = self._make_pieces(*key)
+        return list(self._pieces_made[key])
+
+    def _make_pieces(self, ground_cell_m: float, thickness_m: float, mitre_bends: bool,
+                     convex_sections: bool) -> list[BoxPiece | ConvexPiece]:
         pieces = self._floor_piece()
         # The profile pieces reach past the hinge far enough to close the staircase
         # gap left by the flat-ground cells.
@@ -535,6 +546,13 @@ class DitchTerrain:
         # The steepest facet is the wall: the profile bends only upwards before it (the toe)
         # and only downwards from it on (the hinge, the flat edge).
         first_convex = int(np.argmax([(h1 - h0) / (d1 - d0) for d0, d1, h0, h1 in facets]))
+        if convex_sections:
+            # The wall's plane continued down to the floor's height lies under the toe (which
+            # bends upwards into it): in the convex piece it buries the piece's lower end, whose
+            # edge would otherwise stand at the top of the toe.
+            d0, d1, h0, h1 = facets[first_convex]
+            slope = (h1 - h0) / (d1 - d0)
+            facets = facets + [(d0 - (h0 + self.params.depth_m) / slope, d1, -self.params.depth_m, h1)]
         sections: list[list[BoxPiece]] = []
         for i, ((a, b), heading) in enumerate(zip(segments, headings)):
             for side in (+1.0, -1.0):
