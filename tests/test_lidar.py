@@ -20,6 +20,7 @@ from ditch_drake.diagrams.lidar_rig import AddLidar, LidarHandles
 from ditch_drake.perception.lidar_model import LidarConfig, lidar_camera_info, lidar_camera_poses
 from ditch_drake.spec import robot
 from ditch_drake.systems.lidar import DepthImagesToLidarCloud
+from ditch_drake.world.box_mesh import boxes_obj
 
 
 @dataclass
@@ -363,3 +364,16 @@ def test_renders_only_at_the_control_rate(wide):
     control_ticks = round(1.0 / robot.CONTROL_PERIOD_S)
     assert steps == 50
     assert control_ticks - 1 <= renders <= control_ticks + 1
+
+
+@pytest.mark.parametrize("faces, triangles", [("all", 12), ("up", 2), ("top", 2)])
+def test_box_mesh_keeps_the_faces_asked_for(faces, triangles):
+    tilted = RigidTransform(RollPitchYaw(0.0, 0.3, 0.0), [1.0, 2.0, -0.5]).GetAsMatrix34()
+    flat = RigidTransform([0.0, 0.0, -0.5]).GetAsMatrix34()
+    obj = boxes_obj([(np.array([1.0, 2.0, 1.0]), flat)], faces)
+    assert obj.count("\nf ") == triangles
+    # A tilted box shows its top and one end face upwards; "top" keeps only the top.
+    tilted_obj = boxes_obj([(np.array([1.0, 2.0, 1.0]), tilted)], faces)
+    assert tilted_obj.count("\nf ") == {"all": 12, "up": 4, "top": 2}[faces]
+    with pytest.raises(ValueError, match="faces='side'"):
+        boxes_obj([(np.array([1.0, 1.0, 1.0]), flat)], "side")

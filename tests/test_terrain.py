@@ -5,8 +5,16 @@ import math
 import numpy as np
 import pytest
 
+from ditch_drake.world.bypass import _near_course
 from ditch_drake.world.environments import get_environment
-from ditch_drake.world.terrain import DitchTerrain, TerrainError, TerrainParams, min_bend_radius_m
+from ditch_drake.world.terrain import (
+    BoxPiece,
+    ConvexPiece,
+    DitchTerrain,
+    TerrainError,
+    TerrainParams,
+    min_bend_radius_m,
+)
 
 ENVIRONMENTS = ["crater", "wide", "narrow", "sine"]
 
@@ -96,6 +104,59 @@ def test_collision_pieces_are_fewer_and_match_the_visual_ones_away_from_the_ends
         swept = [p for p in visual if p.kind == "wall"][:len([p for p in collision if p.kind == "wall"])]
         assert all(np.array_equal(a.p_WP, b.p_WP) and np.array_equal(a.size, b.size)
                    for a, b in zip(swept[:20], [p for p in collision if p.kind == "wall"][:20]))
+
+
+def test_a_winding_ditch_collides_with_convex_sections_and_the_others_with_the_visual_boxes():
+    sine = DitchTerrain(get_environment("sine").terrain)
+    collision = sine.collision_pieces()
+    convex = [piece for piece in collision if isinstance(piece, ConvexPiece)]
+    # One convex piece per section (each segment's two sides, each revolved step of the ends),
+    # beside the toe's four boxes each.
+    sections = 2 * (len(sine.course_xy) - 1) + 2 * 30
+    assert len(convex) == sections
+    assert sum(isinstance(piece, BoxPiece) and piece.kind == "wall" for piece in collision) == 4 * sections
+    for name in ("wide", "crater"):
+        terrain = DitchTerrain(get_environment(name).terrain)
+        assert not terrain.winding
+        assert all(isinstance(piece, BoxPiece) for piece in terrain.collision_pieces())
+
+
+def test_the_convex_sections_lie_under_the_toe():
+    """Their wall goes on down to the floor's height under the toe, so that no edge of theirs
+    stands at the top of the toe (where a Husky's nose caught on it and stuck)."""
+    terrain = DitchTerrain(get_environment("sine").terrain)
+    convex = [piece for piece in terrain.collision_pieces() if isinstance(piece, ConvexPiece)]
+    rng = np.random.default_rng(3)
+    points = terrain.course_xy[rng.integers(5, len(terrain.course_xy) - 5, 20000)] + rng.uniform(-3.5, 3.5, (20000, 2))
+    d, _ = terrain.nearest_on_course(points)
+    grid = np.linspace(terrain.toe_distance_m, terrain.half_width_m, 4000)
+    wall_foot = grid[np.argmax(terrain.profile_slope(grid))]  # where the toe ends
+    toe = points[(d > wall_foot - 0.1) & (d < wall_foot - 0.01)]
+    assert len(toe) > 100
+    below = terrain.pieces_height(toe, convex) - terrain.height(toe)
+    assert np.isfinite(below).mean() > 0.9  # their wall does reach under the toe,
+    assert np.max(below[np.isfinite(below)]) < 0.005  # and stays beneath it
+
+
+def test_convex_piece_top_height_is_its_hull_top():
+    box = BoxPiece(np.array([2.0, 1.0, 0.5]), np.eye(3), np.array([1.0, 0.0, -0.25]), "wall")
+    piece = ConvexPiece.hull_of([box])
+    xy = np.array([[0.5, 0.2], [1.9, -0.4], [3.0, 0.0], [1.0, 0.6]])
+    np.testing.assert_allclose(piece.top_height(xy)[:2], [0.0, 0.0], atol=1e-12)
+    assert np.all(np.isneginf(piece.top_height(xy)[2:]))  # outside the footprint
+
+
+@pytest.mark.parametrize("name", ["sine", "crater"])
+def test_the_bypass_grid_queries_every_point_near_the_course(name):
+    terrain = DitchTerrain(get_environment(name).terrain)
+    rng = np.random.default_rng(4)
+    low, high = terrain.bounds_xy()
+    points = rng.uniform(low, high, (20000, 2))
+    distance = terrain.half_width_m + 0.1
+    d, _ = terrain.nearest_on_course(points)
+    near = _near_course(terrain, points, distance)
+    assert np.all(near[d <= distance])
+    assert near.mean() < 2 * (d <= distance).mean() + 0.01  # and not many more
 
 
 def _pieces_error_near(terrain, centre_xy, count=2500):

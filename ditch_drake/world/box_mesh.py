@@ -1,9 +1,8 @@
 """Boxes as one OBJ mesh: how the terrain's slabs (`DitchTerrain.box_pieces`) reach Meshcat
 and the lidar's renderer as a few geometries instead of thousands.
 
-SceneGraph's cost of registering a geometry grows with the geometries already in its frame
-(2000 anchored boxes take about 0.4 s, 1000 a third of that), and `RenderEngineVtk` costs
-10-35 us per actor per image; a mesh per colour costs neither.
+SceneGraph's time to register a geometry grows with the geometries already in its frame, and
+`RenderEngineVtk` costs 10-35 us per actor per image; a mesh per kind of piece costs neither.
 """
 
 import numpy as np
