@@ -54,7 +54,7 @@ def boxes_obj(boxes: list[tuple[np.ndarray, np.ndarray]], faces: str = "all") ->
     k = np.arange(1, len(quads) + 1)
     triangles = np.stack([quads[:, 0], k, quads[:, 1], k, quads[:, 2], k, quads[:, 0], k, quads[:, 2], k,
                           quads[:, 3], k], axis=1)
-    # One format string per block: a tenth of the time of formatting line by line.
+    # One format string per block: the same text in a third of the time of line by line.
     return (("v %.6f %.6f %.6f\n" * len(corners) * 4) % tuple(corners.ravel().tolist())
             + ("vn %.6f %.6f %.6f\n" * len(face_normals)) % tuple(face_normals.ravel().tolist())
             + ("f %d//%d %d//%d %d//%d\nf %d//%d %d//%d %d//%d\n" * len(quads)) % tuple(triangles.ravel().tolist()))

@@ -28,6 +28,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import ConvexHull
 
 from ditch_drake.common.errors import TerrainError
 
@@ -239,8 +240,6 @@ class ConvexPiece:
 
     def top_height(self, xy: np.ndarray) -> np.ndarray:
         """Height (m) of the hull's upper surface over points xy (N, 2); -inf outside it."""
-        from scipy.spatial import ConvexHull
-
         equations = ConvexHull(self.vertices_W).equations  # n . p + offset <= 0 inside
         n_xy, n_z, offset = equations[:, :2], equations[:, 2], equations[:, 3]
         level = xy @ n_xy.T + offset  # (N, faces): n_z * z + level <= 0
