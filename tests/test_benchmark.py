@@ -213,19 +213,8 @@ def test_train_generalist_refuses_a_bad_count_before_any_work(tmp_path, capsys, 
     assert not work.exists()
 
 
-def test_the_benchmark_command_replaces_its_workers_every_30_rollouts(tmp_path, monkeypatch):
+def test_the_benchmark_command_replaces_its_workers_every_30_rollouts(tmp_path, recorded_pools):
     """Every generated ditch builds diagrams of its own: the pools are refreshed more often."""
-    from ditch_drake.evaluation import batch, rollout_worker
-
-    pools = []
-
-    def fake_pool(specs, workers, keep):
-        pools.append((len(specs), workers))
-        for spec in specs:
-            keep(rollout_worker.error_record(spec, "not run", 0.0))
-        return []
-
-    monkeypatch.setattr(batch, "_run_pool", fake_pool)
     assert main(["benchmark", "--split", "val", "--controller", "head_on", "--geometries", "11", "--workers", "1",
                  "--out", str(tmp_path / "val.jsonl")]) == 0
-    assert pools == [(30, 1), (3, 1)]
+    assert recorded_pools == [(30, 1), (3, 1)]

@@ -76,16 +76,8 @@ def test_worker_processes_give_the_same_records_as_one_process(tmp_path, monkeyp
     assert by_key[0] == by_key[1] == by_key[2] and len(by_key[0]) == len(SPECS)
 
 
-def test_pending_rollouts_run_in_fresh_pools_of_workers_times_rollouts_per_worker(tmp_path, monkeypatch):
-    pools = []
-
-    def fake_pool(specs, workers, keep):
-        pools.append((len(specs), workers))
-        for spec in specs:
-            keep(rollout_worker.error_record(spec, "not run", 0.0))
-        return []
-
-    monkeypatch.setattr(batch, "_run_pool", fake_pool)
+def test_pending_rollouts_run_in_fresh_pools_of_workers_times_rollouts_per_worker(tmp_path, recorded_pools):
+    pools = recorded_pools
     specs = make_specs("edge_angle", "", "wide", tasks=[0, 1], rollouts=3, time_limit_s=1.0)
     report = evaluate(specs, tmp_path / "results.jsonl", workers=2, progress=False, rollouts_per_worker=2)
     assert pools == [(4, 2), (2, 2)] and report.recorded == 6
