@@ -826,7 +826,7 @@ def build_parser() -> argparse.ArgumentParser:
                             help="demonstrations, each round's checkpoint and the val results")
     generalist.add_argument("--train-geometries", type=int, default=40, help="the train split's first N ditches")
     generalist.add_argument("--demos-per-task", type=int, default=1, help="expert demonstrations per task")
-    generalist.add_argument("--dagger-rounds", type=int, default=3, help="DAgger rounds after the first clone")
+    generalist.add_argument("--dagger-rounds", type=int, default=4, help="DAgger rounds after the first clone")
     generalist.add_argument("--val-geometries", type=int, default=25, help="the val split's first N ditches")
     generalist.add_argument("--dagger-stride", type=int, default=3,
                             help="train on every k-th control step of the DAgger rollouts (memory)")

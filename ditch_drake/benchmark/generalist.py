@@ -59,7 +59,7 @@ class GeneralistConfig:
     work_dir: str = "data/generalist"
     train_geometries: int = 40
     demos_per_task: int = 1
-    dagger_rounds: int = 3
+    dagger_rounds: int = 4
     val_geometries: int = 25
     dagger_stride: int = 3
     epochs: int = 12
