@@ -20,6 +20,7 @@ from ditch_drake.demos.dataset import (
     restack_images,
     save_demonstration,
     standard_metadata,
+    to_array_set,
 )
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.learning.checkpoint import resolve_checkpoint_path
@@ -123,6 +124,21 @@ def test_restack_puts_newest_first_with_zeros_before_the_start():
     stacks = restack_images(frames)
     assert stacks[0, :, 0, 0].tolist() == [1, 0, 0, 0]
     assert stacks[2, :, 0, 0].tolist() == [3, 2, 1, 0]
+
+
+def test_thinned_steps_keep_stacks_of_consecutive_frames():
+    full, thinned = _demonstration(7), _demonstration(7)
+    for demo in (full, thinned):
+        demo.arrays["image"] = np.arange(1, 8, dtype=np.uint8)[:, None, None] * np.ones((7, 128, 128), np.uint8)
+        demo.arrays["label"] = np.arange(7, dtype=np.int16)
+    samples = to_array_set([full, thinned], strides=[1, 3])
+    assert samples.label.tolist() == [0, 1, 2, 3, 4, 5, 6, 0, 3, 6]
+    assert samples.demo_id.tolist() == [0] * 7 + [1] * 3
+    # The kept step 6 (frame 7) stacks frames 7, 6, 5, 4 as the FrameStacker does, not 7, 4, 1, 0.
+    assert samples.image[-1, :, 0, 0].tolist() == [7, 6, 5, 4]
+    assert samples.image[7, :, 0, 0].tolist() == [1, 0, 0, 0]
+    with pytest.raises(DatasetError, match=r"strides=\[1\]: expected one stride >= 1 per demonstration \(2\)"):
+        to_array_set([full, thinned], strides=[1])
 
 
 def test_collect_resumes_keeping_what_is_written(tmp_path):

@@ -309,22 +309,32 @@ def dataset_summary(demonstrations: list[Demonstration]) -> dict:
     }
 
 
-def to_array_set(demonstrations: list[Demonstration], first_demo_id: int = 0):
+def to_array_set(demonstrations: list[Demonstration], first_demo_id: int = 0, strides: list[int] | None = None):
     """The demonstrations as one training `ArraySet`, images restacked as uint8.
 
     Demonstration i gets demo_id first_demo_id + i, so a validation split can hold out
-    whole demonstrations.
+    whole demonstrations. `strides[i]` keeps every k-th step of demonstration i (None: every
+    step); the frames are stacked before the steps are thinned, so that a kept step's stack
+    holds consecutive frames, as the `FrameStacker` gives the policy.
     """
     from ditch_drake.learning.data import ArraySet
 
     if not demonstrations:
         raise DatasetError("no demonstrations to train on")
+    strides = strides or [1] * len(demonstrations)
+    if len(strides) != len(demonstrations) or min(strides) < 1:
+        raise DatasetError(f"strides={strides}: expected one stride >= 1 per demonstration ({len(demonstrations)})")
+    pairs = list(zip(demonstrations, strides, strict=True))
+
+    def joined(name: str) -> np.ndarray:
+        return np.concatenate([demo.arrays[name][::stride] for demo, stride in pairs])
+
     return ArraySet(
-        image=np.concatenate([restack_images(demo.arrays["image"]) for demo in demonstrations]),
-        imu=np.concatenate([demo.arrays["imu_stack"] for demo in demonstrations]),
-        distance=np.concatenate([demo.arrays["distance_stack"] for demo in demonstrations]),
-        bearing=np.concatenate([demo.arrays["bearing_stack"] for demo in demonstrations]),
-        label=np.concatenate([demo.arrays["label"] for demo in demonstrations]).astype(np.int64),
-        demo_id=np.concatenate([np.full(len(demo), first_demo_id + i, np.int64)
-                                for i, demo in enumerate(demonstrations)]),
+        image=np.concatenate([restack_images(demo.arrays["image"])[::stride] for demo, stride in pairs]),
+        imu=joined("imu_stack"),
+        distance=joined("distance_stack"),
+        bearing=joined("bearing_stack"),
+        label=joined("label").astype(np.int64),
+        demo_id=np.concatenate([np.full(len(range(0, len(demo), stride)), first_demo_id + i, np.int64)
+                                for i, (demo, stride) in enumerate(pairs)]),
     )
