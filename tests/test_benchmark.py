@@ -219,21 +219,3 @@ def test_the_benchmark_command_replaces_its_workers_every_30_rollouts(tmp_path, 
                  "--out", str(tmp_path / "val.jsonl")]) == 0
     assert recorded_pools == [(30, 1), (3, 1)]
 
-
-def test_the_generalist_trains_on_every_dagger_stride_th_step_of_dagger_rollouts_with_consecutive_frames(tmp_path):
-    from ditch_drake.benchmark.generalist import GeneralistConfig, _training_samples
-    from ditch_drake.demos.dataset import Demonstration, save_demonstration, standard_metadata
-
-    def demonstration(steps):
-        arrays = {"image": np.arange(1, steps + 1, dtype=np.uint8)[:, None, None] * np.ones((steps, 128, 128), np.uint8),
-                  "imu_stack": np.zeros((steps, 8), np.float32), "distance_stack": np.ones((steps, 4), np.float32),
-                  "bearing_stack": np.zeros((steps, 4), np.float32), "label": np.full(steps, 8, np.int16),
-                  "time_s": np.arange(steps) * 0.1, "pose": np.zeros((steps, 6), np.float32),
-                  "raw_command": np.zeros((steps, 2), np.float32)}
-        return Demonstration(arrays, standard_metadata(environment="wide", task={"index": 0, "name": "a"}, seed=1))
-
-    for name in ("demos", "dagger1"):
-        save_demonstration(tmp_path / name / "demo_000.npz", demonstration(7))
-    samples = _training_samples(GeneralistConfig(dagger_stride=3), [tmp_path / "demos", tmp_path / "dagger1"])
-    assert samples.demo_id.tolist() == [0] * 7 + [1] * 3
-    assert [stack[:, 0, 0].tolist() for stack in samples.image[7:]] == [[1, 0, 0, 0], [4, 3, 2, 1], [7, 6, 5, 4]]

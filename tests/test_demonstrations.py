@@ -126,19 +126,34 @@ def test_restack_puts_newest_first_with_zeros_before_the_start():
     assert stacks[2, :, 0, 0].tolist() == [3, 2, 1, 0]
 
 
+def _numbered_frames(steps):
+    """A demonstration whose frame i is all i + 1 and whose step i has label i."""
+    demonstration = _demonstration(steps)
+    demonstration.arrays["image"] = np.arange(1, steps + 1, dtype=np.uint8)[:, None, None] * np.ones(
+        (steps, 128, 128), np.uint8)
+    demonstration.arrays["label"] = np.arange(steps, dtype=np.int16)
+    return demonstration
+
+
 def test_thinned_steps_keep_stacks_of_consecutive_frames():
-    full, thinned = _demonstration(7), _demonstration(7)
-    for demo in (full, thinned):
-        demo.arrays["image"] = np.arange(1, 8, dtype=np.uint8)[:, None, None] * np.ones((7, 128, 128), np.uint8)
-        demo.arrays["label"] = np.arange(7, dtype=np.int16)
-    samples = to_array_set([full, thinned], strides=[1, 3])
+    samples = to_array_set([_numbered_frames(7), _numbered_frames(7)], strides=[1, 3])
     assert samples.label.tolist() == [0, 1, 2, 3, 4, 5, 6, 0, 3, 6]
     assert samples.demo_id.tolist() == [0] * 7 + [1] * 3
     # The kept step 6 (frame 7) stacks frames 7, 6, 5, 4 as the FrameStacker does, not 7, 4, 1, 0.
     assert samples.image[-1, :, 0, 0].tolist() == [7, 6, 5, 4]
     assert samples.image[7, :, 0, 0].tolist() == [1, 0, 0, 0]
     with pytest.raises(DatasetError, match=r"strides=\[1\]: expected one stride >= 1 per demonstration \(2\)"):
-        to_array_set([full, thinned], strides=[1])
+        to_array_set([_numbered_frames(7), _numbered_frames(7)], strides=[1])
+
+
+def test_the_generalist_trains_on_every_dagger_stride_th_step_of_its_dagger_rollouts(tmp_path):
+    from ditch_drake.benchmark.generalist import GeneralistConfig, _training_samples
+
+    for name in ("demos", "dagger1"):
+        save_demonstration(tmp_path / name / "demo_000.npz", _numbered_frames(7))
+    samples = _training_samples(GeneralistConfig(dagger_stride=3), [tmp_path / "demos", tmp_path / "dagger1"])
+    assert samples.label.tolist() == [0, 1, 2, 3, 4, 5, 6, 0, 3, 6]
+    assert [stack[:, 0, 0].tolist() for stack in samples.image[7:]] == [[1, 0, 0, 0], [4, 3, 2, 1], [7, 6, 5, 4]]
 
 
 def test_collect_resumes_keeping_what_is_written(tmp_path):

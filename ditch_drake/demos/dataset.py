@@ -321,7 +321,7 @@ def to_array_set(demonstrations: list[Demonstration], first_demo_id: int = 0, st
 
     if not demonstrations:
         raise DatasetError("no demonstrations to train on")
-    strides = strides or [1] * len(demonstrations)
+    strides = [1] * len(demonstrations) if strides is None else strides
     if len(strides) != len(demonstrations) or min(strides) < 1:
         raise DatasetError(f"strides={strides}: expected one stride >= 1 per demonstration ({len(demonstrations)})")
     pairs = list(zip(demonstrations, strides, strict=True))
