@@ -218,4 +218,3 @@ def test_the_benchmark_command_replaces_its_workers_every_30_rollouts(tmp_path, 
     assert main(["benchmark", "--split", "val", "--controller", "head_on", "--geometries", "11", "--workers", "1",
                  "--out", str(tmp_path / "val.jsonl")]) == 0
     assert recorded_pools == [(30, 1), (3, 1)]
-
