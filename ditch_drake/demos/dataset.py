@@ -256,12 +256,16 @@ def _validate(arrays: dict, metadata: dict, path: Path) -> None:
         raise DatasetError(f"{path}: labels span {labels.min()}..{labels.max()}; expected 0..{actions.NUM_LABELS - 1}")
 
 
-def restack_images(image: np.ndarray, depth: int = STACK_DEPTH) -> np.ndarray:
-    """(T, H, W) newest frames -> (T, depth, H, W) stacks, newest first, zeros before the start."""
-    steps = len(image)
-    stacks = np.zeros((steps, depth, *image.shape[1:]), dtype=image.dtype)
+def restack_images(image: np.ndarray, depth: int = STACK_DEPTH, stride: int = 1) -> np.ndarray:
+    """(T, H, W) newest frames -> (ceil(T / stride), depth, H, W) stacks of steps 0, stride,
+    2 stride, ...: each the step's frame and the depth - 1 frames before it, newest first, zeros
+    before the start. Only the kept steps' stacks are made (a step's stack is 4 frames)."""
+    kept = np.arange(0, len(image), stride)
+    stacks = np.zeros((len(kept), depth, *image.shape[1:]), dtype=image.dtype)
     for age in range(depth):
-        stacks[age:, age] = image[: steps - age]
+        source = kept - age
+        present = source >= 0
+        stacks[present, age] = image[source[present]]
     return stacks
 
 
@@ -330,7 +334,7 @@ def to_array_set(demonstrations: list[Demonstration], first_demo_id: int = 0, st
         return np.concatenate([demo.arrays[name][::stride] for demo, stride in pairs])
 
     return ArraySet(
-        image=np.concatenate([restack_images(demo.arrays["image"])[::stride] for demo, stride in pairs]),
+        image=np.concatenate([restack_images(demo.arrays["image"], stride=stride) for demo, stride in pairs]),
         imu=joined("imu_stack"),
         distance=joined("distance_stack"),
         bearing=joined("bearing_stack"),
