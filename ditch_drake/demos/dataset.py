@@ -329,16 +329,23 @@ def to_array_set(demonstrations: list[Demonstration], first_demo_id: int = 0, st
     if len(strides) != len(demonstrations) or min(strides) < 1:
         raise DatasetError(f"strides={strides}: expected one stride >= 1 per demonstration ({len(demonstrations)})")
     pairs = list(zip(demonstrations, strides, strict=True))
+    counts = np.array([len(range(0, len(demo), stride)) for demo, stride in pairs])
+    ends = np.cumsum(counts)
+    # The stacks are written into one array, so that the samples (64 KiB each) are never held
+    # twice, as a list of stacks and their concatenation.
+    frames = demonstrations[0].arrays["image"]
+    image = np.empty((int(ends[-1]), STACK_DEPTH, *frames.shape[1:]), dtype=frames.dtype)
+    for (demo, stride), end, count in zip(pairs, ends, counts, strict=True):
+        image[end - count:end] = restack_images(demo.arrays["image"], stride=stride)
 
     def joined(name: str) -> np.ndarray:
         return np.concatenate([demo.arrays[name][::stride] for demo, stride in pairs])
 
     return ArraySet(
-        image=np.concatenate([restack_images(demo.arrays["image"], stride=stride) for demo, stride in pairs]),
+        image=image,
         imu=joined("imu_stack"),
         distance=joined("distance_stack"),
         bearing=joined("bearing_stack"),
         label=joined("label").astype(np.int64),
-        demo_id=np.concatenate([np.full(len(range(0, len(demo), stride)), first_demo_id + i, np.int64)
-                                for i, (demo, stride) in enumerate(pairs)]),
+        demo_id=np.repeat(first_demo_id + np.arange(len(pairs), dtype=np.int64), counts),
     )
