@@ -259,7 +259,7 @@ def _validate(arrays: dict, metadata: dict, path: Path) -> None:
 def restack_images(image: np.ndarray, depth: int = STACK_DEPTH, stride: int = 1) -> np.ndarray:
     """(T, H, W) newest frames -> (ceil(T / stride), depth, H, W) stacks of steps 0, stride,
     2 stride, ...: each the step's frame and the depth - 1 frames before it, newest first, zeros
-    before the start. Only the kept steps' stacks are made (a step's stack is 4 frames)."""
+    before the start. Only the kept steps' stacks are made."""
     kept = np.arange(0, len(image), stride)
     stacks = np.zeros((len(kept), depth, *image.shape[1:]), dtype=image.dtype)
     for age in range(depth):
@@ -318,8 +318,8 @@ def to_array_set(demonstrations: list[Demonstration], first_demo_id: int = 0, st
 
     Demonstration i gets demo_id first_demo_id + i, so a validation split can hold out
     whole demonstrations. `strides[i]` keeps every k-th step of demonstration i (None: every
-    step); the frames are stacked before the steps are thinned, so that a kept step's stack
-    holds consecutive frames, as the `FrameStacker` gives the policy.
+    step); a kept step's stack still holds the frames of the steps just before it, as the
+    `FrameStacker` gives the policy, not those of the kept steps before it.
     """
     from ditch_drake.learning.data import ArraySet
 
