@@ -509,7 +509,7 @@ def cmd_train_generalist(args) -> int:
                               demos_per_task=args.demos_per_task, dagger_rounds=args.dagger_rounds,
                               val_geometries=args.val_geometries, dagger_stride=args.dagger_stride,
                               epochs=args.epochs, seed=args.seed,
-                              workers=args.workers, ranges=args.ranges or "")
+                              workers=args.workers, ranges=args.ranges or "", train_ranges=args.train_ranges or "")
     try:
         summary = train_generalist(config)
     except KeyboardInterrupt as error:
@@ -832,7 +832,9 @@ def build_parser() -> argparse.ArgumentParser:
                             help="train on every k-th control step of the DAgger rollouts (memory)")
     generalist.add_argument("--epochs", type=int, default=12, help="most epochs per training")
     generalist.add_argument("--seed", type=int, default=0, help="seeds demonstrations, training and val rollouts")
-    generalist.add_argument("--ranges", default=None, help="a ranges YAML file (default: the packaged one)")
+    generalist.add_argument("--ranges", default=None, help="the val split's ranges YAML file (default: the benchmark's)")
+    generalist.add_argument("--train-ranges", default=None,
+                            help="the train ditches' ranges YAML file (default: the packaged generalist_train_ranges.yaml)")
     add_workers(generalist, "demonstrations and val rollouts")
     generalist.set_defaults(run=cmd_train_generalist)
 

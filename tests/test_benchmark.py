@@ -59,11 +59,16 @@ def test_fifty_sampled_ditches_build_and_every_task_crosses_its_ditch():
         kinds.add(environment.terrain.course)
         grid = rasterize_field(terrain)
         assert len(environment.tasks) == 3
+        ranges = BenchmarkRanges()
         for task in environment.tasks:
             assert crosses_ditch(terrain, task.start[:2], task.goal)
             check_no_bypass(terrain, task.start[:2], task.goal, grid)
+            # Beyond the ditch's edge by at least the approach drawn, from every part of the
+            # course: on curved courses, not just from the crossing point.
+            for xy in (task.start[:2], task.goal[:2]):
+                beyond_edge_m = float(terrain.nearest_on_course(np.array(xy))[0]) - terrain.hinge_distance_m
+                assert beyond_edge_m >= ranges.approach_m[0] - 0.02, (ditch.name, task.name)
         params = environment.terrain
-        ranges = BenchmarkRanges()
         assert ranges.slope_deg[0] <= params.slope_deg <= ranges.slope_deg[1]
         assert ranges.depth_m[0] <= params.depth_m <= ranges.depth_m[1]
         if seed % 10 == 0:  # the plant builds (each ditch's geometry in a MultibodyPlant)
@@ -74,13 +79,13 @@ def test_fifty_sampled_ditches_build_and_every_task_crosses_its_ditch():
 def test_a_ditch_the_family_cannot_build_is_redrawn_and_the_draw_recorded():
     # Long arcs of the smallest radius crossed at steep angles: most first draws leave no
     # room for a task's start, and are replaced by the seed's next draws.
-    tight = BenchmarkRanges(course_kinds=["arc"], arc_radius_m=[12.0, 12.0], course_length_m=[33.0, 36.0],
-                            crossing_angle_deg=[30.0, 35.0])
+    tight = BenchmarkRanges(course_kinds=["arc"], arc_radius_m=[12.0, 12.0], course_length_m=[36.0, 36.0],
+                            crossing_angle_deg=[35.0, 35.0])
     redrawn = sample_ditch(3, tight)
     assert 1 <= redrawn.draw < MAX_DRAWS
     assert sample_ditch(3, tight) == redrawn
-    with pytest.raises(ConfigError, match="seed 2: none of 20 draws"):
-        sample_ditch(2, tight)
+    with pytest.raises(ConfigError, match="seed 0: none of 20 draws"):
+        sample_ditch(0, tight)
     impossible = BenchmarkRanges(course_kinds=["sine"], sine_amplitude_m=[10.0, 10.0], sine_wavelength_m=[10.0, 10.0])
     with pytest.raises(ConfigError, match="seed 5: none of"):
         sample_ditch(5, impossible)
@@ -210,6 +215,26 @@ def test_train_generalist_refuses_a_bad_count_before_any_work(tmp_path, capsys, 
     work = tmp_path / "generalist"
     assert main(["train-generalist", option, value, "--work-dir", str(work), "--out", str(tmp_path / "g.pt")]) == 2
     assert f"{option.lstrip('-').replace('-', '_')}={value}: expected an integer >=" in capsys.readouterr().err
+    assert not work.exists()
+
+
+def test_the_generalist_trains_on_the_benchmark_ranges_with_craters_from_8_m():
+    from dataclasses import asdict
+
+    from ditch_drake.benchmark.generalist import generalist_train_ranges_path
+
+    train, benchmark = asdict(load_ranges(generalist_train_ranges_path())), asdict(load_ranges())
+    assert train.pop("crater_diameter_m") == [8.0, 12.0] and benchmark.pop("crater_diameter_m") == [10.0, 12.0]
+    assert train == benchmark
+
+
+def test_train_generalist_refuses_a_bad_train_ranges_file_before_any_work(tmp_path, capsys):
+    bad = tmp_path / "train_ranges.yaml"
+    bad.write_text("crater_diameter_m: [12.0, 8.0]\n")
+    work = tmp_path / "generalist"
+    assert main(["train-generalist", "--train-ranges", str(bad), "--work-dir", str(work),
+                 "--out", str(tmp_path / "g.pt")]) == 2
+    assert "crater_diameter_m=[12.0, 8.0] is inverted" in capsys.readouterr().err
     assert not work.exists()
 
 

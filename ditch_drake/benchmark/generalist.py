@@ -4,7 +4,9 @@
 
 Stages, each skipping what an earlier run finished (so the command resumes):
 
-1. the train split's first `train_geometries` ditches, written to `<work>/train.ditches.yaml`;
+1. the train split's first `train_geometries` ditches, drawn from `train_ranges` (the benchmark's
+   ranges, with craters from 8 m across as the paper's crater), written to
+   `<work>/train.ditches.yaml`;
 2. expert demonstrations, `demos_per_task` per task of each (`<work>/demos`), the expert making
    room along the ditch first as in the benchmark (`ExpertVariation.lead_in`);
 3. round 0: a clone of those (`<work>/round0.pt`);
@@ -19,6 +21,7 @@ The test split plays no part.
 import json
 import sys
 from dataclasses import asdict, dataclass, replace
+from importlib import resources
 from pathlib import Path
 
 from ditch_drake.benchmark.ranges import load_ranges
@@ -52,7 +55,8 @@ class GeneralistConfig:
         epochs, patience: training's.
         seed: seeds the demonstrations, training and the val rollouts.
         workers: processes for collection and evaluation (None: one per core).
-        ranges: a ranges YAML file ("": the packaged one).
+        ranges: the val split's ranges YAML file ("": the benchmark's, `ranges.yaml`).
+        train_ranges: the train ditches' ranges YAML file ("": `generalist_train_ranges.yaml`).
     """
 
     out: str = "ditch_drake/models/generalist.pt"
@@ -67,6 +71,11 @@ class GeneralistConfig:
     seed: int = 0
     workers: int | None = None
     ranges: str = ""
+    train_ranges: str = ""
+
+
+def generalist_train_ranges_path() -> Path:
+    return Path(str(resources.files("ditch_drake.benchmark") / "generalist_train_ranges.yaml"))
 
 
 def _log(progress: bool, line: str) -> None:
@@ -144,10 +153,11 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
         if getattr(config, name) < lowest:
             raise ConfigError(f"{name}={getattr(config, name)}: expected an integer >= {lowest} "
                               f"(--{name.replace('_', '-')})")
-    ranges = load_ranges(config.ranges or None)
+    load_ranges(config.ranges or None)
+    train_ranges = load_ranges(config.train_ranges or generalist_train_ranges_path())
     work = Path(config.work_dir)
     work.mkdir(parents=True, exist_ok=True)
-    ditches = split_ditches("train", config.train_geometries, ranges)
+    ditches = split_ditches("train", config.train_geometries, train_ranges)
     ditches_path = str(write_ditches(work / "train.ditches.yaml", ditches))
     names = [ditch.name for ditch in ditches]
     _collect(config, names, ditches_path, work / "demos", None, config.seed, progress)

@@ -6,7 +6,9 @@ from each end of the course along its last heading to the rectangle; for a crate
 on each side from the rectangle to the rim), and lays out three tasks that cross at
 different places along the course (one in each third of the stretch between 30 % and 70 % of
 its length; across a crater, near its centre), each turned from the course's normal by a drawn crossing angle, their start and
-goal a drawn approach distance beyond the ditch's edge on opposite sides.
+goal on opposite sides, on the straight line through the crossing point, a drawn approach
+distance beyond the ditch's edge (from the nearest part of the course: on a curved course the
+line goes on until it is that far).
 
 Each draw is checked the way the packaged walled environments are
 (`ditch_drake.world.environments.validate_environment`: the terrain family's limits, the
@@ -36,6 +38,9 @@ _FENCE_GAP_M = 3.0
 SINE_BEND_MARGIN = 1.2
 # A crater's tasks cross at most this far from square to its dividing walls (deg).
 CRATER_MAX_CROSSING_DEG = 10.0
+# Steps, and the tolerance (m), in laying a start or goal the drawn approach beyond the edge.
+_EDGE_STEPS = 20
+_EDGE_TOLERANCE_M = 0.01
 # How far an end wall reaches into the ditch's rounded end (the packaged walled ditches' 1 m).
 _WALL_INTO_SLOPE_M = 1.0
 
@@ -203,9 +208,11 @@ def _draw_task(rng, ranges: BenchmarkRanges, terrain: DitchTerrain, index: int, 
         side = 1.0 if rng.random() < 0.5 else -1.0
         c, s = math.cos(angle), math.sin(angle)
         direction = side * np.array([c * normal[0] - s * normal[1], s * normal[0] + c * normal[1]])
-        reach = (terrain.hinge_distance_m + _uniform(rng, ranges.approach_m)) / max(c, 0.5)
-        start, goal = point - reach * direction, point + reach * direction
-        reason = _task_problem(terrain, start, goal, low, high)
+        approach_m = _uniform(rng, ranges.approach_m)
+        reach = (terrain.hinge_distance_m + approach_m) / max(c, 0.5)
+        start = _beyond_edge(terrain, point, -direction, reach, approach_m)
+        goal = _beyond_edge(terrain, point, direction, reach, approach_m)
+        reason = _task_problem(terrain, start, goal, low, high, approach_m)
         if not reason:
             yaw = math.degrees(math.atan2(direction[1], direction[0]))
             return Task(name=f"crossing_{index}", start=[*(round(float(v), 3) for v in start), round(yaw, 2)],
@@ -213,14 +220,29 @@ def _draw_task(rng, ranges: BenchmarkRanges, terrain: DitchTerrain, index: int, 
     raise ConfigError(f"task {index}: no layout fits ({reason})")
 
 
-def _task_problem(terrain: DitchTerrain, start, goal, low, high) -> str:
+def _beyond_edge(terrain: DitchTerrain, point, direction, reach: float, approach_m: float) -> np.ndarray:
+    """The point `reach` or further along `direction` from the course point `point` that lies
+    `approach_m` beyond the ditch's edge. The straight line ends there on a line course; on a
+    curved one the course can bend back toward it (inside an arc, past a sine's apex), so the
+    line goes on by what is missing until it is that far from every part of the course."""
+    for _ in range(_EDGE_STEPS):
+        xy = point + reach * direction
+        missing = approach_m - (float(terrain.nearest_on_course(xy)[0]) - terrain.hinge_distance_m)
+        if missing <= _EDGE_TOLERANCE_M:
+            break
+        reach += missing
+    return xy
+
+
+def _task_problem(terrain: DitchTerrain, start, goal, low, high, approach_m: float) -> str:
     """Why a start/goal pair does not fit ("" when it does)."""
     for label, xy in (("start", start), ("goal", goal)):
         margin = TASK_CLEARANCE_M + 0.5
         if np.any(xy < low + margin) or np.any(xy > high - margin):
             return f"the {label} falls outside the fence"
-        if float(terrain.nearest_on_course(xy)[0]) - terrain.hinge_distance_m < margin:
-            return f"the {label} is too near the ditch"
+        beyond_edge_m = float(terrain.nearest_on_course(xy)[0]) - terrain.hinge_distance_m
+        if beyond_edge_m < approach_m - 2 * _EDGE_TOLERANCE_M:
+            return f"the {label} lies {beyond_edge_m:.2f} m beyond the ditch's edge, short of the drawn {approach_m} m"
         if float(terrain.distance_to_walls(xy)) < margin:
             return f"the {label} is too near a wall"
     return ""

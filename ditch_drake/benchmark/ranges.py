@@ -55,7 +55,7 @@ class BenchmarkRanges:
     """
 
     course_kinds: list[str] = field(default_factory=lambda: list(GENERATED_COURSE_KINDS))
-    slope_deg: list[float] = field(default_factory=lambda: [45.0, 57.0])
+    slope_deg: list[float] = field(default_factory=lambda: [45.0, 55.0])
     bottom_width_m: list[float] = field(default_factory=lambda: [2.0, 8.0])
     depth_m: list[float] = field(default_factory=lambda: [3.0, 5.0])
     hinge_radius_m: list[float] = field(default_factory=lambda: [0.3, 0.7])
@@ -63,7 +63,7 @@ class BenchmarkRanges:
     sine_amplitude_m: list[float] = field(default_factory=lambda: [1.0, 5.0])
     sine_wavelength_m: list[float] = field(default_factory=lambda: [20.0, 40.0])
     arc_radius_m: list[float] = field(default_factory=lambda: [12.0, 30.0])
-    crater_diameter_m: list[float] = field(default_factory=lambda: [8.0, 12.0])
+    crater_diameter_m: list[float] = field(default_factory=lambda: [10.0, 12.0])
     crossing_angle_deg: list[float] = field(default_factory=lambda: [0.0, 35.0])
     approach_m: list[float] = field(default_factory=lambda: [5.0, 8.0])
 
