@@ -221,9 +221,10 @@ def test_train_generalist_refuses_a_bad_count_before_any_work(tmp_path, capsys, 
 def test_the_generalist_trains_on_the_benchmark_ranges_with_craters_from_8_m():
     from dataclasses import asdict
 
-    from ditch_drake.benchmark.generalist import generalist_train_ranges_path
+    from ditch_drake.benchmark.generalist import GENERALIST_TRAIN_RANGES
+    from ditch_drake.benchmark.ranges import packaged_ranges_path
 
-    train, benchmark = asdict(load_ranges(generalist_train_ranges_path())), asdict(load_ranges())
+    train, benchmark = asdict(load_ranges(packaged_ranges_path(GENERALIST_TRAIN_RANGES))), asdict(load_ranges())
     assert train.pop("crater_diameter_m") == [8.0, 12.0] and benchmark.pop("crater_diameter_m") == [10.0, 12.0]
     assert train == benchmark
 

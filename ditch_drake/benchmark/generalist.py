@@ -21,10 +21,9 @@ The test split plays no part.
 import json
 import sys
 from dataclasses import asdict, dataclass, replace
-from importlib import resources
 from pathlib import Path
 
-from ditch_drake.benchmark.ranges import load_ranges
+from ditch_drake.benchmark.ranges import load_ranges, packaged_ranges_path
 from ditch_drake.benchmark.run import BenchmarkConfig, run_benchmark
 from ditch_drake.benchmark.splits import split_ditches, write_ditches
 from ditch_drake.common.errors import ConfigError
@@ -35,6 +34,8 @@ from ditch_drake.evaluation.results import current_records
 # DAgger rollouts use seeds from here on, apart from the demonstrations' (whose failed
 # attempts use seed + 1000 k).
 DAGGER_SEED = 50_000
+# The packaged ranges of the train ditches (`GeneralistConfig.train_ranges`).
+GENERALIST_TRAIN_RANGES = "generalist_train_ranges.yaml"
 
 
 @dataclass
@@ -72,10 +73,6 @@ class GeneralistConfig:
     workers: int | None = None
     ranges: str = ""
     train_ranges: str = ""
-
-
-def generalist_train_ranges_path() -> Path:
-    return Path(str(resources.files("ditch_drake.benchmark") / "generalist_train_ranges.yaml"))
 
 
 def _log(progress: bool, line: str) -> None:
@@ -154,7 +151,7 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
             raise ConfigError(f"{name}={getattr(config, name)}: expected an integer >= {lowest} "
                               f"(--{name.replace('_', '-')})")
     load_ranges(config.ranges or None)
-    train_ranges = load_ranges(config.train_ranges or generalist_train_ranges_path())
+    train_ranges = load_ranges(config.train_ranges or packaged_ranges_path(GENERALIST_TRAIN_RANGES))
     work = Path(config.work_dir)
     work.mkdir(parents=True, exist_ok=True)
     ditches = split_ditches("train", config.train_geometries, train_ranges)

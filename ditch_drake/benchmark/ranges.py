@@ -89,8 +89,9 @@ class BenchmarkRanges:
                 raise ConfigError(f"ranges: {item.name}={value!r} is out of bounds: expected {allowed}")
 
 
-def default_ranges_path() -> Path:
-    return Path(str(resources.files("ditch_drake.benchmark") / "ranges.yaml"))
+def packaged_ranges_path(name: str = "ranges.yaml") -> Path:
+    """A ranges file shipped in `ditch_drake/benchmark` (the benchmark's by default)."""
+    return Path(str(resources.files("ditch_drake.benchmark") / name))
 
 
 def load_ranges(path: str | Path | None = None) -> BenchmarkRanges:
@@ -99,6 +100,6 @@ def load_ranges(path: str | Path | None = None) -> BenchmarkRanges:
     Raises:
         ConfigError: unreadable, unknown keys, wrong types, or a range out of bounds or inverted.
     """
-    ranges = load_typed_yaml(path or default_ranges_path(), BenchmarkRanges, "benchmark ranges")
+    ranges = load_typed_yaml(path or packaged_ranges_path(), BenchmarkRanges, "benchmark ranges")
     ranges.validate()
     return ranges
