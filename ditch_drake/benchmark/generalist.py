@@ -150,7 +150,7 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
         if getattr(config, name) < lowest:
             raise ConfigError(f"{name}={getattr(config, name)}: expected an integer >= {lowest} "
                               f"(--{name.replace('_', '-')})")
-    load_ranges(config.ranges or None)
+    load_ranges(config.ranges or None)  # A bad val ranges file is refused before hours of training, not after.
     train_ranges = load_ranges(config.train_ranges or packaged_ranges_path(GENERALIST_TRAIN_RANGES))
     work = Path(config.work_dir)
     work.mkdir(parents=True, exist_ok=True)
