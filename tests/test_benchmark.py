@@ -66,8 +66,7 @@ def test_fifty_sampled_ditches_build_and_every_task_crosses_its_ditch():
             # Beyond the ditch's edge by at least the approach drawn, from every part of the
             # course: on curved courses, not just from the crossing point.
             for xy in (task.start[:2], task.goal[:2]):
-                beyond_edge_m = float(terrain.nearest_on_course(np.array(xy))[0]) - terrain.hinge_distance_m
-                assert beyond_edge_m >= ranges.approach_m[0] - 0.02, (ditch.name, task.name)
+                assert terrain.beyond_edge_m(np.array(xy)) >= ranges.approach_m[0] - 0.02, (ditch.name, task.name)
         params = environment.terrain
         assert ranges.slope_deg[0] <= params.slope_deg <= ranges.slope_deg[1]
         assert ranges.depth_m[0] <= params.depth_m <= ranges.depth_m[1]

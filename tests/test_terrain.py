@@ -62,6 +62,9 @@ def test_edge_lines_lie_at_the_hinge():
     terrain = DitchTerrain(get_environment("crater").terrain)
     (hinge,) = terrain.edge_lines("hinge")
     assert np.allclose(np.linalg.norm(hinge, axis=1), terrain.hinge_distance_m)
+    # Beyond the edge: 0 on the hinge line, the crater's centre as deep inside as the line is far.
+    points = np.array([hinge[0], [0.0, 0.0], [terrain.hinge_distance_m + 2.0, 0.0]])
+    assert np.allclose(terrain.beyond_edge_m(points), [0.0, -terrain.hinge_distance_m, 2.0], atol=1e-9)
 
 
 @pytest.mark.parametrize("field, value, expected", [

@@ -227,7 +227,7 @@ def _beyond_edge(terrain: DitchTerrain, point, direction, reach: float, approach
     line goes on by what is missing until it is that far from every part of the course."""
     for _ in range(_EDGE_STEPS):
         xy = point + reach * direction
-        missing = approach_m - (float(terrain.nearest_on_course(xy)[0]) - terrain.hinge_distance_m)
+        missing = approach_m - float(terrain.beyond_edge_m(xy))
         if missing <= _EDGE_TOLERANCE_M:
             break
         reach += missing
@@ -240,7 +240,7 @@ def _task_problem(terrain: DitchTerrain, start, goal, low, high, approach_m: flo
         margin = TASK_CLEARANCE_M + 0.5
         if np.any(xy < low + margin) or np.any(xy > high - margin):
             return f"the {label} falls outside the fence"
-        beyond_edge_m = float(terrain.nearest_on_course(xy)[0]) - terrain.hinge_distance_m
+        beyond_edge_m = float(terrain.beyond_edge_m(xy))
         if beyond_edge_m < approach_m - 2 * _EDGE_TOLERANCE_M:
             return f"the {label} lies {beyond_edge_m:.2f} m beyond the ditch's edge, short of the drawn {approach_m} m"
         if float(terrain.distance_to_walls(xy)) < margin:

@@ -122,7 +122,7 @@ class _EpisodeWatcher:
         X_WB = chassis_pose(self._diagram, self._scene, root_context)
         xy = X_WB.translation()[:2]
         self.track.append((root_context.get_time(), float(xy[0]), float(xy[1])))
-        edge = _edge_distance(self._scene.terrain, xy)
+        edge = float(self._scene.terrain.beyond_edge_m(xy))
         if not self._frozen and (self.snapshot is None or edge < self.snapshot.edge_distance_m):
             self.snapshot = self._take_snapshot(root_context, edge)
             self._frozen = edge <= self._approach_m
@@ -141,12 +141,6 @@ class _EpisodeWatcher:
         trajectory = simulate_trajectories(pose, command[None, :], DwaBaselineConfig().planner.local_planner)[0]
         return DwaSnapshot(root_context.get_time(), pose, command, origin, costs, controller.costmap_resolution, path,
                            trajectory, edge)
-
-
-def _edge_distance(terrain: DitchTerrain, xy: np.ndarray) -> float:
-    """Planar distance (m) of xy outside the ditch's hinge line (negative inside it)."""
-    distance, _ = terrain.nearest_on_course(np.asarray(xy, dtype=float))
-    return float(distance) - terrain.hinge_distance_m
 
 
 def run_dwa_episode(environment: str, task: int = 0, seed: int = 0, approach_m: float = 1.0,
@@ -171,7 +165,7 @@ def run_dwa_episode(environment: str, task: int = 0, seed: int = 0, approach_m: 
     outcome = RunEpisode(simulator, diagram, scene, seed, watch=watcher)
     wall_s = time.perf_counter() - start
     track = np.array(watcher.track) if watcher.track else np.zeros((0, 3))
-    edges = np.array([_edge_distance(scene.terrain, xy) for xy in track[:, 1:]]) if len(track) else np.zeros(0)
+    edges = scene.terrain.beyond_edge_m(track[:, 1:]) if len(track) else np.zeros(0)
     closest = int(np.argmin(edges)) if len(edges) else 0
     return DwaEpisode(
         environment=environment, task=task, seed=seed, outcome=outcome, track=track,

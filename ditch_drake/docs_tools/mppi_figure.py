@@ -64,11 +64,6 @@ class MppiPicture:
     command_matches: bool
 
 
-def _edge_distance(terrain: DitchTerrain, xy: np.ndarray) -> float:
-    distance, _ = terrain.nearest_on_course(np.asarray(xy, dtype=float))
-    return float(distance) - terrain.hinge_distance_m
-
-
 def run_mppi_to_hinge(environment: str = "wide_walled", task: int = 1, seed: int = 0, approach_m: float = 0.0,
                       config: MppiBaselineConfig | None = None, end_time_s: float | None = None) -> MppiPicture:
     """Drives the MPPI until the chassis comes within `approach_m` of the hinge line (0: on it),
@@ -102,7 +97,7 @@ def run_mppi_to_hinge(environment: str = "wide_walled", task: int = 1, seed: int
                     status=state.get_vector(_STATUS_GROUP).CopyToVector())
         before.update(nominal=state.get_vector(_NOMINAL_GROUP).CopyToVector(),
                       last_w=float(state.get_vector(_STATUS_GROUP)[_STATUS_LAST_W]))
-        return _edge_distance(scene.terrain, chassis_pose(diagram, scene, root_context).translation()[:2]) <= approach_m
+        return float(scene.terrain.beyond_edge_m(chassis_pose(diagram, scene, root_context).translation()[:2])) <= approach_m
 
     RunEpisode(Simulator(diagram), diagram, scene, seed, watch=watch, end_time_s=end_time_s)
     if not seen:
@@ -117,7 +112,7 @@ def run_mppi_to_hinge(environment: str = "wide_walled", task: int = 1, seed: int
     goal_xy = np.asarray(scene.task.goal, dtype=float)[:2]
     result = controller.planner.plan(grid, heights, origin, pose, goal_xy, seen["before"]["nominal"],
                                      seen["before"]["last_w"], rng)
-    return MppiPicture(environment, task, seed, seen["time_s"], _edge_distance(scene.terrain, pose[:2]), grid, origin,
+    return MppiPicture(environment, task, seed, seen["time_s"], float(scene.terrain.beyond_edge_m(pose[:2])), grid, origin,
                        heights, result, controller.planner.config, goal_xy,
                        bool(np.allclose(result.command, seen["command"])))
 

@@ -98,7 +98,7 @@ def validate_environment(environment: Environment, prove_walls: bool = True) -> 
             raise ConfigError(f"task {task.name!r}: start must be [x, y, yaw_deg] and goal [x, y], "
                               f"finite; got start={task.start}, goal={task.goal}")
         for label, xy in (("start", task.start[:2]), ("goal", task.goal)):
-            clearance = float(terrain.nearest_on_course(np.array(xy))[0]) - terrain.hinge_distance_m
+            clearance = float(terrain.beyond_edge_m(np.array(xy)))
             if clearance < TASK_CLEARANCE_M:
                 raise ConfigError(f"task {task.name!r}: {label} {xy} must be on flat ground at least "
                                   f"{TASK_CLEARANCE_M:g} m from the ditch's edge (it is {clearance:.2f} m)")

@@ -418,6 +418,10 @@ class DitchTerrain:
         c = self._seg_start[best] + t[:, None] * self._seg_vec[best]
         return np.sqrt(dist2).reshape(xy.shape[:-1]), c.reshape(xy.shape)
 
+    def beyond_edge_m(self, xy: np.ndarray) -> np.ndarray:
+        """Planar distance (m) of points xy (..., 2) outside the ditch's hinge line (negative inside it)."""
+        return self.nearest_on_course(xy)[0] - self.hinge_distance_m
+
     def course_left_ahead(self, xy, direction) -> float:
         """Course length (m) from the course point nearest to `xy` to the course's end that
         `direction` (a planar vector) points to along the course; inf for a crater (a
