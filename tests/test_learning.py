@@ -1,4 +1,4 @@
-"""The learning package (network, data, SMOTE, metrics, training, checkpoints) and LearnedPolicy."""
+"""The learning package (network, data, SMOTE, mirroring, metrics, training, checkpoints) and LearnedPolicy."""
 
 import os
 
@@ -23,8 +23,10 @@ from ditch_drake.learning.data import (
     split_indices_by_demo,
 )
 from ditch_drake.learning.metrics import confusion_matrix, exact_accuracy, ordinal_accuracy
+from ditch_drake.learning.mirror import mirror_left_right
 from ditch_drake.learning.model import FourInputClassifier, ModelConfig, parameter_count, parameter_groups
 from ditch_drake.learning.train import TrainConfig, available_precision, resume_path, train
+from ditch_drake.perception.normal_image import cloud_to_normal_image
 from ditch_drake.spec import actions
 from ditch_drake.spec.observation_layout import IMAGE_STACK_SHAPE, IMAGE_STACK_SIZE
 
@@ -346,3 +348,72 @@ def test_learned_policy_commands_an_action():
         policy.GetInputPort(name).FixValue(simulator.get_mutable_context(), np.ones(4))
     simulator.AdvanceTo(0.15)
     assert policy.GetOutputPort("label").Eval(simulator.get_context())[0] >= 0
+
+
+
+def _batch(n: int = 5) -> dict:
+    arrays = make_arrays(np.arange(n) * 4 % actions.NUM_LABELS, demos=1, seed=3)
+    return {name: getattr(arrays, name).copy() for name in ("image", "imu", "distance", "bearing", "label")}
+
+
+def test_mirror_reflects_the_chosen_samples_and_twice_is_identity():
+    original = _batch()
+    batch = {name: values.copy() for name, values in original.items()}
+    rows = np.array([True, False, True, True, False])
+    mirror_left_right(batch, rows)
+    assert np.array_equal(batch["image"][rows], original["image"][rows][..., ::-1])
+    assert np.array_equal(batch["imu"][rows][:, 0::2], -original["imu"][rows][:, 0::2])  # roll
+    assert np.array_equal(batch["imu"][rows][:, 1::2], original["imu"][rows][:, 1::2])  # pitch
+    assert np.array_equal(batch["bearing"][rows], -original["bearing"][rows])
+    assert np.array_equal(batch["distance"], original["distance"])
+    assert batch["label"][rows].tolist() == [16 - label for label in original["label"][rows]]
+    for name in original:
+        assert np.array_equal(batch[name][~rows], original[name][~rows])
+    mirror_left_right(batch, rows)
+    for name in original:
+        assert np.array_equal(batch[name], original[name])
+
+
+def test_mirrored_label_turns_the_other_way_at_the_same_speed():
+    for label in range(actions.NUM_LABELS):
+        v, w = actions.label_to_command(label)
+        assert actions.label_to_command(actions.NUM_LABELS - 1 - label).tolist() == pytest.approx([v, -w])
+
+
+def test_reflected_cloud_gives_the_column_reversed_normal_image():
+    # A surface that is not symmetric about y = 0, with its exact normals.
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(0.5, 4.0, 4000), rng.uniform(-2.0, 1.0, 4000)
+    z = 0.4 * y + 0.2 * y**2 - 0.1 * x
+    normals = np.column_stack([np.full_like(x, 0.1), -(0.4 + 0.4 * y), np.ones_like(x)])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    image = cloud_to_normal_image(np.column_stack([x, y, z]), normals=normals)
+    reflected = cloud_to_normal_image(np.column_stack([x, -y, z]), normals=normals * [1.0, -1.0, 1.0])
+    assert image.any()
+    np.testing.assert_allclose(reflected, image[:, ::-1], atol=1e-5)
+
+
+def test_training_with_mirror_reflects_about_half_and_is_recorded(monkeypatch):
+    arrays = make_arrays(skewed_labels(60), demos=6, seed=1)
+    config = TrainConfig(**{**vars(TINY), "mirror": True})
+    seen = {"rows": 0, "reflected": 0}
+
+    def counting(batch, rows):
+        seen["rows"] += len(rows)
+        seen["reflected"] += int(np.count_nonzero(rows))
+        mirror_left_right(batch, rows)
+
+    monkeypatch.setattr(train_module, "mirror_left_right", counting)
+    first = train(arrays, config, progress=False)
+    assert seen["rows"] == 2 * 3 * TINY.batch_size  # Every training step's samples, no validation ones.
+    assert 0 < seen["reflected"] < seen["rows"]
+    monkeypatch.undo()
+    second = train(arrays, config, progress=False)
+    assert _same_weights(_weights(first), _weights(second))
+    assert not _same_weights(_weights(first), _weights(train(arrays, TINY, progress=False)))
+    assert first.checkpoint.training["train_config"]["mirror"] is True
+
+
+def test_mirror_setting_must_be_a_bool():
+    with pytest.raises(ValueError, match="mirror='yes'"):
+        TrainConfig(mirror="yes")

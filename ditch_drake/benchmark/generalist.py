@@ -54,6 +54,7 @@ class GeneralistConfig:
             circling for 120 s, holds about 80 k steps, and all of them beside the
             demonstrations' 52 k ran training out of memory (17 GiB) on a 24 GiB machine.
         epochs, patience: training's.
+        mirror: reflect half the training samples left to right (`TrainConfig.mirror`).
         seed: seeds the demonstrations, training and the val rollouts.
         workers: processes for collection and evaluation (None: one per core).
         ranges: the val split's ranges YAML file ("": the benchmark's, `ranges.yaml`).
@@ -69,6 +70,7 @@ class GeneralistConfig:
     dagger_stride: int = 3
     epochs: int = 12
     patience: int = 6
+    mirror: bool = False
     seed: int = 0
     workers: int | None = None
     ranges: str = ""
@@ -126,8 +128,8 @@ def _train(config: GeneralistConfig, data: list[Path], out: Path, progress: bool
         except CheckpointError as error:
             _log(progress, f"train {out}: {error}; training again")
     device = available_device()
-    train_config = TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, device=device,
-                               precision=available_precision(device))
+    train_config = TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, mirror=config.mirror,
+                               device=device, precision=available_precision(device))
     result = train(_training_samples(config, data), train_config, progress=progress, output_path=out, resume=True)
     if result.interrupted:
         raise KeyboardInterrupt
