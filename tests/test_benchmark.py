@@ -8,6 +8,7 @@ import pytest
 
 from ditch_drake.benchmark.generator import MAX_DRAWS, sample_ditch
 from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges
+from ditch_drake.benchmark.results_page import crossing_turn_deg
 from ditch_drake.benchmark.run import replay_command
 from ditch_drake.benchmark.splits import (
     SEED_SPLITS,
@@ -21,7 +22,7 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.ditch_scene import MakeDitchDiagram, SceneConfig
 from ditch_drake.evaluation.results import read_records
 from ditch_drake.world.bypass import check_no_bypass, rasterize_field
-from ditch_drake.world.environments import crosses_ditch, load_environments, validate_environment
+from ditch_drake.world.environments import crosses_ditch, get_environment, load_environments, validate_environment
 from ditch_drake.world.terrain import DitchTerrain
 
 
@@ -156,6 +157,7 @@ def test_a_benchmark_run_records_every_task_of_every_ditch_and_its_report_names_
     assert "| expert | " in text and "## Failed generated ditches" in text
     assert (tmp_path / "report_img" / "benchmark_success_by_parameter.png").exists()
     assert "| wall slope (deg) | 45-50 | 50-55 | 55-57 | 57-60 |" in text  # the figure's numbers
+    assert "| crossing's turn from square (deg; + left) | -35 to -15 | -15 to -5 | -5 to 5 | 5 to 15 | 15 to 35 |" in text
     # Results of ditches drawn from other ranges under the same names are not pooled.
     other = tmp_path / "other.jsonl"
     other.write_text(out.read_text())
@@ -181,6 +183,23 @@ def test_curvature_of_each_course_kind():
     params = sine.environment.terrain
     k = 2 * np.pi / params.sine_wavelength_m
     assert DitchTerrain(params).max_curvature_per_m == pytest.approx(params.sine_amplitude_m * k**2)
+
+
+def test_crossing_turn_of_the_paper_tasks_and_of_generated_ones():
+    # The packaged diagonal tasks start at x = -5 (east-bound, turned right) and x = 5.
+    assert [crossing_turn_deg(get_environment("wide"), task) for task in range(3)] == pytest.approx(
+        [0.0, -np.degrees(np.arctan2(10, 22)), np.degrees(np.arctan2(10, 22))])
+    assert [crossing_turn_deg(get_environment("crater"), task) for task in range(3)] == pytest.approx([0, 0, 0], abs=1e-9)
+    # The sine's middle task runs north where the course climbs at atan(A k); its bend tasks cross square on.
+    sine = get_environment("sine")
+    slope = np.degrees(np.arctan(sine.terrain.sine_amplitude_m * 2 * np.pi / sine.terrain.sine_wavelength_m))
+    assert crossing_turn_deg(sine, 0) == pytest.approx(-slope, abs=0.5)
+    assert abs(crossing_turn_deg(sine, 1)) < 2 and abs(crossing_turn_deg(sine, 2)) < 2
+    # Generated tasks turn by their drawn crossing angle, either way, within the ranges.
+    turns = [crossing_turn_deg(sample_ditch(seed).environment, task) for seed in range(8) for task in range(3)]
+    limit = BenchmarkRanges().crossing_angle_deg[1]
+    assert all(abs(turn) <= limit + 0.01 for turn in turns)
+    assert min(turns) < -5 and max(turns) > 5
 
 
 def test_a_collection_over_several_environments_visits_each_task_in_order(tmp_path):

@@ -2,8 +2,9 @@
 
 From benchmark results files (and the ditches file beside each, `splits.ditches_file`):
 - success per controller and split, with 95 % Wilson intervals, and in each of the paper's ditches;
-- success against each ditch's slope, bottom width, depth and course curvature (a figure and
-  its table: per controller, the rate in bins of each parameter, pooled over the generated splits);
+- success against each ditch's slope, bottom width, depth and course curvature, and each task's
+  turn from square across (a figure and its tables: per controller, the rate in bins of each,
+  pooled over the generated splits);
 - failure regions (status @ where the robot ended) per controller;
 - every failed generated ditch, with the command that replays the rollout.
 """
@@ -33,6 +34,8 @@ FEATURES = (
     ("bottom_width_m", "bottom width or crater diameter (m)", np.linspace(2.0, 12.0, 6)),
     ("depth_m", "depth (m)", np.linspace(2.5, 5.0, 6)),
     ("curvature_per_m", "course curvature (1/m; 0: straight or crater)", np.array([0.0, 1e-9, 0.04, 0.08, 0.2])),
+    # The expert turns right along the edge within 15 deg of square (EdgeAngleDriverConfig.straight_across_deg).
+    ("crossing_turn_deg", "crossing's turn from square (deg; + left)", np.array([-35.0, -15.0, -5.0, 5.0, 15.0, 35.0])),
 )
 
 
@@ -41,6 +44,47 @@ def ditch_features(environment: Environment) -> dict[str, float | str]:
     terrain = environment.terrain
     return {"course": terrain.course, "slope_deg": terrain.slope_deg, "bottom_width_m": terrain.bottom_width_m,
             "depth_m": terrain.depth_m, "curvature_per_m": DitchTerrain(terrain).max_curvature_per_m}
+
+
+def crossing_turn_deg(environment: Environment, task: int) -> float:
+    """How far task `task`'s line from start to goal turns from square across the ditch (deg),
+    positive to the left: its angle from the course's normal where it crosses the course (the
+    first crossing; from the direction to the centre for a crater).
+    """
+    chosen = environment.tasks[task]
+    start, goal = np.asarray(chosen.start[:2], dtype=float), np.asarray(chosen.goal, dtype=float)
+    line = goal - start
+    terrain = DitchTerrain(environment.terrain)
+    course = terrain.course_xy
+    square = None
+    if len(course) > 1:
+        a, tangents = course[:-1], np.diff(course, axis=0)
+        denominator = _cross(line, tangents)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            along_line = _cross(a - start, tangents) / denominator
+            along_course = _cross(a - start, line) / denominator
+        crossed = np.flatnonzero((along_line >= 0) & (along_line <= 1) & (along_course >= 0) & (along_course <= 1))
+        if len(crossed):
+            tangent = tangents[crossed[np.argmin(along_line[crossed])]]
+            square = np.array([-tangent[1], tangent[0]])
+            square *= 1.0 if square @ line >= 0.0 else -1.0
+    if square is None:
+        _, nearest = terrain.nearest_on_course(start)
+        square = nearest - start
+    return math.degrees(math.atan2(_cross(square, line), float(square @ line)))
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """The z component of the planar cross product u x v (over the last axis)."""
+    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+
+def _record_features(records: list[RolloutRecord], environments: dict[str, Environment]) -> dict[tuple, dict]:
+    """`ditch_features` of each record's ditch and the `crossing_turn_deg` of its task, by (environment, task)."""
+    ditches = {name: ditch_features(environment) for name, environment in environments.items()}
+    tasks = {(r.environment, r.task) for r in records if r.environment in environments}
+    return {(name, task): {**ditches[name], "crossing_turn_deg": crossing_turn_deg(environments[name], task)}
+            for name, task in tasks}
 
 
 def _environments_of(results_path: Path) -> dict[str, Environment]:
@@ -92,12 +136,12 @@ def _success_table(groups: dict[tuple[str, str], list[RolloutRecord]], controlle
     return lines
 
 
-def _binned(records: list[RolloutRecord], features: dict[str, dict], controller: str, name: str,
+def _binned(records: list[RolloutRecord], features: dict[tuple, dict], controller: str, name: str,
             edges: np.ndarray) -> list[tuple[int, int]]:
-    """(successes, trials) of `controller`'s rollouts in each bin of the ditches' `name`
-    (the last bin closed; values outside go to the nearest bin)."""
-    values = [(features[r.environment][name], r.success) for r in records
-              if model_label(r) == controller and r.status != "error" and r.environment in features]
+    """(successes, trials) of `controller`'s rollouts in each bin of their `name`
+    (`_record_features`; the last bin closed; values outside go to the nearest bin)."""
+    values = [(features[(r.environment, r.task)][name], r.success) for r in records
+              if model_label(r) == controller and r.status != "error" and (r.environment, r.task) in features]
     counts = [(0, 0)] * (len(edges) - 1)
     for value, success in values:
         k = int(np.clip(np.digitize(value, edges) - 1, 0, len(edges) - 2))
@@ -105,10 +149,11 @@ def _binned(records: list[RolloutRecord], features: dict[str, dict], controller:
     return counts
 
 
-def _binned_tables(records: list[RolloutRecord], features: dict[str, dict], controllers: list[str]) -> list[str]:
+def _binned_tables(records: list[RolloutRecord], features: dict[tuple, dict], controllers: list[str]) -> list[str]:
     lines = []
     for name, label, edges in FEATURES:
-        bins = [f"{low:g}-{high:g}" for low, high in itertools.pairwise(edges)]
+        between = " to " if edges.min() < 0 else "-"  # "-5 to 5" reads better than "-5-5".
+        bins = [f"{low:g}{between}{high:g}" for low, high in itertools.pairwise(edges)]
         lines += [f"| {label} | " + " | ".join(bins) + " |", "| --- |" + " --- |" * len(bins)]
         for controller in controllers:
             counts = _binned(records, features, controller, name, edges)
@@ -117,7 +162,7 @@ def _binned_tables(records: list[RolloutRecord], features: dict[str, dict], cont
     return lines
 
 
-def _figure(records: list[RolloutRecord], features: dict[str, dict], controllers: list[str], path: Path) -> Path:
+def _figure(records: list[RolloutRecord], features: dict[tuple, dict], controllers: list[str], path: Path) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -136,7 +181,7 @@ def _figure(records: list[RolloutRecord], features: dict[str, dict], controllers
         ax.grid(alpha=0.3)
     axes[0].set_ylabel("success rate")
     axes[-1].legend(fontsize=7, loc="lower left")
-    fig.suptitle("Success against the ditch's parameters (generated splits pooled; bins of the ranges)")
+    fig.suptitle("Success against the ditch's parameters and the crossing's turn (generated splits pooled)")
     fig.tight_layout()
     return save_figure(fig, path)
 
@@ -153,7 +198,8 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
         groups[(model_label(record), split_of_environment(record.environment))].append(record)
     controllers = sorted({key[0] for key in groups})
     generated = [r for r in records if split_of_environment(r.environment) not in ("", PAPER_SPLIT)]
-    features = {name: ditch_features(env) for name, env in environments.items()}
+    ditches = {name: ditch_features(env) for name, env in environments.items()}
+    features = _record_features(generated, environments)
     lines = [f"# {title}", ""]
     if command:
         lines += ["Made by", "", f"    {command}", ""]
@@ -162,7 +208,7 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
     lines += _success_table(groups, controllers) + [""]
     by_kind: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
     for record in generated:
-        by_kind[(model_label(record), str(features[record.environment]["course"]))].append(record)
+        by_kind[(model_label(record), str(ditches[record.environment]["course"]))].append(record)
     kinds = sorted({kind for _, kind in by_kind})
     if kinds:
         lines += ["## Success per course kind (generated splits pooled)", "",
@@ -194,7 +240,8 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
     if generated:
         figure = _figure(generated, features, controllers, figures / "benchmark_success_by_parameter.png")
         lines += ["## Success against the ditch's parameters", "",
-                  f"![success against slope, width, depth, curvature]({os.path.relpath(figure, out.parent)})", "",
+                  f"![success against slope, width, depth, curvature, crossing turn]({os.path.relpath(figure, out.parent)})",
+                  "",
                   "The figure's numbers: successes/trials in each bin (generated splits pooled).", ""]
         lines += _binned_tables(generated, features, controllers)
     lines += ["## Failure regions", "", "status@region of the failed rollouts (the region where the robot ended).", "",
@@ -210,9 +257,9 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
     for record in sorted(generated, key=lambda r: (model_label(r), r.environment, r.task, r.seed)):
         if record.success:
             continue
-        feature = features[record.environment]
+        feature = features[(record.environment, record.task)]
         parameters = (f"{feature['course']}, {feature['slope_deg']:.1f} deg, {feature['bottom_width_m']:.1f} m wide, "
-                      f"{feature['depth_m']:.1f} m deep")
+                      f"{feature['depth_m']:.1f} m deep, turned {feature['crossing_turn_deg']:+.0f} deg")
         replay = f"`{replay_command(record)}`"
         lines.append(f"| {model_label(record)} | {record.environment} | {record.task} | {record.seed} | "
                      f"{record.status}@{record.failure_region} | {parameters} | {replay} |")
