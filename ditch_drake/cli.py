@@ -277,7 +277,7 @@ def cmd_train(args) -> int:
     config = TrainConfig.from_options(
         epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
         max_batches_per_epoch=args.batches_per_epoch, synthetic_fraction=args.synthetic_fraction,
-        num_threads=args.threads, mirror=args.mirror)
+        num_threads=args.threads)
     if args.max_demos is not None and args.max_demos < 1:
         raise ConfigError(f"--max-demos {args.max_demos}: expected >= 1 demonstrations per directory")
     from ditch_drake.demos.dataset import load_dataset, to_array_set
@@ -832,7 +832,8 @@ def build_parser() -> argparse.ArgumentParser:
                             help="train on every k-th control step of the DAgger rollouts (memory)")
     generalist.add_argument("--epochs", type=int, default=12, help="most epochs per training")
     generalist.add_argument("--mirror", action="store_true",
-                            help="reflect half the training samples left to right (ditch_drake/learning/mirror.py)")
+                            help="also train on the left-right reflection of each rollout whose crossing turns "
+                                 "clearly to one side (ditch_drake/benchmark/generalist.py)")
     generalist.add_argument("--seed", type=int, default=0, help="seeds demonstrations, training and val rollouts")
     generalist.add_argument("--ranges", default=None, help="the val split's ranges YAML file (default: the benchmark's)")
     generalist.add_argument("--train-ranges", default=None,
@@ -880,8 +881,6 @@ def build_parser() -> argparse.ArgumentParser:
     training.add_argument("--synthetic-fraction", type=float, default=defaults.smote.max_synthetic_fraction,
                           help="at most this many SMOTE samples per real training sample")
     training.add_argument("--threads", type=int, default=None, help="torch threads (default None: all cores)")
-    training.add_argument("--mirror", action="store_true",
-                          help="reflect half the training samples left to right (ditch_drake/learning/mirror.py)")
     training.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
                           help="auto: CUDA when torch sees a GPU, else the CPU (a CUDA run is not bitwise "
                                "reproducible on the CPU)")

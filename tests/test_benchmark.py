@@ -8,7 +8,6 @@ import pytest
 
 from ditch_drake.benchmark.generator import MAX_DRAWS, sample_ditch
 from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges
-from ditch_drake.benchmark.results_page import crossing_turn_deg
 from ditch_drake.benchmark.run import replay_command
 from ditch_drake.benchmark.splits import (
     SEED_SPLITS,
@@ -22,6 +21,7 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.ditch_scene import MakeDitchDiagram, SceneConfig
 from ditch_drake.evaluation.results import read_records
 from ditch_drake.world.bypass import check_no_bypass, rasterize_field
+from ditch_drake.world.crossing import crossing_turn_deg
 from ditch_drake.world.environments import crosses_ditch, get_environment, load_environments, validate_environment
 from ditch_drake.world.terrain import DitchTerrain
 

@@ -151,9 +151,46 @@ def test_the_generalist_trains_on_every_dagger_stride_th_step_of_its_dagger_roll
 
     for name in ("demos", "dagger1"):
         save_demonstration(tmp_path / name / "demo_000.npz", _numbered_frames(7))
-    samples = _training_samples(GeneralistConfig(dagger_stride=3), [tmp_path / "demos", tmp_path / "dagger1"])
+    samples = _training_samples(GeneralistConfig(dagger_stride=3), [tmp_path / "demos", tmp_path / "dagger1"], "")
     assert samples.label.tolist() == [0, 1, 2, 3, 4, 5, 6, 0, 3, 6]
     assert [stack[:, 0, 0].tolist() for stack in samples.image[7:]] == [[1, 0, 0, 0], [4, 3, 2, 1], [7, 6, 5, 4]]
+
+
+def test_the_generalist_also_learns_the_reflection_of_crossings_that_turn_clearly(tmp_path):
+    from importlib import resources
+
+    from ditch_drake.benchmark.generalist import MIRROR_MARGIN_DEG, GeneralistConfig, _training_samples
+
+    # The packaged wide ditch: task 0 runs square across, task 1 turns 24 deg to the right.
+    for index, task in enumerate((1, 0)):
+        demonstration = _numbered_frames(3)
+        demonstration.arrays["image"][:, :, 0] = 200  # the leftmost column: the reflection moves it
+        demonstration.arrays["imu_stack"][:] = [0.1, 0.2] * 4
+        demonstration.arrays["bearing_stack"][:] = 0.3
+        demonstration.metadata.update(task={"index": task, "name": "t"},
+                                      expert_style={"driver": {"straight_across_deg": 15.0}})
+        save_demonstration(tmp_path / "demos" / f"demo_{index:03d}.npz", demonstration)
+    ditches = str(resources.files("ditch_drake.world") / "environments.yaml")
+    plain = _training_samples(GeneralistConfig(), [tmp_path / "demos"], ditches)
+    samples = _training_samples(GeneralistConfig(mirror=True), [tmp_path / "demos"], ditches)
+    assert len(plain.label) == 6 and len(samples.label) == 9
+    assert samples.demo_id.tolist() == [0] * 3 + [1] * 3 + [2] * 3
+    assert samples.label.tolist() == [0, 1, 2, 16, 15, 14, 0, 1, 2]
+    reflected = samples.image[3:6]
+    assert np.array_equal(reflected, samples.image[0:3][..., ::-1])
+    assert reflected[2, 0, 5, -1] == 200 and reflected[2, 0, 5, 0] != 200
+    assert np.allclose(samples.imu[3], [-0.1, 0.2] * 4) and np.allclose(samples.bearing[3], -0.3)
+    assert np.array_equal(samples.distance[3], samples.distance[0])
+    # A convention wider than the turn (24 deg) leaves it unreflected.
+    save_demonstration(tmp_path / "demos" / "demo_000.npz", _with_convention(tmp_path / "demos" / "demo_000.npz",
+                                                                             24.5 - MIRROR_MARGIN_DEG))
+    assert len(_training_samples(GeneralistConfig(mirror=True), [tmp_path / "demos"], ditches).label) == 6
+
+
+def _with_convention(path, straight_across_deg):
+    demonstration = load_demonstration(path)
+    demonstration.metadata["expert_style"]["driver"]["straight_across_deg"] = straight_across_deg
+    return demonstration
 
 
 def test_collect_resumes_keeping_what_is_written(tmp_path):

@@ -391,29 +391,3 @@ def test_reflected_cloud_gives_the_column_reversed_normal_image():
     reflected = cloud_to_normal_image(np.column_stack([x, -y, z]), normals=normals * [1.0, -1.0, 1.0])
     assert image.any()
     np.testing.assert_allclose(reflected, image[:, ::-1], atol=1e-5)
-
-
-def test_training_with_mirror_reflects_about_half_and_is_recorded(monkeypatch):
-    arrays = make_arrays(skewed_labels(60), demos=6, seed=1)
-    config = TrainConfig(**{**vars(TINY), "mirror": True})
-    seen = {"rows": 0, "reflected": 0}
-
-    def counting(batch, rows):
-        seen["rows"] += len(rows)
-        seen["reflected"] += int(np.count_nonzero(rows))
-        mirror_left_right(batch, rows)
-
-    monkeypatch.setattr(train_module, "mirror_left_right", counting)
-    first = train(arrays, config, progress=False)
-    assert seen["rows"] == 2 * 3 * TINY.batch_size  # Every training step's samples, no validation ones.
-    assert 0 < seen["reflected"] < seen["rows"]
-    monkeypatch.undo()
-    second = train(arrays, config, progress=False)
-    assert _same_weights(_weights(first), _weights(second))
-    assert not _same_weights(_weights(first), _weights(train(arrays, TINY, progress=False)))
-    assert first.checkpoint.training["train_config"]["mirror"] is True
-
-
-def test_mirror_setting_must_be_a_bool():
-    with pytest.raises(ValueError, match="mirror='yes'"):
-        TrainConfig(mirror="yes")

@@ -12,6 +12,8 @@ Stages, each skipping what an earlier run finished (so the command resumes):
 3. round 0: a clone of those (`<work>/round0.pt`);
 4. each DAgger round r: the previous round's clone drives once per task, the expert labels
    what it sees (`<work>/dagger<r>`), and a clone of everything so far (`<work>/round<r>.pt`);
+   with `mirror`, every clone also learns from the left-right reflection of each rollout
+   whose crossing turns clearly to one side (`GeneralistConfig.mirror`);
 5. every round's clone runs the val split's first `val_geometries` ditches
    (`<work>/val.jsonl`); the most successful (the later round on a tie) is copied to `out`.
 
@@ -30,10 +32,16 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_write_bytes, atomic_write_text
 from ditch_drake.evaluation.batch import load_results
 from ditch_drake.evaluation.results import current_records
+from ditch_drake.world.crossing import crossing_turn_deg
+from ditch_drake.world.environments import load_environments
 
 # DAgger rollouts use seeds from here on, apart from the demonstrations' (whose failed
 # attempts use seed + 1000 k).
 DAGGER_SEED = 50_000
+# A reflected rollout's task turns at least this much more than the expert's convention
+# (`straight_across_deg`) from square: near that limit the side it chose on the approach, from
+# where the robot was, can still be the convention's.
+MIRROR_MARGIN_DEG = 5.0
 # The packaged ranges of the train ditches (`GeneralistConfig.train_ranges`).
 GENERALIST_TRAIN_RANGES = "generalist_train_ranges.yaml"
 
@@ -54,7 +62,13 @@ class GeneralistConfig:
             circling for 120 s, holds about 80 k steps, and all of them beside the
             demonstrations' 52 k ran training out of memory (17 GiB) on a 24 GiB machine.
         epochs, patience: training's.
-        mirror: reflect half the training samples left to right (`TrainConfig.mirror`).
+        mirror: also train on the left-right reflection (`ditch_drake.learning.mirror`) of each
+            demonstration and DAgger rollout whose task turns at least the expert's
+            `straight_across_deg` + `MIRROR_MARGIN_DEG` from square across
+            (`ditch_drake.world.crossing`). There the expert turns toward the goal's side, a
+            rule the reflection keeps; nearer square it turns right by convention, whose
+            reflection would teach the opposite answer to the same view. Without it, left
+            turns along the edge are the rare ones (the convention's crossings all turn right).
         seed: seeds the demonstrations, training and the val rollouts.
         workers: processes for collection and evaluation (None: one per core).
         ranges: the val split's ranges YAML file ("": the benchmark's, `ranges.yaml`).
@@ -98,24 +112,40 @@ def _collect(config: GeneralistConfig, names: list[str], ditches: str, out: Path
         raise KeyboardInterrupt
 
 
-def _training_samples(config: GeneralistConfig, data: list[Path]):
-    """The demonstrations of data[0] and every dagger_stride-th step of the rest, stacked.
+def _training_samples(config: GeneralistConfig, data: list[Path], ditches: str):
+    """The demonstrations of data[0] and every dagger_stride-th step of the rest, stacked,
+    each followed by its reflection where `config.mirror` asks for one.
 
     The loaded frames (every step's: 4.6 GiB for the demonstrations and five DAgger rounds
     here) are freed on return, before SMOTE and training.
     """
     from ditch_drake.demos.dataset import load_dataset, to_array_set
+    from ditch_drake.learning.mirror import reflected
 
+    environments = dict(load_environments(ditches, prove_walls=False)) if config.mirror else {}
     demonstrations, strides = [], []
     for index, directory in enumerate(data):
-        loaded = load_dataset(directory)
-        demonstrations += loaded
-        strides += [1 if index == 0 else config.dagger_stride] * len(loaded)
+        stride = 1 if index == 0 else config.dagger_stride
+        for demonstration in load_dataset(directory):
+            demonstrations.append(demonstration)
+            strides.append(stride)
+            if config.mirror and _turns_clearly(demonstration.metadata, environments):
+                demonstrations.append(reflected(demonstration))
+                strides.append(stride)
     return to_array_set(demonstrations, strides=strides)
 
 
-def _train(config: GeneralistConfig, data: list[Path], out: Path, progress: bool) -> None:
-    """Trains on the demonstrations of data[0] and every dagger_stride-th step of the rest."""
+def _turns_clearly(metadata: dict, environments: dict) -> bool:
+    """Whether a rollout's task turns far enough from square that its expert labels turn
+    toward the goal's side (`GeneralistConfig.mirror`)."""
+    convention_deg = metadata["expert_style"]["driver"]["straight_across_deg"]
+    turn = crossing_turn_deg(environments[metadata["environment"]], metadata["task"]["index"])
+    return abs(turn) >= convention_deg + MIRROR_MARGIN_DEG
+
+
+def _train(config: GeneralistConfig, data: list[Path], ditches: str, out: Path, progress: bool) -> None:
+    """Trains on the demonstrations of data[0] and every dagger_stride-th step of the rest
+    (and their reflections, `GeneralistConfig.mirror`), in the ditches of the file `ditches`."""
     from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
     from ditch_drake.learning.config import TrainConfig
     from ditch_drake.learning.train import available_device, available_precision, resume_path, train
@@ -128,9 +158,10 @@ def _train(config: GeneralistConfig, data: list[Path], out: Path, progress: bool
         except CheckpointError as error:
             _log(progress, f"train {out}: {error}; training again")
     device = available_device()
-    train_config = TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, mirror=config.mirror,
-                               device=device, precision=available_precision(device))
-    result = train(_training_samples(config, data), train_config, progress=progress, output_path=out, resume=True)
+    train_config = TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, device=device,
+                               precision=available_precision(device))
+    result = train(_training_samples(config, data, ditches), train_config, progress=progress, output_path=out,
+                   resume=True)
     if result.interrupted:
         raise KeyboardInterrupt
 
@@ -162,14 +193,14 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
     _collect(config, names, ditches_path, work / "demos", None, config.seed, progress)
     data = [work / "demos"]
     candidates = [work / "round0.pt"]
-    _train(config, data, candidates[0], progress)
+    _train(config, data, ditches_path, candidates[0], progress)
     for round_index in range(1, config.dagger_rounds + 1):
         dagger = work / f"dagger{round_index}"
         _collect(config, names, ditches_path, dagger, str(candidates[-1]), DAGGER_SEED + 1000 * round_index,
                  progress)
         data.append(dagger)
         candidates.append(work / f"round{round_index}.pt")
-        _train(config, data, candidates[-1], progress)
+        _train(config, data, ditches_path, candidates[-1], progress)
     val_results = work / "val.jsonl"
     scores = {}
     for candidate in candidates:

@@ -181,9 +181,6 @@ class TrainConfig:
             capped epoch is a random 96 x 64 = 6,144-sample subset; the defaults (8 such
             epochs, SMOTE up to half the real samples) fit one environment's 40
             demonstrations into the 15-minute training budget on 2 CPU cores (docs/learning.md).
-        mirror: reflect each sample drawn for a training step left to right with probability
-            1/2 (`ditch_drake.learning.mirror`; seeded per epoch), so that the clone turns
-            as readily one way as the other. Validation samples are not reflected.
         model: the network's shape.
     """
 
@@ -202,7 +199,6 @@ class TrainConfig:
     num_threads: int | None = None
     eval_batch_size: int = 256
     max_batches_per_epoch: int | None = 96
-    mirror: bool = False
     model: ModelConfig = field(default_factory=ModelConfig)
 
     def __post_init__(self):
@@ -242,8 +238,6 @@ class TrainConfig:
             raise _bad_field("precision", self.precision, f"one of {PRECISIONS}")
         if not (isinstance(self.device, str) and _DEVICE_PATTERN.fullmatch(self.device)):
             raise _bad_field("device", self.device, "a torch device: 'cpu', 'cuda' or 'cuda:N'")
-        if not isinstance(self.mirror, bool):
-            raise _bad_field("mirror", self.mirror, "true or false")
         if not isinstance(self.model, ModelConfig):
             raise _bad_field("model", self.model, "a ModelConfig")
 

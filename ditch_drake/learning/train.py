@@ -78,7 +78,6 @@ from ditch_drake.learning.data import (
     split_indices_by_demo,
 )
 from ditch_drake.learning.metrics import confusion_matrix, exact_accuracy, ordinal_accuracy
-from ditch_drake.learning.mirror import mirror_left_right
 from ditch_drake.learning.model import FourInputClassifier, parameter_groups
 from ditch_drake.spec.actions import NUM_LABELS
 
@@ -135,9 +134,7 @@ class _TrainingSamples:
     def labels(self) -> np.ndarray:
         return np.concatenate([self._arrays.label[self._rows], self._synthetic.label])
 
-    def batch(self, positions: np.ndarray, device: str,
-              mirrored: np.ndarray | None = None) -> tuple[list[torch.Tensor], torch.Tensor]:
-        """The samples at `positions`, those where `mirrored` is true reflected left to right."""
+    def batch(self, positions: np.ndarray, device: str) -> tuple[list[torch.Tensor], torch.Tensor]:
         real = positions < len(self._rows)
         out = {}
         for name in ("image", "imu", "distance", "bearing", "label"):
@@ -146,8 +143,6 @@ class _TrainingSamples:
             values[real] = source[self._rows[positions[real]]]
             values[~real] = synthetic[positions[~real] - len(self._rows)]
             out[name] = values
-        if mirrored is not None:
-            mirror_left_right(out, mirrored)
         return _tensors(out, device)
 
 
@@ -370,16 +365,14 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
             start = time.perf_counter()
             torch.manual_seed(_torch_seed(config.seed, 1, epoch))
             order = np.random.default_rng([config.seed, 2, epoch]).permutation(n)
-            mirrored = np.random.default_rng([config.seed, 3, epoch]).random(n) < 0.5 if config.mirror else None
             model.train()
             loss_sum, predicted, true = 0.0, [], []
             bar = tqdm(range(steps), desc=f"epoch {epoch}", disable=not progress, leave=False, file=sys.stderr)
             for step in bar:
-                drawn = slice(step * config.batch_size, (step + 1) * config.batch_size)
-                positions = order[drawn]
+                positions = order[step * config.batch_size : (step + 1) * config.batch_size]
                 if len(positions) < 2:  # BatchNorm needs two samples.
                     continue
-                inputs, labels = samples.batch(positions, config.device, None if mirrored is None else mirrored[drawn])
+                inputs, labels = samples.batch(positions, config.device)
                 with torch.autocast(torch.device(config.device).type, torch.bfloat16, config.precision == "bf16"):
                     logits = model(*inputs)
                     loss = loss_function(logits, labels)
