@@ -202,6 +202,23 @@ def test_crossing_turn_of_the_paper_tasks_and_of_generated_ones():
     assert min(turns) < -5 and max(turns) > 5
 
 
+def test_report_names_checkpoints_of_one_stem_by_their_folders():
+    from dataclasses import fields
+
+    from ditch_drake.benchmark.results_page import controller_labels
+    from ditch_drake.evaluation.results import RolloutRecord
+
+    def record(controller, checkpoint):
+        return RolloutRecord(**{**{item.name: None for item in fields(RolloutRecord)},
+                                "controller": controller, "checkpoint": checkpoint})
+
+    records = [record("learned", "data/a/round2.pt"), record("learned", "data/b/round2.pt"),
+               record("learned", "generalist"), record("learned", "data/a/generalist.pt"),
+               record("learned", "data/a/round3.pt"), record("expert", "")]
+    assert [controller_labels(records)(r) for r in records] == [
+        "a/round2", "b/round2", "generalist", "a/generalist", "round3", "expert"]
+
+
 def test_a_collection_over_several_environments_visits_each_task_in_order(tmp_path):
     """The generalist's demonstrations: demo i drives the i-th (environment, task) pair."""
     from ditch_drake.demos.collect import CollectConfig, slot_pairs

@@ -13,6 +13,7 @@ import itertools
 import math
 import os
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -104,12 +105,29 @@ def _success_table(groups: dict[tuple[str, str], list[RolloutRecord]], controlle
     return lines
 
 
-def _binned(records: list[RolloutRecord], features: dict[tuple, dict], controller: str, name: str,
-            edges: np.ndarray) -> list[tuple[int, int]]:
+def controller_labels(records: list[RolloutRecord]) -> Callable[[RolloutRecord], str]:
+    """Each record's controller as the page names it: `model_label` (the checkpoint's file
+    stem), preceded by its folder where checkpoints of one stem lie in several."""
+    paths = defaultdict(set)
+    for record in records:
+        if record.checkpoint:
+            paths[model_label(record)].add(record.checkpoint)
+    shared = {stem for stem, found in paths.items() if len(found) > 1}
+
+    def label(record: RolloutRecord) -> str:
+        stem = model_label(record)
+        folder = Path(record.checkpoint).parent.name if stem in shared else ""
+        return f"{folder}/{stem}" if folder else stem
+
+    return label
+
+
+def _binned(records: list[RolloutRecord], features: dict[tuple, dict], name_of: Callable[[RolloutRecord], str],
+            controller: str, name: str, edges: np.ndarray) -> list[tuple[int, int]]:
     """(successes, trials) of `controller`'s rollouts in each bin of their `name`
     (`_record_features`; the last bin closed; values outside go to the nearest bin)."""
     values = [(features[(r.environment, r.task)][name], r.success) for r in records
-              if model_label(r) == controller and r.status != "error" and (r.environment, r.task) in features]
+              if name_of(r) == controller and r.status != "error" and (r.environment, r.task) in features]
     counts = [(0, 0)] * (len(edges) - 1)
     for value, success in values:
         k = int(np.clip(np.digitize(value, edges) - 1, 0, len(edges) - 2))
@@ -117,20 +135,22 @@ def _binned(records: list[RolloutRecord], features: dict[tuple, dict], controlle
     return counts
 
 
-def _binned_tables(records: list[RolloutRecord], features: dict[tuple, dict], controllers: list[str]) -> list[str]:
+def _binned_tables(records: list[RolloutRecord], features: dict[tuple, dict], name_of: Callable[[RolloutRecord], str],
+                   controllers: list[str]) -> list[str]:
     lines = []
     for name, label, edges in FEATURES:
         between = " to " if edges.min() < 0 else "-"  # "-5 to 5" reads better than "-5-5".
         bins = [f"{low:g}{between}{high:g}" for low, high in itertools.pairwise(edges)]
         lines += [f"| {label} | " + " | ".join(bins) + " |", "| --- |" + " --- |" * len(bins)]
         for controller in controllers:
-            counts = _binned(records, features, controller, name, edges)
+            counts = _binned(records, features, name_of, controller, name, edges)
             lines.append(f"| {controller} | " + " | ".join(f"{ok}/{n}" if n else "-" for ok, n in counts) + " |")
         lines.append("")
     return lines
 
 
-def _figure(records: list[RolloutRecord], features: dict[tuple, dict], controllers: list[str], path: Path) -> Path:
+def _figure(records: list[RolloutRecord], features: dict[tuple, dict], name_of: Callable[[RolloutRecord], str],
+            controllers: list[str], path: Path) -> Path:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -140,7 +160,7 @@ def _figure(records: list[RolloutRecord], features: dict[tuple, dict], controlle
     for ax, (name, label, edges) in zip(axes, FEATURES):
         centres = (edges[:-1] + edges[1:]) / 2
         for controller in controllers:
-            counts = _binned(records, features, controller, name, edges)
+            counts = _binned(records, features, name_of, controller, name, edges)
             if not any(n for _, n in counts):
                 continue
             ax.plot(centres, [ok / n if n else np.nan for ok, n in counts], marker="o", label=controller)
@@ -162,8 +182,9 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
     out = Path(out)
     figures = Path(figures_dir) if figures_dir else out.with_name(out.stem + "_img")
     groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
+    name_of = controller_labels(records)
     for record in records:
-        groups[(model_label(record), split_of_environment(record.environment))].append(record)
+        groups[(name_of(record), split_of_environment(record.environment))].append(record)
     controllers = sorted({key[0] for key in groups})
     generated = [r for r in records if split_of_environment(r.environment) not in ("", PAPER_SPLIT)]
     ditches = {name: ditch_features(env) for name, env in environments.items()}
@@ -176,7 +197,7 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
     lines += _success_table(groups, controllers) + [""]
     by_kind: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
     for record in generated:
-        by_kind[(model_label(record), str(ditches[record.environment]["course"]))].append(record)
+        by_kind[(name_of(record), str(ditches[record.environment]["course"]))].append(record)
     kinds = sorted({kind for _, kind in by_kind})
     if kinds:
         lines += ["## Success per course kind (generated splits pooled)", "",
@@ -192,7 +213,7 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
     if paper:
         by_environment: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
         for record in paper:
-            by_environment[(model_label(record), record.environment)].append(record)
+            by_environment[(name_of(record), record.environment)].append(record)
         names = sorted({name for _, name in by_environment})
         lines += ["## Success in each of the paper's ditches", "",
                   "| controller | " + " | ".join(names) + " |", "| --- |" + " --- |" * len(names)]
@@ -206,12 +227,12 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
             lines.append(f"| {controller} | " + " | ".join(cells) + " |")
         lines.append("")
     if generated:
-        figure = _figure(generated, features, controllers, figures / "benchmark_success_by_parameter.png")
+        figure = _figure(generated, features, name_of, controllers, figures / "benchmark_success_by_parameter.png")
         lines += ["## Success against the ditch's parameters", "",
                   f"![success against slope, width, depth, curvature, crossing turn]({os.path.relpath(figure, out.parent)})",
                   "",
                   "The figure's numbers: successes/trials in each bin (generated splits pooled).", ""]
-        lines += _binned_tables(generated, features, controllers)
+        lines += _binned_tables(generated, features, name_of, controllers)
     lines += ["## Failure regions", "", "status@region of the failed rollouts (the region where the robot ended).", "",
               "| controller | split | failures |", "| --- | --- | --- |"]
     for (controller, split), group in sorted(groups.items()):
@@ -222,14 +243,14 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
               "Each replays as a standalone HTML page with the command beside it.", "",
               "| controller | ditch (seed) | task | rollout seed | status@region | parameters | replay |",
               "| --- | --- | --- | --- | --- | --- | --- |"]
-    for record in sorted(generated, key=lambda r: (model_label(r), r.environment, r.task, r.seed)):
+    for record in sorted(generated, key=lambda r: (name_of(r), r.environment, r.task, r.seed)):
         if record.success:
             continue
         feature = features[(record.environment, record.task)]
         parameters = (f"{feature['course']}, {feature['slope_deg']:.1f} deg, {feature['bottom_width_m']:.1f} m wide, "
                       f"{feature['depth_m']:.1f} m deep, turned {feature['crossing_turn_deg']:+.0f} deg")
         replay = f"`{replay_command(record)}`"
-        lines.append(f"| {model_label(record)} | {record.environment} | {record.task} | {record.seed} | "
+        lines.append(f"| {name_of(record)} | {record.environment} | {record.task} | {record.seed} | "
                      f"{record.status}@{record.failure_region} | {parameters} | {replay} |")
     if notes:
         lines += ["", "## Notes", ""] + [f"- {note}" for note in notes]
