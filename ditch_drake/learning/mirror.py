@@ -30,8 +30,9 @@ def mirror_left_right(batch: dict[str, np.ndarray], rows: np.ndarray | slice = s
     """Reflects, in place, the samples `rows` (a boolean mask or indices) of `batch`.
 
     Args:
-        batch: arrays named as `ArraySet`'s fields: "image" (N, channels, rows, cols), "imu"
-            (N, stack * 2), "bearing" (N, stack) and "label" (N,); any other key is kept.
+        batch: arrays named as `ArraySet`'s fields: "image" (N, ..., cols: stacked or single
+            frames), "imu" (N, stack * 2), "bearing" (N, stack) and "label" (N,); any other
+            key is kept.
         rows: which samples to reflect (default: all).
     """
     batch["image"][rows] = batch["image"][rows][..., ::-1]
