@@ -119,8 +119,7 @@ def _training_samples(config: GeneralistConfig, data: list[Path], ditches: str):
     The loaded frames (every step's: 4.6 GiB for the demonstrations and five DAgger rounds
     here) are freed on return, before SMOTE and training.
     """
-    from ditch_drake.demos.dataset import load_dataset, to_array_set
-    from ditch_drake.learning.mirror import reflected
+    from ditch_drake.demos.dataset import load_dataset, reflected, to_array_set
 
     environments = dict(load_environments(ditches, prove_walls=False)) if config.mirror else {}
     demonstrations, strides = [], []

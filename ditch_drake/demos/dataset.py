@@ -349,3 +349,19 @@ def to_array_set(demonstrations: list[Demonstration], first_demo_id: int = 0, st
         label=joined("label").astype(np.int64),
         demo_id=np.repeat(first_demo_id + np.arange(len(pairs), dtype=np.int64), counts),
     )
+
+
+def reflected(demonstration: Demonstration) -> Demonstration:
+    """A copy of a recorded rollout with every step reflected left to right
+    (`ditch_drake.learning.mirror`; its metadata says so).
+
+    The image, IMU, bearing and label arrays are reflected; the poses and raw commands,
+    which training does not read, are kept as recorded.
+    """
+    from ditch_drake.learning.mirror import mirror_left_right
+
+    names = {"image": "image", "imu": "imu_stack", "bearing": "bearing_stack", "label": "label"}
+    batch = {name: demonstration.arrays[key].copy() for name, key in names.items()}
+    mirror_left_right(batch)
+    arrays = {**demonstration.arrays, **{key: batch[name] for name, key in names.items()}}
+    return Demonstration(arrays=arrays, metadata={**demonstration.metadata, "reflected": True}, path=demonstration.path)

@@ -12,15 +12,10 @@ The reflection of a sample, in the layouts of `ditch_drake.spec.observation_layo
 - label: `NUM_LABELS - 1 - label`, the same turn rate the other way (`ditch_drake.spec.actions`).
 """
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from ditch_drake.spec.actions import NUM_LABELS
 from ditch_drake.spec.observation_layout import IMU_SIZE
-
-if TYPE_CHECKING:
-    from ditch_drake.demos.dataset import Demonstration
 
 # Index of roll within each step of the IMU stack ([roll, pitch] per step).
 _ROLL = 0
@@ -40,17 +35,3 @@ def mirror_left_right(batch: dict[str, np.ndarray], rows: np.ndarray | slice = s
     batch["bearing"][rows] = -batch["bearing"][rows]
     batch["label"][rows] = NUM_LABELS - 1 - batch["label"][rows]
 
-
-def reflected(demonstration: "Demonstration") -> "Demonstration":
-    """A copy of a recorded rollout with every step reflected (its metadata says so).
-
-    The image, IMU, bearing and label arrays are reflected; the poses and raw commands,
-    which training does not read, are kept as recorded.
-    """
-    from ditch_drake.demos.dataset import Demonstration
-
-    names = {"image": "image", "imu": "imu_stack", "bearing": "bearing_stack", "label": "label"}
-    batch = {name: demonstration.arrays[key].copy() for name, key in names.items()}
-    mirror_left_right(batch)
-    arrays = {**demonstration.arrays, **{key: batch[name] for name, key in names.items()}}
-    return Demonstration(arrays=arrays, metadata={**demonstration.metadata, "reflected": True}, path=demonstration.path)
