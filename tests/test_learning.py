@@ -350,7 +350,6 @@ def test_learned_policy_commands_an_action():
     assert policy.GetOutputPort("label").Eval(simulator.get_context())[0] >= 0
 
 
-
 def _batch(n: int = 5) -> dict:
     arrays = make_arrays(np.arange(n) * 4 % actions.NUM_LABELS, demos=1, seed=3)
     return {name: getattr(arrays, name).copy() for name in ("image", "imu", "distance", "bearing", "label")}

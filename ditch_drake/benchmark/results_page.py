@@ -48,9 +48,10 @@ def ditch_features(environment: Environment) -> dict[str, float | str]:
             "depth_m": terrain.depth_m, "curvature_per_m": DitchTerrain(terrain).max_curvature_per_m}
 
 
-def _record_features(records: list[RolloutRecord], environments: dict[str, Environment]) -> dict[tuple, dict]:
-    """`ditch_features` of each record's ditch and the `crossing_turn_deg` of its task, by (environment, task)."""
-    ditches = {name: ditch_features(environment) for name, environment in environments.items()}
+def _record_features(records: list[RolloutRecord], environments: dict[str, Environment],
+                     ditches: dict[str, dict]) -> dict[tuple, dict]:
+    """Each record's ditch's `ditches` entry (its `ditch_features`) and its task's `crossing_turn_deg`,
+    by (environment, task)."""
     tasks = {(r.environment, r.task) for r in records if r.environment in environments}
     return {(name, task): {**ditches[name], "crossing_turn_deg": crossing_turn_deg(environments[name], task)}
             for name, task in tasks}
@@ -188,7 +189,7 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
     controllers = sorted({key[0] for key in groups})
     generated = [r for r in records if split_of_environment(r.environment) not in ("", PAPER_SPLIT)]
     ditches = {name: ditch_features(env) for name, env in environments.items()}
-    features = _record_features(generated, environments)
+    features = _record_features(generated, environments, ditches)
     lines = [f"# {title}", ""]
     if command:
         lines += ["Made by", "", f"    {command}", ""]

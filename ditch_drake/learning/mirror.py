@@ -34,4 +34,3 @@ def mirror_left_right(batch: dict[str, np.ndarray], rows: np.ndarray | slice = s
     batch["imu"][rows, _ROLL::IMU_SIZE] = -batch["imu"][rows, _ROLL::IMU_SIZE]
     batch["bearing"][rows] = -batch["bearing"][rows]
     batch["label"][rows] = NUM_LABELS - 1 - batch["label"][rows]
-
