@@ -205,7 +205,7 @@ def test_crossing_turn_of_the_paper_tasks_and_of_generated_ones():
 def test_report_names_checkpoints_of_one_stem_by_their_folders():
     from dataclasses import fields
 
-    from ditch_drake.benchmark.results_page import controller_labels
+    from ditch_drake.evaluation.report import controller_labels
     from ditch_drake.evaluation.results import RolloutRecord
 
     def record(controller, checkpoint):

@@ -240,3 +240,12 @@ def test_the_open_field_figure_shows_the_studys_shipped_model_beside_dwa_paper(t
     (caption,) = [line for line in lines if line.startswith("*Figure") and "open field" in line]
     assert "shipped model (blue" in caption and "n = 30 rollouts each" in caption and "dwa_paper (light red)" in caption
     assert (tmp_path / "img" / "fig5_baseline.png").exists()
+
+
+def test_checkpoints_of_one_stem_in_two_folders_are_two_rows_not_one_pooled(tmp_path):
+    folder = tmp_path / "results"
+    write(folder, "scalability", group("learned", str(tmp_path / "a" / "wide_40.pt"), "wide", 20)
+          + group("learned", str(tmp_path / "b" / "wide_40.pt"), "wide", 10))
+    table = load_report_data([folder]).tables["scalability"]
+    assert row(table, "| a/wide_40 |", "| wide |").split(" | ")[2] == "20/30"
+    assert row(table, "| b/wide_40 |", "| wide |").split(" | ")[2] == "10/30"

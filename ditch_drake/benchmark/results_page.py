@@ -23,7 +23,7 @@ from ditch_drake.benchmark.splits import PAPER_SPLIT, SPLITS, ditches_file, spli
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_write_text, save_figure
 from ditch_drake.evaluation.batch import load_results
-from ditch_drake.evaluation.report import model_label
+from ditch_drake.evaluation.report import controller_labels
 from ditch_drake.evaluation.results import RolloutRecord, current_records
 from ditch_drake.evaluation.summary import summarize
 from ditch_drake.world.crossing import crossing_turn_deg
@@ -104,23 +104,6 @@ def _success_table(groups: dict[tuple[str, str], list[RolloutRecord]], controlle
                          f"{_pct(summary.low)}-{_pct(summary.high)})" + (f", {summary.errors} errors" if summary.errors else ""))
         lines.append(f"| {controller} | " + " | ".join(cells) + " |")
     return lines
-
-
-def controller_labels(records: list[RolloutRecord]) -> Callable[[RolloutRecord], str]:
-    """Each record's controller as the page names it: `model_label` (the checkpoint's file
-    stem), preceded by its folder where checkpoints of one stem lie in several."""
-    paths = defaultdict(set)
-    for record in records:
-        if record.checkpoint:
-            paths[model_label(record)].add(record.checkpoint)
-    shared = {stem for stem, found in paths.items() if len(found) > 1}
-
-    def label(record: RolloutRecord) -> str:
-        stem = model_label(record)
-        folder = Path(record.checkpoint).parent.name if stem in shared else ""
-        return f"{folder}/{stem}" if folder else stem
-
-    return label
 
 
 def _binned(records: list[RolloutRecord], features: dict[tuple, dict], name_of: Callable[[RolloutRecord], str],

@@ -42,6 +42,7 @@ import os
 import re
 import subprocess
 from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,6 +82,23 @@ _CI_TEXT = "Error bars: 95 % Wilson score intervals"
 def model_label(record: RolloutRecord) -> str:
     """A short name of the controller: the checkpoint's file stem, or the controller."""
     return Path(record.checkpoint).stem if record.checkpoint else record.controller
+
+
+def controller_labels(records: list[RolloutRecord]) -> Callable[[RolloutRecord], str]:
+    """Each record's controller as the page names it: `model_label` (the checkpoint's file
+    stem), preceded by its folder where checkpoints of one stem lie in several."""
+    paths = defaultdict(set)
+    for record in records:
+        if record.checkpoint:
+            paths[model_label(record)].add(record.checkpoint)
+    shared = {stem for stem, found in paths.items() if len(found) > 1}
+
+    def label(record: RolloutRecord) -> str:
+        stem = model_label(record)
+        folder = Path(record.checkpoint).parent.name if stem in shared else ""
+        return f"{folder}/{stem}" if folder else stem
+
+    return label
 
 
 def model_demos(label: str) -> int | None:
@@ -205,8 +223,9 @@ def load_report_data(results: list[str | os.PathLike]) -> ReportData:
 
 def _table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str, str], GroupSummary]]:
     groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
+    name_of = controller_labels(records)
     for record in records:
-        groups[(model_label(record), record.environment)].append(record)
+        groups[(name_of(record), record.environment)].append(record)
     summaries = {key: summarize(group) for key, group in sorted(groups.items())}
     lines = [("| model | environment | success | rate | 95 % Wilson | of which around the ditch | "
               "failures (status@region) | halts (region) | errors |"),
@@ -259,7 +278,8 @@ def _models_table(records: list[RolloutRecord]) -> list[str]:
 
     lines = ["| model | checkpoint | sha256 | demonstrations (train/val) | epochs (best) | device | training_s |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
-    used = sorted({(model_label(r), r.checkpoint, r.checkpoint_sha256) for r in records if r.checkpoint})
+    name_of = controller_labels(records)
+    used = sorted({(name_of(r), r.checkpoint, r.checkpoint_sha256) for r in records if r.checkpoint})
     for label, path, digest in used:
         row = ["(file gone or changed since)"] + [""] * 3
         try:
@@ -399,7 +419,8 @@ def must_cross_groups(data: ReportData) -> MustCross | None:
         return None
     files = {record.environment: record.environments_file for record in records}
     walled = {env: base for env in sorted(files) if (base := walled_base(env, files[env]))}
-    learned_labels = {model_label(record) for record in records if record.checkpoint}
+    name_of = controller_labels(records)  # As `_table` named the study's groups.
+    learned_labels = {name_of(record) for record in records if record.checkpoint}
     learned: dict[str, list[tuple[str, GroupSummary]]] = defaultdict(list)
     open_learned: dict[str, list[tuple[str, GroupSummary]]] = defaultdict(list)
     controllers: dict[str, dict[str, GroupSummary]] = defaultdict(dict)
