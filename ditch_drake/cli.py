@@ -509,7 +509,8 @@ def cmd_train_generalist(args) -> int:
                               demos_per_task=args.demos_per_task, dagger_rounds=args.dagger_rounds,
                               val_geometries=args.val_geometries, dagger_stride=args.dagger_stride,
                               epochs=args.epochs, seed=args.seed, mirror=args.mirror,
-                              workers=args.workers, ranges=args.ranges or "", train_ranges=args.train_ranges or "")
+                              canonical_side=args.canonical_side, workers=args.workers,
+                              ranges=args.ranges or "", train_ranges=args.train_ranges or "")
     try:
         summary = train_generalist(config)
     except KeyboardInterrupt as error:
@@ -834,6 +835,9 @@ def build_parser() -> argparse.ArgumentParser:
     generalist.add_argument("--mirror", action="store_true",
                             help="also train on the left-right reflection of each rollout whose crossing turns "
                                  "clearly to one side (ditch_drake/benchmark/generalist.py)")
+    generalist.add_argument("--canonical-side", action="store_true",
+                            help="reflect every step that crosses turned left along the edge, and tell the clone "
+                                 "the side to cross on from a map of the ditch (systems/crossing_side.py)")
     generalist.add_argument("--seed", type=int, default=0, help="seeds demonstrations, training and val rollouts")
     generalist.add_argument("--ranges", default=None, help="the val split's ranges YAML file (default: the benchmark's)")
     generalist.add_argument("--train-ranges", default=None,

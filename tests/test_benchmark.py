@@ -253,6 +253,14 @@ def test_train_generalist_refuses_a_bad_count_before_any_work(tmp_path, capsys, 
     assert not work.exists()
 
 
+def test_train_generalist_refuses_mirror_with_canonical_side_before_any_work(tmp_path, capsys):
+    work = tmp_path / "generalist"
+    assert main(["train-generalist", "--mirror", "--canonical-side", "--work-dir", str(work),
+                 "--out", str(tmp_path / "g.pt")]) == 2
+    assert "mirror and canonical_side: expected at most one (--mirror, --canonical-side)" in capsys.readouterr().err
+    assert not work.exists()
+
+
 def test_the_generalist_trains_on_the_benchmark_ranges_with_craters_from_8_m():
     from dataclasses import asdict
 

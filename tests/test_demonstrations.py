@@ -187,6 +187,32 @@ def test_the_generalist_also_learns_the_reflection_of_crossings_that_turn_clearl
     assert len(_training_samples(GeneralistConfig(mirror=True), [tmp_path / "demos"], ditches).label) == 6
 
 
+def test_the_canonical_side_generalist_reflects_the_steps_that_cross_turned_left(tmp_path):
+    from importlib import resources
+
+    from ditch_drake.benchmark.generalist import GeneralistConfig, _training_samples
+
+    # The packaged wide ditch runs along x; from y = -8 (in the approach zone) facing +y, the
+    # goal at x = -8 lies 20 deg to the left, at x = +8 to the right (tests/test_terrain.py).
+    for index, goal_x in enumerate((-8.0, 8.0)):
+        demonstration = _numbered_frames(3)
+        demonstration.arrays["image"][:, :, 0] = 200
+        demonstration.arrays["bearing_stack"][:] = 0.3
+        demonstration.arrays["pose"][:, :2] = [0.0, -8.0]
+        demonstration.metadata.update(task={"index": 0, "name": "t", "goal": [goal_x, 11.0]},
+                                      expert_style={"driver": {"straight_across_deg": 15.0,
+                                                               "approach_margin_m": 2.5}})
+        save_demonstration(tmp_path / "demos" / f"demo_{index:03d}.npz", demonstration)
+    ditches = str(resources.files("ditch_drake.world") / "environments.yaml")
+    plain = _training_samples(GeneralistConfig(), [tmp_path / "demos"], ditches)
+    samples = _training_samples(GeneralistConfig(canonical_side=True), [tmp_path / "demos"], ditches)
+    assert samples.demo_id.tolist() == plain.demo_id.tolist() == [0] * 3 + [1] * 3
+    assert samples.label.tolist() == [16, 15, 14, 0, 1, 2]
+    assert np.array_equal(samples.image[:3], plain.image[:3][..., ::-1])
+    assert np.array_equal(samples.image[3:], plain.image[3:])
+    assert np.allclose(samples.bearing[:3], -0.3) and np.allclose(samples.bearing[3:], 0.3)
+
+
 def _with_convention(path, straight_across_deg):
     demonstration = load_demonstration(path)
     demonstration.metadata["expert_style"]["driver"]["straight_across_deg"] = straight_across_deg

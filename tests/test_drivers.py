@@ -149,3 +149,56 @@ def test_with_lead_in_the_straight_across_crossing_stays_out_of_the_ditch_end():
         farthest_east[lead_in] = max(xs)
     assert farthest_east[False] > 14.0
     assert farthest_east[True] < 12.0
+
+
+def test_crossing_side_follows_the_goal_until_the_approach_zone_and_holds_its_side_there():
+    import numpy as np
+    from pydrake.math import RigidTransform
+    from pydrake.systems.analysis import Simulator
+
+    from ditch_drake.systems.crossing_side import CrossingSide
+    from ditch_drake.world.crossing import crossing_sides
+    from ditch_drake.world.environments import get_environment
+    from ditch_drake.world.terrain import DitchTerrain
+
+    terrain = DitchTerrain(get_environment("wide").terrain)
+    goal = np.array([-8.0, 11.0])
+    side = CrossingSide(terrain, goal, chassis_body_index=0)
+    simulator = Simulator(side)
+    context = simulator.get_mutable_context()
+    path = [[0.0, -11.0], [0.0, -8.0], [-12.0, -8.0]]  # As in tests/test_terrain.py.
+    outputs = []
+    for xy in path:
+        side.GetInputPort("body_poses").FixValue(context, [RigidTransform([*xy, 0.0])])
+        outputs.append(side.GetOutputPort("crossing_side").Eval(context)[0])
+        simulator.AdvanceTo(context.get_time() + 0.1)
+    assert outputs == crossing_sides(terrain, np.array(path), goal, 2.5, 15.0).tolist() == [-1.0, -1.0, -1.0]
+    # Away from the ditch again, it keeps the side it committed to.
+    side.GetInputPort("body_poses").FixValue(context, [RigidTransform([-12.0, -20.0, 0.0])])
+    assert side.GetOutputPort("crossing_side").Eval(context)[0] == -1.0
+    fresh = side.CreateDefaultContext()
+    side.GetInputPort("body_poses").FixValue(fresh, [RigidTransform([-12.0, -20.0, 0.0])])
+    assert side.GetOutputPort("crossing_side").Eval(fresh)[0] == 1.0
+
+
+def test_a_canonical_side_clone_is_told_the_side_in_its_rollout_diagram(tmp_path):
+    import torch
+    from pydrake.systems.analysis import Simulator
+
+    from ditch_drake.diagrams.ditch_scene import SceneConfig
+    from ditch_drake.diagrams.rollout import LearnedPolicyConfig, MakeRolloutDiagram, RolloutConfig
+    from ditch_drake.learning.checkpoint import make_checkpoint, save_checkpoint
+    from ditch_drake.learning.config import ModelConfig
+    from ditch_drake.learning.model import FourInputClassifier
+
+    torch.manual_seed(0)
+    path = save_checkpoint(make_checkpoint(FourInputClassifier(ModelConfig(canonical_side=True))), tmp_path / "c.pt")
+    diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="wide", task=0),
+                                                  controller=LearnedPolicyConfig(checkpoint=str(path))))
+    side = diagram.GetSubsystemByName("crossing_side")
+    simulator = Simulator(diagram)
+    simulator.AdvanceTo(0.25)
+    # Task 0 runs square across: right, by the expert's convention.
+    assert side.GetOutputPort("crossing_side").Eval(
+        side.GetMyContextFromRoot(simulator.get_context()))[0] == 1.0
+    assert diagram.GetSubsystemByName("learned_policy").HasInputPort("crossing_side")

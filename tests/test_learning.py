@@ -390,3 +390,35 @@ def test_reflected_cloud_gives_the_column_reversed_normal_image():
     reflected = cloud_to_normal_image(np.column_stack([x, -y, z]), normals=normals * [1.0, -1.0, 1.0])
     assert image.any()
     np.testing.assert_allclose(reflected, image[:, ::-1], atol=1e-5)
+
+
+def test_a_canonical_side_policy_reflects_its_view_and_its_answer_when_told_to_cross_left():
+    from ditch_drake.systems.policy import LearnedPolicy
+
+    assert not LearnedPolicy(_checkpoint()).HasInputPort("crossing_side")
+    torch.manual_seed(0)
+    policy = LearnedPolicy(make_checkpoint(FourInputClassifier(ModelConfig(canonical_side=True))))
+    rng = np.random.default_rng(1)
+    image, imu, distance, bearing = rng.random(IMAGE_STACK_SIZE), rng.normal(0, 0.2, 8), rng.random(4) * 9, rng.normal(
+        0, 0.5, 4)
+    reflected = {"image": image.reshape(IMAGE_STACK_SHAPE)[None].copy(), "imu": imu[None].copy(),
+                 "bearing": bearing[None].copy(), "label": np.zeros(1, dtype=np.int64)}
+    mirror_left_right(reflected)
+    right_label, right = policy.infer(reflected["image"], reflected["imu"], distance, reflected["bearing"], 1.0)
+    context = policy.CreateDefaultContext()
+    for name, value in (("image_stack", image), ("imu_stack", imu), ("distance_stack", distance),
+                        ("bearing_stack", bearing), ("crossing_side", [-1.0])):
+        policy.GetInputPort(name).FixValue(context, value)
+    state = policy.AllocateDiscreteVariables()
+    policy.CalcForcedDiscreteVariableUpdate(context, state)
+    context.SetDiscreteState(state)
+    assert policy.GetOutputPort("label").Eval(context)[0] == actions.NUM_LABELS - 1 - right_label
+    assert np.allclose(policy.GetOutputPort("probabilities").Eval(context), right[::-1])
+    assert np.array_equal(policy.GetOutputPort("command").Eval(context),
+                          actions.COMMANDS[actions.NUM_LABELS - 1 - right_label])
+    # Told right, it answers for the view as it is.
+    policy.GetInputPort("crossing_side").FixValue(context, [1.0])
+    policy.CalcForcedDiscreteVariableUpdate(context, state)
+    context.SetDiscreteState(state)
+    assert np.allclose(policy.GetOutputPort("probabilities").Eval(context),
+                       policy.infer(image, imu, distance, bearing)[1])

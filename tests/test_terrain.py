@@ -225,3 +225,21 @@ def test_arc_parameters_out_of_range_are_named(changes, name, expected):
     with pytest.raises(TerrainError) as error:
         DitchTerrain(TerrainParams(course="arc", **changes))
     assert f"{name}=" in str(error.value) and expected in str(error.value)
+
+
+def test_the_crossing_side_turns_toward_the_goal_and_is_held_from_the_approach_zone_on():
+    from ditch_drake.world.crossing import crossing_sides, live_crossing_side
+
+    # The packaged wide ditch runs along x; from y = -11 facing +y, +x is to the right.
+    terrain = DitchTerrain(get_environment("wide").terrain)
+    start = np.array([0.0, -11.0])
+    assert live_crossing_side(terrain, start, [8.0, 11.0], 15.0) == 1.0  # 20 deg to the right.
+    assert live_crossing_side(terrain, start, [-8.0, 11.0], 15.0) == -1.0  # 20 deg to the left.
+    assert live_crossing_side(terrain, start, [-2.0, 11.0], 15.0) == 1.0  # Near square: right by convention.
+    # Held from where the path enters the approach zone (hinge 6.3 m + 2.5 m), though from the
+    # last point the goal lies within 15 deg of square.
+    path = np.array([start, [0.0, -8.0], [-12.0, -8.0]])
+    assert live_crossing_side(terrain, path[2], [-8.0, 11.0], 15.0) == 1.0
+    assert crossing_sides(terrain, path, np.array([-8.0, 11.0]), 2.5, 15.0).tolist() == [-1.0, -1.0, -1.0]
+    # With a narrower approach zone the path is not yet in it at y = -8.
+    assert crossing_sides(terrain, path, np.array([-8.0, 11.0]), 1.0, 15.0).tolist() == [-1.0, -1.0, 1.0]

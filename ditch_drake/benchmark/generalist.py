@@ -13,7 +13,9 @@ Stages, each skipping what an earlier run finished (so the command resumes):
 4. each DAgger round r: the previous round's clone drives once per task, the expert labels
    what it sees (`<work>/dagger<r>`), and a clone of everything so far (`<work>/round<r>.pt`);
    with `mirror`, every clone also learns from the left-right reflection of each rollout
-   whose crossing turns clearly to one side (`GeneralistConfig.mirror`);
+   whose crossing turns clearly to one side (`GeneralistConfig.mirror`); with
+   `canonical_side`, every step whose crossing turns left along the edge is reflected, and
+   the clone is told the side to cross on (`GeneralistConfig.canonical_side`);
 5. every round's clone runs the val split's first `val_geometries` ditches
    (`<work>/val.jsonl`); the most successful (the later round on a tie) is copied to `out`.
 
@@ -25,6 +27,8 @@ import sys
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
+import numpy as np
+
 from ditch_drake.benchmark.ranges import load_ranges, packaged_ranges_path
 from ditch_drake.benchmark.run import BenchmarkConfig, run_benchmark
 from ditch_drake.benchmark.splits import split_ditches, write_ditches
@@ -32,8 +36,10 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_write_bytes, atomic_write_text
 from ditch_drake.evaluation.batch import load_results
 from ditch_drake.evaluation.results import current_records
-from ditch_drake.world.crossing import crossing_turn_deg
+from ditch_drake.learning.mirror import mirror_left_right
+from ditch_drake.world.crossing import crossing_sides, crossing_turn_deg
 from ditch_drake.world.environments import load_environments
+from ditch_drake.world.terrain import DitchTerrain
 
 # DAgger rollouts use seeds from here on, apart from the demonstrations' (whose failed
 # attempts use seed + 1000 k).
@@ -69,6 +75,14 @@ class GeneralistConfig:
             rule the reflection keeps; nearer square it turns right by convention, whose
             reflection would teach the opposite answer to the same view. Without it, left
             turns along the edge are the rare ones (the convention's crossings all turn right).
+        canonical_side: train in one side's frame: every step whose side along the edge
+            (`ditch_drake.world.crossing.crossing_sides` along the recorded path, with the
+            driver's own approach margin and convention) is left is reflected, so the clone
+            learns only crossings turned right, and it is told the side when it drives
+            (`ModelConfig.canonical_side`, `ditch_drake.systems.crossing_side`). Which side
+            is then not the clone's choice but a command from a map of the ditch, as a route
+            planner's turn command conditions a driving policy; the paper's clone has no such
+            input. Not with `mirror`.
         seed: seeds the demonstrations, training and the val rollouts.
         workers: processes for collection and evaluation (None: one per core).
         ranges: the val split's ranges YAML file ("": the benchmark's, `ranges.yaml`).
@@ -85,6 +99,7 @@ class GeneralistConfig:
     epochs: int = 12
     patience: int = 6
     mirror: bool = False
+    canonical_side: bool = False
     seed: int = 0
     workers: int | None = None
     ranges: str = ""
@@ -112,26 +127,46 @@ def _collect(config: GeneralistConfig, names: list[str], ditches: str, out: Path
         raise KeyboardInterrupt
 
 
-def _training_samples(config: GeneralistConfig, data: list[Path], ditches: str):
+def _training_samples(config: GeneralistConfig, data: list[Path], ditches: str, progress: bool = False):
     """The demonstrations of data[0] and every dagger_stride-th step of the rest, stacked,
-    each followed by its reflection where `config.mirror` asks for one.
+    each followed by its reflection where `config.mirror` asks for one, or reflected where
+    it crosses turned left with `config.canonical_side`.
 
     The loaded frames (every step's: 4.6 GiB for the demonstrations and five DAgger rounds
     here) are freed on return, before SMOTE and training.
     """
     from ditch_drake.demos.dataset import load_dataset, reflected, to_array_set
 
-    environments = dict(load_environments(ditches, prove_walls=False)) if config.mirror else {}
-    demonstrations, strides = [], []
+    environments = dict(load_environments(ditches, prove_walls=False)) if (
+        config.mirror or config.canonical_side) else {}
+    demonstrations, strides, sides = [], [], []
     for index, directory in enumerate(data):
         stride = 1 if index == 0 else config.dagger_stride
         for demonstration in load_dataset(directory):
             demonstrations.append(demonstration)
             strides.append(stride)
+            if config.canonical_side:
+                sides.append(_crossing_sides(demonstration, environments)[::stride])
             if config.mirror and _turns_clearly(demonstration.metadata, environments):
                 demonstrations.append(reflected(demonstration))
                 strides.append(stride)
-    return to_array_set(demonstrations, strides=strides)
+    arrays = to_array_set(demonstrations, strides=strides)
+    if config.canonical_side:
+        left = np.concatenate(sides) < 0.0
+        mirror_left_right({name: getattr(arrays, name) for name in ("image", "imu", "bearing", "label")}, left)
+        _log(progress, f"canonical side: {int(left.sum())} of {len(left)} samples reflected (their crossings turn left)")
+    return arrays
+
+
+def _crossing_sides(demonstration, environments: dict) -> np.ndarray:
+    """The side along the edge (+1 right, -1 left) at each step of a recorded rollout, by the
+    rule of `CrossingSide` with its driver's approach margin and convention."""
+    metadata = demonstration.metadata
+    driver = metadata["expert_style"]["driver"]
+    environment = environments[metadata["environment"]]
+    return crossing_sides(DitchTerrain(environment.terrain), demonstration.arrays["pose"][:, :2],
+                          np.asarray(metadata["task"]["goal"], dtype=float), driver["approach_margin_m"],
+                          driver["straight_across_deg"])
 
 
 def _turns_clearly(metadata: dict, environments: dict) -> bool:
@@ -144,9 +179,10 @@ def _turns_clearly(metadata: dict, environments: dict) -> bool:
 
 def _train(config: GeneralistConfig, data: list[Path], ditches: str, out: Path, progress: bool) -> None:
     """Trains on the demonstrations of data[0] and every dagger_stride-th step of the rest
-    (and their reflections, `GeneralistConfig.mirror`), in the ditches of the file `ditches`."""
+    (and their reflections, `GeneralistConfig.mirror`, or in one side's frame,
+    `GeneralistConfig.canonical_side`), in the ditches of the file `ditches`."""
     from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
-    from ditch_drake.learning.config import TrainConfig
+    from ditch_drake.learning.config import ModelConfig, TrainConfig
     from ditch_drake.learning.train import available_device, available_precision, resume_path, train
 
     if out.exists() and not resume_path(out).exists():
@@ -158,9 +194,10 @@ def _train(config: GeneralistConfig, data: list[Path], ditches: str, out: Path, 
             _log(progress, f"train {out}: {error}; training again")
     device = available_device()
     train_config = TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, device=device,
+                               model=ModelConfig(canonical_side=config.canonical_side),
                                precision=available_precision(device))
-    result = train(_training_samples(config, data, ditches), train_config, progress=progress, output_path=out,
-                   resume=True)
+    result = train(_training_samples(config, data, ditches, progress), train_config, progress=progress,
+                   output_path=out, resume=True)
     if result.interrupted:
         raise KeyboardInterrupt
 
@@ -182,6 +219,9 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
         if getattr(config, name) < lowest:
             raise ConfigError(f"{name}={getattr(config, name)}: expected an integer >= {lowest} "
                               f"(--{name.replace('_', '-')})")
+    if config.mirror and config.canonical_side:
+        raise ConfigError("mirror and canonical_side: expected at most one (--mirror, --canonical-side); a clone "
+                          "that learns only right-turned crossings has no use for their reflections")
     load_ranges(config.ranges or None)  # A bad val ranges file is refused before hours of training, not after.
     train_ranges = load_ranges(config.train_ranges or packaged_ranges_path(GENERALIST_TRAIN_RANGES))
     work = Path(config.work_dir)

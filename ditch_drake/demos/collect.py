@@ -138,7 +138,7 @@ def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
     if learner is None:
         builder.Connect(quantizer.GetOutputPort("command"), scene.drive.GetInputPort("command"))
     else:
-        policy = AddLearnedPolicy(builder, observation, learner)
+        policy = AddLearnedPolicy(builder, scene, observation, learner)
         builder.Connect(policy.GetOutputPort("command"), scene.drive.GetInputPort("command"))
     recorder = builder.AddNamedSystem("demo_recorder", DemoRecorder(
         chassis.index(), period_s=schedule.control_period_s, offset_s=schedule.recorder_offset_s))

@@ -23,6 +23,7 @@ from ditch_drake.perception.lidar_model import LidarConfig
 from ditch_drake.planning.costmap import CostmapConfig
 from ditch_drake.planning.elevation_map import ElevationMapConfig
 from ditch_drake.planning.mppi import MppiPlannerConfig
+from ditch_drake.systems.crossing_side import CrossingSide
 from ditch_drake.systems.dwa_controller import DwaConfig, DwaController
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
@@ -194,7 +195,7 @@ def AddExpert(builder: DiagramBuilder, scene: DitchScene, config: ExpertConfig) 
 def AddLearnedController(builder: DiagramBuilder, scene: DitchScene, config: LearnedPolicyConfig) -> OutputPort:
     checkpoint = config.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
     observation = AddObservation(builder, scene, config.observation)
-    return AddLearnedPolicy(builder, observation, checkpoint).GetOutputPort("command")
+    return AddLearnedPolicy(builder, scene, observation, checkpoint).GetOutputPort("command")
 
 
 def AddDwaController(builder: DiagramBuilder, scene: DitchScene, config: DwaBaselineConfig) -> OutputPort:
@@ -225,8 +226,10 @@ def AddMppiController(builder: DiagramBuilder, scene: DitchScene, config: MppiBa
     return controller.GetOutputPort("command")
 
 
-def AddLearnedPolicy(builder: DiagramBuilder, observation: Observation, checkpoint: str) -> LearnedPolicy:
-    """Adds the behavioural clone of `checkpoint` (a shipped name or a path) fed by `observation`.
+def AddLearnedPolicy(builder: DiagramBuilder, scene: DitchScene, observation: Observation,
+                     checkpoint: str) -> LearnedPolicy:
+    """Adds the behavioural clone of `checkpoint` (a shipped name or a path) fed by `observation`,
+    and, for a clone trained in one side's frame, the `CrossingSide` of the scene's ditch and goal.
 
     Raises:
         CheckpointError: the checkpoint expects other input sizes than the blocks give.
@@ -242,6 +245,13 @@ def AddLearnedPolicy(builder: DiagramBuilder, observation: Observation, checkpoi
                 f"checkpoint {checkpoint!r} expects {name} of {expected} values; the observation "
                 f"blocks give {port.size()} (a model trained on another input shape)")
     ConnectObservation(builder, observation, policy)
+    if policy.HasInputPort("crossing_side"):
+        chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+        side = builder.AddNamedSystem("crossing_side", CrossingSide(
+            scene.terrain, scene.task.goal, chassis.index(), period_s=schedule.control_period_s,
+            offset_s=schedule.controller_offset_s))
+        builder.Connect(scene.plant.get_body_poses_output_port(), side.GetInputPort("body_poses"))
+        builder.Connect(side.GetOutputPort("crossing_side"), policy.GetInputPort("crossing_side"))
     return policy
 
 

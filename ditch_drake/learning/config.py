@@ -38,6 +38,11 @@ class ModelConfig:
         dropout: dropout probability of the image and scalar branches (paper: 0.4).
         scalar_hidden: units of each scalar branch (paper: 32).
         fusion_hidden: units of the layer after the concatenation (paper: 64).
+        canonical_side: trained with every sample reflected left to right where its crossing
+            turns left along the edge (`ditch_drake.benchmark.generalist`,
+            `GeneralistConfig.canonical_side`), so the network only ever crosses turned right;
+            the policy is told the side (`LearnedPolicy`'s `crossing_side` input) and
+            reflects its view and its answer when it is left.
     """
 
     image_channels: int = STACK_DEPTH
@@ -55,6 +60,7 @@ class ModelConfig:
     dropout: float = 0.4
     scalar_hidden: int = 32
     fusion_hidden: int = 64
+    canonical_side: bool = False
 
     def image_feature_size(self) -> int:
         """Length of the flattened image branch output.

@@ -10,6 +10,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ditch_drake.spec import robot
 from ditch_drake.spec.planar import planar_yaw, wrap_to_pi
+from ditch_drake.world.crossing import approach_side
 from ditch_drake.world.terrain import DitchTerrain
 
 
@@ -138,10 +139,7 @@ class EdgeAngleDriver(LeafSystem):
 
     def _approach_side(self, to_goal: np.ndarray, toward: np.ndarray, tangent: np.ndarray) -> float:
         """+1 (along `tangent`: to the right when facing the ditch) or -1, see `straight_across_deg`."""
-        off_axis = math.degrees(math.atan2(abs(float(to_goal @ tangent)), float(to_goal @ toward)))
-        if off_axis < self._config.straight_across_deg:
-            return 1.0
-        return 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
+        return approach_side(to_goal, toward, tangent, self._config.straight_across_deg)
 
     def crossing_length_m(self, wall_angle_deg: float, climb_angle_deg: float, approach_margin_m: float) -> float:
         """About how far (m) a crossing travels along the ditch from where it enters the

@@ -5,6 +5,7 @@ import torch
 from pydrake.systems.framework import DiscreteValues, LeafSystem
 
 from ditch_drake.learning.checkpoint import PolicyCheckpoint
+from ditch_drake.learning.mirror import mirror_left_right
 from ditch_drake.spec import robot
 
 
@@ -24,6 +25,11 @@ class LearnedPolicy(LeafSystem):
     sees the stacks pushed at t_{k-1} (see `FrameStacker`); a small positive `offset_s`
     makes it see those pushed at t_k, one period fresher.
 
+    A checkpoint trained in one side's frame (`ModelConfig.canonical_side`) adds the input
+    `crossing_side` (`CrossingSide`): where it is -1 (cross turned left along the edge) the
+    policy runs the network on the left-right reflection of the stacks
+    (`ditch_drake.learning.mirror`) and reflects the chosen label and the probabilities back.
+
     The network's weights are fixed configuration, so they live on the system, not in
     the Context; everything that changes is discrete state.
 
@@ -35,6 +41,7 @@ class LearnedPolicy(LeafSystem):
         - imu_stack
         - distance_stack
         - bearing_stack
+        - crossing_side (canonical_side checkpoints only)
         output_ports:
         - command
         - label
@@ -46,6 +53,7 @@ class LearnedPolicy(LeafSystem):
         imu_stack: 8 (rad), [roll_t, pitch_t, roll_t-1, ...].
         distance_stack: 4 (m), newest first.
         bearing_stack: 4 (rad), newest first.
+        crossing_side: [+1] or [-1], the side along the edge to cross on (canonical_side only).
         command: [v m/s, w rad/s] of the chosen label.
         label: [the chosen label in 0..16] (a float, -1 before the first update).
         probabilities: 17 softmax probabilities, one per label.
@@ -88,6 +96,7 @@ class LearnedPolicy(LeafSystem):
         self._imu_port = self.DeclareVectorInputPort("imu_stack", config.imu_size)
         self._distance_port = self.DeclareVectorInputPort("distance_stack", config.distance_size)
         self._bearing_port = self.DeclareVectorInputPort("bearing_stack", config.bearing_size)
+        self._side_port = self.DeclareVectorInputPort("crossing_side", 1) if config.canonical_side else None
         self._command_index = self.DeclareDiscreteState(2)
         self._label_index = self.DeclareDiscreteState(np.array([-1.0]))
         self._probabilities_index = self.DeclareDiscreteState(config.num_labels)
@@ -103,26 +112,36 @@ class LearnedPolicy(LeafSystem):
         return self._commands.copy()
 
     def infer(
-        self, image_stack: np.ndarray, imu_stack: np.ndarray, distance_stack: np.ndarray, bearing_stack: np.ndarray
+        self, image_stack: np.ndarray, imu_stack: np.ndarray, distance_stack: np.ndarray, bearing_stack: np.ndarray,
+        crossing_side: float = 1.0,
     ) -> tuple[int, np.ndarray]:
-        """The chosen label and the (num_labels,) probabilities for one observation (port layouts)."""
-        inputs = [
-            torch.as_tensor(np.asarray(image_stack, dtype=np.float32).reshape(self._image_shape)),
-            *(
-                torch.as_tensor(np.asarray(x, dtype=np.float32).reshape(1, -1))
-                for x in (imu_stack, distance_stack, bearing_stack)
-            ),
-        ]
+        """The chosen label and the (num_labels,) probabilities for one observation (port
+        layouts); `crossing_side` -1 reflects both (canonical_side checkpoints)."""
+        batch = {
+            "image": np.asarray(image_stack, dtype=np.float32).reshape(self._image_shape),
+            **{name: np.asarray(x, dtype=np.float32).reshape(1, -1)
+               for name, x in (("imu", imu_stack), ("distance", distance_stack), ("bearing", bearing_stack))},
+        }
+        reflect = self._side_port is not None and crossing_side < 0.0
+        if reflect:
+            batch = {name: value.copy() for name, value in batch.items()}
+            mirror_left_right(batch | {"label": np.zeros(1, dtype=np.int64)})
+        inputs = [torch.as_tensor(batch[name]) for name in ("image", "imu", "distance", "bearing")]
         with torch.inference_mode():
             logits = self._model(*inputs)
         probabilities = torch.softmax(logits.double(), dim=1)[0].numpy()
+        if reflect:
+            # Label k turns as fast the other way as label num_labels - 1 - k (`mirror`).
+            probabilities = probabilities[::-1].copy()
         return int(np.argmax(probabilities)), probabilities
 
     def _update(self, context, discrete_state: DiscreteValues) -> None:
         # Read-only views of the stacks (`Eval` would copy each first); `infer` casts them to float32.
+        side = 1.0 if self._side_port is None else float(self._side_port.Eval(context)[0])
         label, probabilities = self.infer(
             *(port.EvalBasicVector(context).value()
-              for port in (self._image_port, self._imu_port, self._distance_port, self._bearing_port))
+              for port in (self._image_port, self._imu_port, self._distance_port, self._bearing_port)),
+            crossing_side=side,
         )
         discrete_state.set_value(self._command_index, self._commands[label])
         discrete_state.set_value(self._label_index, [float(label)])

@@ -5,6 +5,10 @@ The expert turns along the edge toward the goal's side, unless the goal lies wit
 convention; so which way a crossing turns decides which way it is demonstrated
 (`ditch_drake.benchmark.generalist` reflects only crossings the convention does not touch,
 the benchmark's report bins success by it).
+
+`approach_side` is that rule, and `crossing_sides` the side it gives along a path, held from
+where the path enters the approach zone on: the side a clone trained in one side's frame is
+told to cross on (`ditch_drake.systems.crossing_side`).
 """
 
 import math
@@ -41,6 +45,47 @@ def crossing_turn_deg(environment: Environment, task: int) -> float:
         _, nearest = terrain.nearest_on_course(start)
         square = nearest - start
     return math.degrees(math.atan2(_cross(square, line), float(square @ line)))
+
+
+def approach_side(to_goal: np.ndarray, toward: np.ndarray, tangent: np.ndarray, straight_across_deg: float) -> float:
+    """Which way along the edge to cross: +1 along `tangent` (to the right when facing the ditch
+    along `toward`), -1 against it; toward the goal's side, or +1 by convention when the goal
+    lies within `straight_across_deg` of straight across."""
+    off_axis = math.degrees(math.atan2(abs(float(to_goal @ tangent)), float(to_goal @ toward)))
+    if off_axis < straight_across_deg:
+        return 1.0
+    return 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
+
+
+def live_crossing_side(terrain: DitchTerrain, xy: np.ndarray, goal_xy: np.ndarray,
+                       straight_across_deg: float) -> float:
+    """`approach_side` from `xy` toward the goal, at the nearest edge (+1 right, -1 left)."""
+    away = terrain.distance_and_away(np.asarray(xy, dtype=float))[1]
+    tangent = np.array([-away[1], away[0]])
+    return approach_side(np.asarray(goal_xy, dtype=float) - xy, -away, tangent, straight_across_deg)
+
+
+def in_approach_zone(terrain: DitchTerrain, xy: np.ndarray, approach_margin_m: float) -> bool:
+    """Whether `xy` lies within `approach_margin_m` of the hinge line or inside it, where the
+    expert commits to its side along the edge."""
+    return float(terrain.distance_and_away(np.asarray(xy, dtype=float))[0]) <= (
+        terrain.hinge_distance_m + approach_margin_m)
+
+
+def crossing_sides(terrain: DitchTerrain, path_xy: np.ndarray, goal_xy: np.ndarray, approach_margin_m: float,
+                   straight_across_deg: float) -> np.ndarray:
+    """The side (+1 right, -1 left) at each point of `path_xy` (T, 2): `live_crossing_side`
+    until the path first enters the approach zone, then the side it had there."""
+    sides = np.empty(len(path_xy))
+    latched = None
+    for index, xy in enumerate(np.asarray(path_xy, dtype=float)):
+        if latched is None:
+            sides[index] = live_crossing_side(terrain, xy, goal_xy, straight_across_deg)
+            if in_approach_zone(terrain, xy, approach_margin_m):
+                latched = sides[index]
+        else:
+            sides[index] = latched
+    return sides
 
 
 def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -1,0 +1,72 @@
+"""Which side along the edge to cross on: a route-level command for a side-conditioned clone."""
+
+import numpy as np
+from pydrake.common.value import Value
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ditch_drake.spec import robot
+from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
+from ditch_drake.world.crossing import in_approach_zone, live_crossing_side
+from ditch_drake.world.terrain import DitchTerrain
+
+# Where the expert commits to a side, and its convention near square on, by default.
+_EXPERT = EdgeAngleDriverConfig()
+
+
+class CrossingSide(LeafSystem):
+    """The side along the edge the expert's rule would cross on, from a map of the ditch.
+
+    Until the robot first enters the approach zone (within `approach_margin_m` of the hinge
+    line) the output is `ditch_drake.world.crossing.live_crossing_side` at the current pose;
+    from then on, the side it had there, as the expert commits to its side. A clone trained
+    with every crossing reflected to one side (`ModelConfig.canonical_side`) is told this
+    side, as a route planner tells a driving policy which way to turn at a junction: it
+    needs the ditch's course, which the lidar alone does not give. Offline,
+    `ditch_drake.world.crossing.crossing_sides` gives the same sides along a recorded path.
+
+    .. pydrake_system::
+
+        name: CrossingSide
+        input_ports:
+        - body_poses
+        output_ports:
+        - crossing_side
+
+    Ports:
+        body_poses: the plant's body poses X_WB (vector of RigidTransform).
+        crossing_side: [+1] to cross turned right along the edge (facing the ditch), [-1] left.
+    """
+
+    def __init__(self, terrain: DitchTerrain, goal_xy, chassis_body_index,
+                 approach_margin_m: float = _EXPERT.approach_margin_m,
+                 straight_across_deg: float = _EXPERT.straight_across_deg,
+                 period_s: float = robot.CONTROL_PERIOD_S, offset_s: float = 0.0):
+        super().__init__()
+        self._terrain = terrain
+        self._goal_xy = np.asarray(goal_xy, dtype=float)
+        self._chassis_index = int(chassis_body_index)
+        self._approach_margin_m = float(approach_margin_m)
+        self._straight_across_deg = float(straight_across_deg)
+        self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
+        # [side held (0 until the robot enters the approach zone)].
+        self._held_index = self.DeclareDiscreteState(1)
+        self.DeclareVectorOutputPort("crossing_side", BasicVector(1), self._calc_side,
+                                     {self.xd_ticket(), self._poses_port.ticket()})
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._hold)
+
+    def _xy(self, context) -> np.ndarray:
+        return self._poses_port.Eval(context)[self._chassis_index].translation()[:2]
+
+    def _calc_side(self, context, output) -> None:
+        held = context.get_discrete_state(self._held_index).GetAtIndex(0)
+        output.SetAtIndex(0, held if held != 0.0 else live_crossing_side(
+            self._terrain, self._xy(context), self._goal_xy, self._straight_across_deg))
+
+    def _hold(self, context, discrete_state) -> None:
+        if context.get_discrete_state(self._held_index).GetAtIndex(0) != 0.0:
+            return
+        xy = self._xy(context)
+        if in_approach_zone(self._terrain, xy, self._approach_margin_m):
+            discrete_state.set_value(self._held_index, [live_crossing_side(
+                self._terrain, xy, self._goal_xy, self._straight_across_deg)])
