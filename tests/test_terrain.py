@@ -228,18 +228,26 @@ def test_arc_parameters_out_of_range_are_named(changes, name, expected):
 
 
 def test_the_crossing_side_turns_toward_the_goal_and_is_held_from_the_approach_zone_on():
-    from ditch_drake.world.crossing import crossing_sides, live_crossing_side
+    from ditch_drake.world.crossing import crossing_side_step, crossing_sides
 
     # The packaged wide ditch runs along x; from y = -11 facing +y, +x is to the right.
     terrain = DitchTerrain(get_environment("wide").terrain)
     start = np.array([0.0, -11.0])
-    assert live_crossing_side(terrain, start, [8.0, 11.0], 15.0) == 1.0  # 20 deg to the right.
-    assert live_crossing_side(terrain, start, [-8.0, 11.0], 15.0) == -1.0  # 20 deg to the left.
-    assert live_crossing_side(terrain, start, [-2.0, 11.0], 15.0) == 1.0  # Near square: right by convention.
+
+    def side_at(xy, goal):
+        return crossing_side_step(terrain, xy, goal, 0.0, 2.5, 15.0)[0]
+
+    assert side_at(start, [8.0, 11.0]) == 1.0  # 20 deg to the right.
+    assert side_at(start, [-8.0, 11.0]) == -1.0  # 20 deg to the left.
+    assert side_at(start, [-2.0, 11.0]) == 1.0  # Near square: right by convention.
     # Held from where the path enters the approach zone (hinge 6.3 m + 2.5 m), though from the
     # last point the goal lies within 15 deg of square.
     path = np.array([start, [0.0, -8.0], [-12.0, -8.0]])
-    assert live_crossing_side(terrain, path[2], [-8.0, 11.0], 15.0) == 1.0
-    assert crossing_sides(terrain, path, np.array([-8.0, 11.0]), 2.5, 15.0).tolist() == [-1.0, -1.0, -1.0]
+    goal = np.array([-8.0, 11.0])
+    assert side_at(path[2], goal) == 1.0
+    assert crossing_side_step(terrain, path[0], goal, 0.0, 2.5, 15.0) == (-1.0, 0.0)
+    assert crossing_side_step(terrain, path[1], goal, 0.0, 2.5, 15.0) == (-1.0, -1.0)
+    assert crossing_side_step(terrain, path[2], goal, -1.0, 2.5, 15.0) == (-1.0, -1.0)
+    assert crossing_sides(terrain, path, goal, 2.5, 15.0).tolist() == [-1.0, -1.0, -1.0]
     # With a narrower approach zone the path is not yet in it at y = -8.
-    assert crossing_sides(terrain, path, np.array([-8.0, 11.0]), 1.0, 15.0).tolist() == [-1.0, -1.0, 1.0]
+    assert crossing_sides(terrain, path, goal, 1.0, 15.0).tolist() == [-1.0, -1.0, 1.0]

@@ -7,7 +7,7 @@ from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ditch_drake.spec import robot
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
-from ditch_drake.world.crossing import in_approach_zone, live_crossing_side
+from ditch_drake.world.crossing import crossing_side_step
 from ditch_drake.world.terrain import DitchTerrain
 
 # Where the expert commits to a side, and its convention near square on, by default.
@@ -18,8 +18,8 @@ class CrossingSide(LeafSystem):
     """The side along the edge the expert's rule would cross on, from a map of the ditch.
 
     Until the robot first enters the approach zone (within `approach_margin_m` of the hinge
-    line) the output is `ditch_drake.world.crossing.live_crossing_side` at the current pose;
-    from then on, the side it had there, as the expert commits to its side. A clone trained
+    line) the output is the expert's rule at the current pose; from then on, the side it had
+    there, as the expert commits to its side (`ditch_drake.world.crossing.crossing_side_step`). A clone trained
     with every crossing reflected to one side (`ModelConfig.canonical_side`) is told this
     side, as a route planner tells a driving policy which way to turn at a junction: it
     needs the ditch's course, which the lidar alone does not give. Offline,
@@ -55,18 +55,14 @@ class CrossingSide(LeafSystem):
                                      {self.xd_ticket(), self._poses_port.ticket()})
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._hold)
 
-    def _xy(self, context) -> np.ndarray:
-        return self._poses_port.Eval(context)[self._chassis_index].translation()[:2]
+    def _step(self, context) -> tuple[float, float]:
+        return crossing_side_step(
+            self._terrain, self._poses_port.Eval(context)[self._chassis_index].translation()[:2], self._goal_xy,
+            context.get_discrete_state(self._held_index).GetAtIndex(0), self._approach_margin_m,
+            self._straight_across_deg)
 
     def _calc_side(self, context, output) -> None:
-        held = context.get_discrete_state(self._held_index).GetAtIndex(0)
-        output.SetAtIndex(0, held if held != 0.0 else live_crossing_side(
-            self._terrain, self._xy(context), self._goal_xy, self._straight_across_deg))
+        output.SetAtIndex(0, self._step(context)[0])
 
     def _hold(self, context, discrete_state) -> None:
-        if context.get_discrete_state(self._held_index).GetAtIndex(0) != 0.0:
-            return
-        xy = self._xy(context)
-        if in_approach_zone(self._terrain, xy, self._approach_margin_m):
-            discrete_state.set_value(self._held_index, [live_crossing_side(
-                self._terrain, xy, self._goal_xy, self._straight_across_deg)])
+        discrete_state.set_value(self._held_index, [self._step(context)[1]])

@@ -137,10 +137,6 @@ class EdgeAngleDriver(LeafSystem):
         samples = np.linspace(xy, self._goal_xy, 50)
         return bool(np.all(self._terrain.nearest_on_course(samples)[0] > self._terrain.hinge_distance_m + 0.5))
 
-    def _approach_side(self, to_goal: np.ndarray, toward: np.ndarray, tangent: np.ndarray) -> float:
-        """+1 (along `tangent`: to the right when facing the ditch) or -1, see `straight_across_deg`."""
-        return approach_side(to_goal, toward, tangent, self._config.straight_across_deg)
-
     def crossing_length_m(self, wall_angle_deg: float, climb_angle_deg: float, approach_margin_m: float) -> float:
         """About how far (m) a crossing travels along the ditch from where it enters the
         approach zone to where it leaves the far wall: down the wall at the wall angle,
@@ -158,7 +154,7 @@ class EdgeAngleDriver(LeafSystem):
                          needed_m: float) -> float | None:
         """The heading to the lead-in point (rad) when the course ahead is too short for the
         crossing from here; None when it is long enough (see `EdgeAngleDriverConfig.lead_in`)."""
-        side = self._approach_side(self._goal_xy - xy, -away, tangent)
+        side = approach_side(self._goal_xy - xy, -away, tangent, self._config.straight_across_deg)
         ahead = self._terrain.course_left_ahead(xy, side * tangent)
         if ahead >= needed_m:
             return None
@@ -225,7 +221,7 @@ class EdgeAngleDriver(LeafSystem):
         if on_flat_bottom:
             along_sign = 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
         elif along_sign == 0.0:
-            along_sign = self._approach_side(to_goal, toward, tangent)
+            along_sign = approach_side(to_goal, toward, tangent, self._config.straight_across_deg)
         # Down toward the course; from the bottom on, across toward the goal's side and up.
         cross_sign = 1.0 if phase == DESCEND or float(to_goal @ toward) > 0.0 else -1.0
         if on_flat_bottom:

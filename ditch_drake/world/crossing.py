@@ -57,34 +57,31 @@ def approach_side(to_goal: np.ndarray, toward: np.ndarray, tangent: np.ndarray, 
     return 1.0 if float(to_goal @ tangent) >= 0.0 else -1.0
 
 
-def live_crossing_side(terrain: DitchTerrain, xy: np.ndarray, goal_xy: np.ndarray,
-                       straight_across_deg: float) -> float:
-    """`approach_side` from `xy` toward the goal, at the nearest edge (+1 right, -1 left)."""
-    away = terrain.distance_and_away(np.asarray(xy, dtype=float))[1]
-    tangent = np.array([-away[1], away[0]])
-    return approach_side(np.asarray(goal_xy, dtype=float) - xy, -away, tangent, straight_across_deg)
+def crossing_side_step(terrain: DitchTerrain, xy: np.ndarray, goal_xy: np.ndarray, held: float,
+                       approach_margin_m: float, straight_across_deg: float) -> tuple[float, float]:
+    """The side (+1 right, -1 left) at `xy`, and the side held from here on (0: none yet).
 
-
-def in_approach_zone(terrain: DitchTerrain, xy: np.ndarray, approach_margin_m: float) -> bool:
-    """Whether `xy` lies within `approach_margin_m` of the hinge line or inside it, where the
-    expert commits to its side along the edge."""
-    return float(terrain.distance_and_away(np.asarray(xy, dtype=float))[0]) <= (
-        terrain.hinge_distance_m + approach_margin_m)
+    A side held already stays. Otherwise the side is `approach_side` toward the goal at the
+    nearest edge, and it is held from where `xy` lies within `approach_margin_m` of the hinge
+    line or inside it, where the expert commits to its side along the edge.
+    """
+    if held != 0.0:
+        return held, held
+    xy = np.asarray(xy, dtype=float)
+    distance, away = terrain.distance_and_away(xy)
+    side = approach_side(np.asarray(goal_xy, dtype=float) - xy, -away, np.array([-away[1], away[0]]),
+                         straight_across_deg)
+    return side, side if float(distance) <= terrain.hinge_distance_m + approach_margin_m else 0.0
 
 
 def crossing_sides(terrain: DitchTerrain, path_xy: np.ndarray, goal_xy: np.ndarray, approach_margin_m: float,
                    straight_across_deg: float) -> np.ndarray:
-    """The side (+1 right, -1 left) at each point of `path_xy` (T, 2): `live_crossing_side`
-    until the path first enters the approach zone, then the side it had there."""
+    """The side (+1 right, -1 left) at each point of `path_xy` (T, 2), `crossing_side_step`
+    along it."""
     sides = np.empty(len(path_xy))
-    latched = None
+    held = 0.0
     for index, xy in enumerate(np.asarray(path_xy, dtype=float)):
-        if latched is None:
-            sides[index] = live_crossing_side(terrain, xy, goal_xy, straight_across_deg)
-            if in_approach_zone(terrain, xy, approach_margin_m):
-                latched = sides[index]
-        else:
-            sides[index] = latched
+        sides[index], held = crossing_side_step(terrain, xy, goal_xy, held, approach_margin_m, straight_across_deg)
     return sides
 
 
