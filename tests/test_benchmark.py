@@ -261,6 +261,24 @@ def test_train_generalist_refuses_mirror_with_canonical_side_before_any_work(tmp
     assert not work.exists()
 
 
+def test_train_generalist_refuses_to_resume_a_work_dir_made_with_other_settings(tmp_path, capsys):
+    from ditch_drake.benchmark.generalist import GENERALIST_TRAIN_RANGES, RECIPE_FILE, GeneralistConfig, _check_recipe
+    from ditch_drake.benchmark.ranges import packaged_ranges_path
+
+    work = tmp_path / "generalist"
+    work.mkdir()
+    _check_recipe(work, GeneralistConfig(), load_ranges(packaged_ranges_path(GENERALIST_TRAIN_RANGES)))
+    made_with = (work / RECIPE_FILE).read_text()
+    assert main(["train-generalist", "--canonical-side", "--work-dir", str(work), "--out", str(tmp_path / "g.pt")]) == 2
+    assert "canonical_side=True: expected False, the setting" in capsys.readouterr().err
+    assert (work / RECIPE_FILE).read_text() == made_with and sorted(p.name for p in work.iterdir()) == [RECIPE_FILE]
+    other_ranges = tmp_path / "ranges.yaml"
+    other_ranges.write_text("crater_diameter_m: [9.0, 12.0]\n")
+    assert main(["train-generalist", "--train-ranges", str(other_ranges), "--work-dir", str(work),
+                 "--out", str(tmp_path / "g.pt")]) == 2
+    assert "train_ranges.crater_diameter_m=[9.0, 12.0]: expected [8.0, 12.0]" in capsys.readouterr().err
+
+
 def test_the_generalist_trains_on_the_benchmark_ranges_with_craters_from_8_m():
     from dataclasses import asdict
 

@@ -72,6 +72,31 @@ def test_the_shipped_policy_stepping_the_environment_drives_the_evaluated_rollou
     assert steps == pytest.approx(record.time_s / 0.1, abs=1)
 
 
+def test_the_side_told_generalist_stepping_the_environment_drives_the_evaluated_rollout():
+    """`narrow`'s task 2 crosses turned left: the shipped generalist, told `info["crossing_side"]`,
+    drives the rollout of `ditch-drake evaluate --controller learned --checkpoint generalist --env
+    narrow --task 2 --seed 0 --rollouts 1`."""
+    [spec] = make_specs("learned", "generalist", "narrow", tasks=[2], rollouts=1, seed=0)
+    record = run_rollout(spec)
+    policy = LearnedPolicy(load_checkpoint(resolve_checkpoint_path("generalist")))
+    assert policy.HasInputPort("crossing_side")
+    env = DitchDrakeEnv(env="narrow", task=2)
+    observation, info = env.reset(seed=0)
+    sides = []
+    while True:
+        sides.append(info["crossing_side"])
+        label, _ = policy.infer(observation["image"], observation["imu"], observation["distance"],
+                                observation["bearing"], crossing_side=info["crossing_side"])
+        observation, _, terminated, truncated, info = env.step(label)
+        if terminated or truncated:
+            break
+    env.close()
+    assert record.status == "reached_goal"
+    assert set(sides) == {-1.0}
+    for field in ("status", "time_s", "path_length_m", "peak_tilt_deg", "final_x_m", "final_y_m"):
+        assert info[field] == getattr(record, field), field
+
+
 def test_a_rollover_terminates_with_the_penalty_and_the_outcome_in_info(wide_env):
     wide_env.reset(seed=1)
     while True:  # Straight ahead: into the ditch head-on (task 1 faces it).

@@ -19,7 +19,9 @@ Stages, each skipping what an earlier run finished (so the command resumes):
 5. every round's clone runs the val split's first `val_geometries` ditches
    (`<work>/val.jsonl`); the most successful (the later round on a tie) is copied to `out`.
 
-The test split plays no part.
+A work dir records the settings that shape its data and rounds (`recipe.json`: the train
+ranges, demonstrations per task, DAgger stride, mirror, canonical side, seed) and refuses to be
+resumed with others. The test split plays no part.
 """
 
 import json
@@ -29,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ditch_drake.benchmark.ranges import load_ranges, packaged_ranges_path
+from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges, packaged_ranges_path
 from ditch_drake.benchmark.run import BenchmarkConfig, run_benchmark
 from ditch_drake.benchmark.splits import split_ditches, write_ditches
 from ditch_drake.common.errors import ConfigError
@@ -50,6 +52,8 @@ DAGGER_SEED = 50_000
 MIRROR_MARGIN_DEG = 5.0
 # The packaged ranges of the train ditches (`GeneralistConfig.train_ranges`).
 GENERALIST_TRAIN_RANGES = "generalist_train_ranges.yaml"
+# The settings a work dir's demonstrations and rounds were made with (`_check_recipe`).
+RECIPE_FILE = "recipe.json"
 
 
 @dataclass
@@ -202,6 +206,28 @@ def _train(config: GeneralistConfig, data: list[Path], ditches: str, out: Path, 
         raise KeyboardInterrupt
 
 
+def _check_recipe(work: Path, config: GeneralistConfig, train_ranges: BenchmarkRanges) -> None:
+    """Refuses to resume a work dir made with other settings, and records them in a new one.
+
+    The stages keep whatever an earlier run finished, so without this a run with another
+    `canonical_side` (or ranges, stride, ...) would keep rounds trained the other way, or
+    demonstrations of ditches that share a name but not a shape, and choose among them.
+    """
+    ranges = {f"train_ranges.{name}": value for name, value in asdict(train_ranges).items()}
+    recipe = json.loads(json.dumps(ranges | {"demos_per_task": config.demos_per_task, "dagger_stride": config.dagger_stride,
+                                             "mirror": config.mirror, "canonical_side": config.canonical_side,
+                                             "seed": config.seed}))
+    path = work / RECIPE_FILE
+    if not path.exists():
+        atomic_write_text(path, json.dumps(recipe, indent=2) + "\n")
+        return
+    made_with = json.loads(path.read_text())
+    for name, value in recipe.items():
+        if made_with.get(name) != value:
+            raise ConfigError(f"{name}={value}: expected {made_with.get(name)}, the setting {work} was made with "
+                              f"({path}); pass the same to resume it, or a fresh --work-dir")
+
+
 def _val_success(results: Path, checkpoint: Path) -> tuple[int, int]:
     records, _ = current_records([r for r in load_results([results]) if r.checkpoint == str(checkpoint)])
     valid = [r for r in records if r.status != "error"]
@@ -226,6 +252,7 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
     train_ranges = load_ranges(config.train_ranges or packaged_ranges_path(GENERALIST_TRAIN_RANGES))
     work = Path(config.work_dir)
     work.mkdir(parents=True, exist_ok=True)
+    _check_recipe(work, config, train_ranges)
     ditches = split_ditches("train", config.train_geometries, train_ranges)
     ditches_path = str(write_ditches(work / "train.ditches.yaml", ditches))
     names = [ditch.name for ditch in ditches]

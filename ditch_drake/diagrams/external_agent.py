@@ -3,7 +3,8 @@
 What a Gymnasium environment (`ditch_drake.gym`) or any other agent loop steps: the scene,
 the observation blocks the learned policy reads, and in the policy's place an
 `ActionLabelInput` on the exported `action` port, with the stacks packed into one
-exported `observation` dictionary (`ObservationDict`).
+exported `observation` dictionary (`ObservationDict`), and the `CrossingSide` a clone trained
+in one side's frame is told, on the exported `crossing_side` port.
 """
 
 from pydrake.geometry import Meshcat
@@ -11,7 +12,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder
 
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, ObservationConfig
-from ditch_drake.diagrams.rollout import AddHaltCounter, LearnedPolicyConfig
+from ditch_drake.diagrams.rollout import AddCrossingSide, AddHaltCounter, LearnedPolicyConfig
 from ditch_drake.diagrams.scenario import Scenario
 from ditch_drake.systems.action_label_input import ActionLabelInput
 from ditch_drake.systems.observation_dict import ObservationDict
@@ -27,7 +28,8 @@ def observation_config(scenario: Scenario) -> ObservationConfig:
 
 def MakeExternalAgentDiagram(scenario: Scenario, meshcat: Meshcat | None = None) -> tuple[Diagram, DitchScene]:
     """The scene of `scenario` with its observation blocks, driven by the label on the exported
-    `action` input port, and the exported `observation` output (see `ObservationDict`).
+    `action` input port, and the exported `observation` output (see `ObservationDict`) and
+    `crossing_side` output (see `CrossingSide`: what `AddLearnedPolicy` tells a side-told clone).
 
     The blocks are added in the order `AddController` adds the learned policy's (scene,
     observation, the block in the policy's place, the halt counter), so a seed draws the
@@ -42,8 +44,10 @@ def MakeExternalAgentDiagram(scenario: Scenario, meshcat: Meshcat | None = None)
     AddHaltCounter(builder, scene, action.GetOutputPort("command"))
     packer = builder.AddNamedSystem("observation_dict", ObservationDict())
     ConnectObservation(builder, observation, packer)
+    side = AddCrossingSide(builder, scene)
     builder.ExportInput(action.GetInputPort("action"), "action")
     builder.ExportOutput(packer.GetOutputPort("observation"), "observation")
+    builder.ExportOutput(side.GetOutputPort("crossing_side"), "crossing_side")
     diagram = builder.Build()
     diagram.set_name(f"external_agent_{scenario.environment}_task{scenario.task}")
     return diagram, scene

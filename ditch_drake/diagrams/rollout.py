@@ -246,13 +246,20 @@ def AddLearnedPolicy(builder: DiagramBuilder, scene: DitchScene, observation: Ob
                 f"blocks give {port.size()} (a model trained on another input shape)")
     ConnectObservation(builder, observation, policy)
     if policy.HasInputPort("crossing_side"):
-        chassis = scene.plant.GetBodyByName("chassis", scene.husky)
-        side = builder.AddNamedSystem("crossing_side", CrossingSide(
-            scene.terrain, scene.task.goal, chassis.index(), period_s=schedule.control_period_s,
-            offset_s=schedule.controller_offset_s))
-        builder.Connect(scene.plant.get_body_poses_output_port(), side.GetInputPort("body_poses"))
+        side = AddCrossingSide(builder, scene)
         builder.Connect(side.GetOutputPort("crossing_side"), policy.GetInputPort("crossing_side"))
     return policy
+
+
+def AddCrossingSide(builder: DiagramBuilder, scene: DitchScene) -> CrossingSide:
+    """Adds the `CrossingSide` of the scene's ditch and goal, reading the chassis pose and
+    holding its side at the controller's ticks."""
+    schedule = scene.schedule
+    side = builder.AddNamedSystem("crossing_side", CrossingSide(
+        scene.terrain, scene.task.goal, scene.plant.GetBodyByName("chassis", scene.husky).index(),
+        period_s=schedule.control_period_s, offset_s=schedule.controller_offset_s))
+    builder.Connect(scene.plant.get_body_poses_output_port(), side.GetInputPort("body_poses"))
+    return side
 
 
 def MakeRolloutDiagram(config: RolloutConfig, meshcat: Meshcat | None = None) -> tuple[Diagram, DitchScene]:

@@ -130,8 +130,11 @@ class DitchDrakeEnv(DrakeGymEnv):
     environment's `np_random`. The episode monitor ends an episode: `terminated` on reaching
     the goal, rolling over or being stuck, `truncated` at the scenario's time limit (and when
     the simulator fails). The last step's `info` holds the outcome record's fields
-    (`RolloutRecord`'s status .. halts_by_region) with the seed; every `info` has "seed" and
-    "time_s". Reward: `RewardConfig`.
+    (`RolloutRecord`'s status .. halts_by_region) with the seed; every `info` has "seed",
+    "time_s" and "crossing_side": +1 or -1, the side along the edge to cross on that a clone
+    trained in one side's frame is told (`CrossingSide`; `LearnedPolicy.infer`'s
+    `crossing_side`), from the ditch's course, the goal and the pose: a map's answer, not
+    something the robot senses. Reward: `RewardConfig`.
 
     The diagram is built once (the packaged sine takes seconds) and every reset reuses it.
     """
@@ -183,6 +186,7 @@ class DitchDrakeEnv(DrakeGymEnv):
         goal = self.diagram.GetSubsystemByName("goal_sensor")
         self._distance_port, self._goal_context = goal.GetOutputPort("distance"), goal.GetMyContextFromRoot(
             self.simulator.get_context())
+        self._side_port = self.diagram.GetOutputPort("crossing_side")
         self._distance_m = math.nan
         self._episode_seed: int | None = None
         self._ended = True
@@ -240,4 +244,5 @@ class DitchDrakeEnv(DrakeGymEnv):
                 "stuck": -config.stuck_penalty}.get(status, 0.0)
 
     def _info(self, context) -> dict:
-        return {"seed": self._episode_seed, "time_s": context.get_time()}
+        return {"seed": self._episode_seed, "time_s": context.get_time(),
+                "crossing_side": float(self._side_port.Eval(context)[0])}
