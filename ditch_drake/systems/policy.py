@@ -125,7 +125,7 @@ class LearnedPolicy(LeafSystem):
         reflect = self._side_port is not None and crossing_side < 0.0
         if reflect:
             batch = {name: value.copy() for name, value in batch.items()}
-            mirror_left_right(batch | {"label": np.zeros(1, dtype=np.int64)})
+            mirror_left_right(batch)
         inputs = [torch.as_tensor(batch[name]) for name in ("image", "imu", "distance", "bearing")]
         with torch.inference_mode():
             logits = self._model(*inputs)
