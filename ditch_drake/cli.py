@@ -174,7 +174,7 @@ def cmd_calibrate(args) -> int:
     if args.trials < 1:
         raise ConfigError(f"--trials {args.trials}: expected >= 1 (seeded trials per driven case)")
     check_seed(args.seed, args.trials)
-    from ditch_drake.benchmarks.calibration import CalibrationConfig, run_calibration
+    from ditch_drake.validation.calibration import CalibrationConfig, run_calibration
 
     config = CalibrationConfig(trials=args.trials, seed=args.seed, workers=args.workers,
                                environments_file=args.environments or "")
@@ -191,7 +191,7 @@ def cmd_calibrate(args) -> int:
 
 
 def cmd_bench(args) -> int:
-    from ditch_drake.benchmarks.bench import run_bench
+    from ditch_drake.perf.bench import run_bench
 
     figures = run_bench(args.env or None, training=args.training, environments_file=args.environments or "")
     if args.json:
@@ -283,7 +283,9 @@ def cmd_train(args) -> int:
     from ditch_drake.demos.dataset import load_dataset, to_array_set
     from ditch_drake.learning.train import available_precision, train
 
-    device = _training_device(args.device)
+    from ditch_drake.pipelines.stages import training_device
+
+    device = training_device(args.device)
     precision = available_precision(device) if args.precision == "auto" else args.precision
     config = replace(config, device=device, precision=precision)
     demonstrations = []
@@ -301,18 +303,6 @@ def cmd_train(args) -> int:
               + (f"; --resume continues from {result.resume_file}" if result.resume_file else ""), file=sys.stderr)
         return result.exit_code
     return 0
-
-
-def _training_device(requested: str) -> str:
-    import torch
-
-    from ditch_drake.learning.train import available_device
-
-    if requested == "auto":
-        return available_device()
-    if requested == "cuda" and not torch.cuda.is_available():
-        raise ConfigError("--device cuda: torch sees no CUDA device; use --device cpu or auto")
-    return requested
 
 
 def cmd_replay(args) -> int:
@@ -427,7 +417,7 @@ def cmd_evaluate(args) -> int:
 
 def cmd_experiment(args) -> int:
     """The paper's pipeline from an experiment file: collect, train, evaluate, report."""
-    from ditch_drake.evaluation.experiment import load_experiment, run_experiment
+    from ditch_drake.pipelines.experiment import load_experiment, run_experiment
 
     config = load_experiment(args.file)
     stages = tuple(args.stage) if args.stage else ("collect", "train", "evaluate", "report")
@@ -500,7 +490,7 @@ def cmd_train_generalist(args) -> int:
     """The generalist: demonstrations and DAgger over the train split, the best round on val."""
     check_workers(args.workers, "--workers")
     check_seed(args.seed)
-    from ditch_drake.benchmark.generalist import GeneralistConfig, train_generalist
+    from ditch_drake.pipelines.generalist import GeneralistConfig, train_generalist
     from ditch_drake.benchmark.splits import split_seeds
 
     split_seeds("train", args.train_geometries)
@@ -621,7 +611,7 @@ def _environments_epilog() -> str:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from ditch_drake.evaluation.experiment import study_names
+    from ditch_drake.pipelines.experiment import study_names
     from ditch_drake.learning.config import TrainConfig
     from ditch_drake.world.environments import environment_names
 
@@ -834,7 +824,7 @@ def build_parser() -> argparse.ArgumentParser:
     generalist.add_argument("--epochs", type=int, default=12, help="most epochs per training")
     generalist.add_argument("--mirror", action="store_true",
                             help="also train on the left-right reflection of each rollout whose crossing turns "
-                                 "clearly to one side (ditch_drake/benchmark/generalist.py)")
+                                 "clearly to one side (ditch_drake/pipelines/generalist.py)")
     generalist.add_argument("--canonical-side", action="store_true",
                             help="reflect every step that crosses turned left along the edge, and tell the clone "
                                  "the side to cross on from a map of the ditch (systems/crossing_side.py)")

@@ -1,10 +1,10 @@
-"""The closed-loop repeat benchmark (`ditch_drake.benchmarks.bench_closed_loop`)."""
+"""The closed-loop repeat benchmark (`ditch_drake.perf.bench_closed_loop`)."""
 
 import json
 
 import pytest
 
-from ditch_drake.benchmarks import bench_closed_loop
+from ditch_drake.perf import bench_closed_loop
 
 
 def _sample(observation_ms: float, rtf: float) -> dict:
@@ -42,7 +42,7 @@ def test_bad_arguments_are_named():
 
 
 def test_environments_take_turns_episode_by_episode(monkeypatch):
-    from ditch_drake.benchmarks import bench
+    from ditch_drake.perf import bench
 
     runs = []
 

@@ -262,7 +262,7 @@ def test_train_generalist_refuses_mirror_with_canonical_side_before_any_work(tmp
 
 
 def test_train_generalist_refuses_to_resume_a_work_dir_made_with_other_settings(tmp_path, capsys):
-    from ditch_drake.benchmark.generalist import GENERALIST_TRAIN_RANGES, RECIPE_FILE, GeneralistConfig, _check_recipe
+    from ditch_drake.pipelines.generalist import GENERALIST_TRAIN_RANGES, RECIPE_FILE, GeneralistConfig, _check_recipe
     from ditch_drake.benchmark.ranges import packaged_ranges_path
 
     work = tmp_path / "generalist"
@@ -282,7 +282,7 @@ def test_train_generalist_refuses_to_resume_a_work_dir_made_with_other_settings(
 def test_the_generalist_trains_on_the_benchmark_ranges_with_craters_from_8_m():
     from dataclasses import asdict
 
-    from ditch_drake.benchmark.generalist import GENERALIST_TRAIN_RANGES
+    from ditch_drake.pipelines.generalist import GENERALIST_TRAIN_RANGES
     from ditch_drake.benchmark.ranges import packaged_ranges_path
 
     train, benchmark = asdict(load_ranges(packaged_ranges_path(GENERALIST_TRAIN_RANGES))), asdict(load_ranges())

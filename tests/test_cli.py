@@ -19,19 +19,19 @@ def test_unknown_environment_is_a_clear_error(capsys):
 
 
 def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
-    from ditch_drake.benchmarks import bench
+    from ditch_drake.perf import bench
 
     monkeypatch.setattr(bench.measure_plant_rtf, "__defaults__", (0, 0.5, "", 1))
     monkeypatch.setattr(bench.measure_closed_loops, "__defaults__", (0, 0.5, 2, ""))
     monkeypatch.setattr(bench, "measure_blocks", lambda: {"lidar_render_and_cloud_ms": 1.0})
     monkeypatch.setattr(bench, "measure_rollouts_per_minute", lambda: {"evaluate_rollouts_per_min": 1.0})
-    from ditch_drake.benchmarks import bench_training
+    from ditch_drake.perf import bench_training
 
     monkeypatch.setattr(bench_training, "measure_training_throughput", lambda: {"train_samples_per_s": 1.0})
-    from ditch_drake.benchmarks import bench_gym
+    from ditch_drake.perf import bench_gym
 
     monkeypatch.setattr(bench_gym.measure_gym_env, "__defaults__", ("wide", 0, 0, 1))
-    from ditch_drake.benchmarks import bench_scene
+    from ditch_drake.perf import bench_scene
 
     monkeypatch.setattr(bench_scene, "build_cases", lambda: [("narrow", None, "narrow")])
     monkeypatch.setattr(bench_scene, "RSS_ENVIRONMENTS", ("narrow",))
@@ -74,7 +74,7 @@ def test_every_shipped_model_loads_and_says_where_it_was_trained(capsys):
 @pytest.mark.slow
 def test_calibration_passes_in_every_environment():
     """The full calibration benchmark (10 seeded trials each): the physics shows the paper's phenomenon."""
-    from ditch_drake.benchmarks.calibration import CalibrationConfig, run_calibration
+    from ditch_drake.validation.calibration import CalibrationConfig, run_calibration
 
     report = run_calibration(CalibrationConfig(), progress=False)
     assert report["all_ok"], json.dumps(report, indent=1)

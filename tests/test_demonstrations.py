@@ -147,7 +147,7 @@ def test_thinned_steps_keep_stacks_of_consecutive_frames():
 
 
 def test_the_generalist_trains_on_every_dagger_stride_th_step_of_its_dagger_rollouts(tmp_path):
-    from ditch_drake.benchmark.generalist import GeneralistConfig, _training_samples
+    from ditch_drake.pipelines.generalist import GeneralistConfig, _training_samples
 
     for name in ("demos", "dagger1"):
         save_demonstration(tmp_path / name / "demo_000.npz", _numbered_frames(7))
@@ -159,7 +159,7 @@ def test_the_generalist_trains_on_every_dagger_stride_th_step_of_its_dagger_roll
 def test_the_generalist_also_learns_the_reflection_of_crossings_that_turn_clearly(tmp_path):
     from importlib import resources
 
-    from ditch_drake.benchmark.generalist import MIRROR_MARGIN_DEG, GeneralistConfig, _training_samples
+    from ditch_drake.pipelines.generalist import MIRROR_MARGIN_DEG, GeneralistConfig, _training_samples
 
     # The packaged wide ditch: task 0 runs square across, task 1 turns 24 deg to the right.
     for index, task in enumerate((1, 0)):
@@ -190,7 +190,7 @@ def test_the_generalist_also_learns_the_reflection_of_crossings_that_turn_clearl
 def test_the_canonical_side_generalist_reflects_the_steps_that_cross_turned_left(tmp_path):
     from importlib import resources
 
-    from ditch_drake.benchmark.generalist import GeneralistConfig, _training_samples
+    from ditch_drake.pipelines.generalist import GeneralistConfig, _training_samples
 
     # The packaged wide ditch runs along x; from y = -8 (in the approach zone) facing +y, the
     # goal at x = -8 lies 20 deg to the left, at x = +8 to the right (tests/test_terrain.py).

@@ -496,7 +496,7 @@ def test_rollout_diagram_with_the_dwa_baseline_drives_toward_the_goal_in_a_ditch
 
 
 def test_dwa_benchmark_reports_the_update_and_the_global_plan_apart():
-    from ditch_drake.benchmarks.bench_dwa import measure_dwa_ms, record_lidar_drive
+    from ditch_drake.perf.bench_dwa import measure_dwa_ms, record_lidar_drive
 
     drive = record_lidar_drive("narrow", duration_s=1.5)
     assert drive.clouds.shape[:2] == (15, len(drive.ray_directions_L))

@@ -13,7 +13,7 @@ import pytest
 from ditch_drake.cli import main
 from ditch_drake.diagrams import controllers
 from ditch_drake.diagrams.scenario import load_scenario
-from ditch_drake.evaluation.experiment import load_experiment, run_experiment
+from ditch_drake.pipelines.experiment import load_experiment, run_experiment
 from ditch_drake.world.environments import load_environments
 
 REPO = Path(__file__).resolve().parents[1]

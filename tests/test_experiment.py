@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from ditch_drake.evaluation.experiment import (
+from ditch_drake.pipelines.experiment import (
     ModelSpec,
     code_revision,
     evaluation_specs,

@@ -22,7 +22,8 @@ LAYERS = [
     {"demos"},
     {"evaluation"},
     {"gym", "benchmark"},
-    {"benchmarks"},
+    {"pipelines"},
+    {"perf", "validation"},
     {"docs_tools"},
     {"cli"},
 ]

@@ -59,7 +59,7 @@ def test_empty_or_all_nan_cloud_gives_zero_command_and_keeps_the_map_unknown():
 
 
 def test_mppi_benchmark_times_the_update_on_a_tiny_replay():
-    from ditch_drake.benchmarks.bench_mppi import measure_mppi_ms, record_mppi_drive
+    from ditch_drake.perf.bench_mppi import measure_mppi_ms, record_mppi_drive
 
     config = MppiBaselineConfig(planner=MppiPlannerConfig(samples=64))
     drive = record_mppi_drive("wide_walled", task=1, duration_s=0.5, config=config)

@@ -24,7 +24,7 @@ def test_figure_command_knows_mppi():
 
 
 def test_attitude_validation_traces_an_expert_drive_and_summarizes(tmp_path):
-    from ditch_drake.benchmarks.mppi_validation import draw_traces, markdown_table, summarize, trace_expert_drive
+    from ditch_drake.validation.mppi_validation import draw_traces, markdown_table, summarize, trace_expert_drive
 
     trace = trace_expert_drive("wide_walled", 0, 0, end_time_s=1.0)
     arrays = trace.arrays()

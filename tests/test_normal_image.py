@@ -9,7 +9,7 @@ from pydrake.perception import BaseField, Fields, PointCloud
 from pydrake.systems.analysis import Simulator
 from scipy.spatial import cKDTree
 
-from ditch_drake.benchmarks import bench_normal_image as bench
+from ditch_drake.perf import bench_normal_image as bench
 from ditch_drake.perception import normal_image as ni
 from ditch_drake.perception.normal_image import (
     IMAGE_SHAPE,

@@ -413,7 +413,7 @@ def _speed_section(speed: dict, notes: dict) -> list[str]:
     return [
         "### Speed", "",
         ("One control-step update of the block, replayed on a recorded drive of the real lidar "
-         "(`ditch_drake/benchmarks/bench_dwa.py`; the same keys are in `ditch-drake bench --json`). "
+         "(`ditch_drake/perf/bench_dwa.py`; the same keys are in `ditch-drake bench --json`). "
          "The issue's budget: costmap update + local plan <= 10 ms on one core, the global plan apart."), "",
         "| figure | key | ms |", "| --- | --- | --- |",
         *[f"| {label} | `{key}` | {speed[key]:.2f} |" for label, key in rows], "",
@@ -559,7 +559,7 @@ def baseline_page(episodes: list[DwaEpisode], speed: dict, geometry: list[dict],
 
     Args:
         episodes: one per environment, with snapshots.
-        speed: `ditch_drake.benchmarks.bench_dwa.measure_dwa_ms`'s figures.
+        speed: `ditch_drake.perf.bench_dwa.measure_dwa_ms`'s figures.
         geometry: `geometry_rows`.
         figures: environment name -> the picture's path relative to the page.
         tracks_figure: the tracks picture's path relative to the page.
@@ -599,7 +599,7 @@ def main(argv: list[str] | None = None) -> int:
     import os
     import platform
 
-    from ditch_drake.benchmarks.bench_dwa import measure_dwa_ms, record_lidar_drive
+    from ditch_drake.perf.bench_dwa import measure_dwa_ms, record_lidar_drive
     from ditch_drake.docs_tools.figures import cost_curve_figure
 
     parser = argparse.ArgumentParser(prog="python -m ditch_drake.docs_tools.baseline_page", description=__doc__.split("\n")[0])

@@ -26,7 +26,7 @@ epoch). The strategy, all in `SmoteConfig`:
 
 Synthetic samples carry `demo_id = SYNTHETIC_DEMO_ID` (-1). The peak memory of the whole
 training pipeline on a 16 k-sample set (uint8 images, 1.0 GiB; 12.8 k training samples get
-12.8 k synthetic ones) is measured by `ditch_drake/benchmarks/bench_training.py::measure_training_memory_mib`:
+12.8 k synthetic ones) is measured by `ditch_drake/perf/bench_training.py::measure_training_memory_mib`:
 3.7 GiB peak RSS, SMOTE included (about 2.5 min on 2 shared cores). float16 images double
 the data's share.
 """

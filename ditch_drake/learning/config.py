@@ -39,7 +39,7 @@ class ModelConfig:
         scalar_hidden: units of each scalar branch (paper: 32).
         fusion_hidden: units of the layer after the concatenation (paper: 64).
         canonical_side: trained with every sample reflected left to right where its crossing
-            turns left along the edge (`ditch_drake.benchmark.generalist`,
+            turns left along the edge (`ditch_drake.pipelines.generalist`,
             `GeneralistConfig.canonical_side`), so the network only ever crosses turned right;
             the policy is told the side (`LearnedPolicy`'s `crossing_side` input) and
             reflects its view and its answer when it is left.

@@ -18,7 +18,7 @@ Choices where the paper is silent (all in `ModelConfig`):
   image feature is 32 x 8 x 8 = 2,048 values, so the fusion layer has 137 k weights instead of
   the 2.1 M (2 x 2 pools) or 31 M (one 2 x 2 pool at the end) of the alternatives. The whole
   network has 160,145 parameters (see `parameter_count`); one forward pass of a single
-  sample takes a few ms on one CPU core (`ditch_drake/benchmarks/bench_training.py`).
+  sample takes a few ms on one CPU core (`ditch_drake/perf/bench_training.py`).
 - Each pooling comes before its ELU rather than after: ELU is increasing, so
   pool(ELU(x)) = ELU(pool(x)) exactly, and the ELU then touches 16 x fewer values.
 - The convolutions run in channels-last memory layout (oneDNN's fast path on CPU); the

@@ -3,7 +3,7 @@
 The expert turns along the edge toward the goal's side, unless the goal lies within
 `EdgeAngleDriverConfig.straight_across_deg` of straight across, where it turns right by
 convention; so which way a crossing turns decides which way it is demonstrated
-(`ditch_drake.benchmark.generalist` reflects only crossings the convention does not touch,
+(`ditch_drake.pipelines.generalist` reflects only crossings the convention does not touch,
 the benchmark's report bins success by it).
 
 `approach_side` is that rule, and `crossing_sides` the side it gives along a path, held from

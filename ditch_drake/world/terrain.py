@@ -604,7 +604,7 @@ class DitchTerrain:
 
         Drake's collision filter keeps an entry for every pair of proximity geometries, twice
         in the geometry model and twice again in each Context, so a scene's memory and build
-        time grow with the square of the number of pieces (`ditch_drake.benchmarks.bench_scene`,
+        time grow with the square of the number of pieces (`ditch_drake.perf.bench_scene`,
         docs/benchmark.md). A convex section has the surface of its slabs' tops, and a sphere
         touching it gets one contact point instead of one per slab it reaches. Straight ditches
         and craters, a few hundred pieces, keep the slabs. The visual geometry stays

@@ -1,6 +1,6 @@
 """Memory of the training pipeline and time of one learned-policy step.
 
-Run: `python benchmarks/bench_training.py [samples]`. Prints
+Run: `python -m ditch_drake.perf.bench_training.py [samples]`. Prints
 {"policy_step_ms": ..., "train_peak_rss_mib": ..., ...} (keys end with their unit).
 
 - `measure_policy_step_ms`: median wall time of one `LearnedPolicy` update (read the four
@@ -86,7 +86,7 @@ def measure_training_memory_mib(samples: int = TRAINING_SAMPLES) -> dict:
         "train_synthetic_samples", "train_real_samples"}.
     """
     completed = subprocess.run(
-        [sys.executable, "-m", "ditch_drake.benchmarks.bench_training", "--memory-worker", str(samples)],
+        [sys.executable, "-m", "ditch_drake.perf.bench_training", "--memory-worker", str(samples)],
         check=True,
         capture_output=True,
         text=True,

@@ -1,6 +1,6 @@
 """Times the move_base baseline (`ditch_drake.systems.dwa_controller.DwaController`) on the real lidar.
 
-Run: `python -m ditch_drake.benchmarks.bench_dwa [environment] [seconds]`. A closed-loop drive
+Run: `python -m ditch_drake.perf.bench_dwa [environment] [seconds]`. A closed-loop drive
 of the DWA through the environment's first task (seed 0) records what the controller saw at
 each control step: the rendered lidar's organized cloud and the chassis pose. A fresh
 controller then replays those steps, timing each periodic update, and Dijkstra's global plan

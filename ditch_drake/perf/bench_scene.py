@@ -1,9 +1,9 @@
 """What a rollout diagram costs to build and to keep (issue 22): `scene_build_max_s` and
 `diagram_rss_mib`.
 
-    python -m ditch_drake.benchmarks.bench_scene               # the bench's keys and details
-    python -m ditch_drake.benchmarks.bench_scene --breakdown   # where a diagram's memory goes
-    python -m ditch_drake.benchmarks.bench_scene --profile sine  # where a build's time goes
+    python -m ditch_drake.perf.bench_scene               # the bench's keys and details
+    python -m ditch_drake.perf.bench_scene --breakdown   # where a diagram's memory goes
+    python -m ditch_drake.perf.bench_scene --profile sine  # where a build's time goes
 
 - `scene_build_max_s`: the slowest `MakeRolloutDiagram` (learned controller) over 20
   ditches: the four packaged ones and the benchmark generator's train-split ditches of
@@ -126,7 +126,7 @@ def measure_breakdown(environments=("wide", "sine")) -> dict:
     figures = {}
     for environment in environments:
         for variant in BREAKDOWN_VARIANTS:
-            result = subprocess.run([sys.executable, "-m", "ditch_drake.benchmarks.bench_scene", "--rss", environment,
+            result = subprocess.run([sys.executable, "-m", "ditch_drake.perf.bench_scene", "--rss", environment,
                                      variant], capture_output=True, text=True, check=True)
             figures[f"diagram_rss_{environment}_{variant}_mib"] = json.loads(
                 result.stdout.strip().splitlines()[-1])["diagram_rss_mib"]
@@ -137,7 +137,7 @@ def measure_diagram_rss(environments=RSS_ENVIRONMENTS) -> dict:
     """`diagram_rss_mib`: the worst of `environments`, each in a fresh subprocess."""
     figures = {}
     for environment in environments:
-        result = subprocess.run([sys.executable, "-m", "ditch_drake.benchmarks.bench_scene", "--rss", environment],
+        result = subprocess.run([sys.executable, "-m", "ditch_drake.perf.bench_scene", "--rss", environment],
                                 capture_output=True, text=True, check=True)
         figures[environment] = json.loads(result.stdout.strip().splitlines()[-1])["diagram_rss_mib"]
     worst = max(figures, key=figures.get)

@@ -1,6 +1,6 @@
 """Repeats the bench's closed-loop measurement to show how much the shared host moves it.
 
-Run: `python -m ditch_drake.benchmarks.bench_closed_loop [repeats] [environment ...]`
+Run: `python -m ditch_drake.perf.bench_closed_loop [repeats] [environment ...]`
 (default 5 repeats, every environment). Each repeat is one `measure_closed_loops` over
 the environments (the figures `ditch-drake bench --json` prints once) between two host
 references (`measure_host_reference_ms`), printed as one JSON line as soon as it is done;
@@ -17,7 +17,7 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from ditch_drake.benchmarks.bench import measure_closed_loops, measure_host_reference_ms
+from ditch_drake.perf.bench import measure_closed_loops, measure_host_reference_ms
 from ditch_drake.world.environments import environment_names
 
 # The perception issue's targets.

@@ -9,7 +9,7 @@ import time
 
 import numpy as np
 
-from ditch_drake.benchmarks.closed_loop import (
+from ditch_drake.perf.closed_loop import (
     CLOSED_LOOP_EPISODES,
     TRAVERSAL_S,
     WARMUP_S,
@@ -113,11 +113,11 @@ def measure_closed_loops(
 
 def measure_blocks() -> dict:
     """One control step of each expensive block, in ms (medians, one process)."""
-    from ditch_drake.benchmarks.bench_dwa import measure_dwa_ms
-    from ditch_drake.benchmarks.bench_lidar import measure_lidar_ms
-    from ditch_drake.benchmarks.bench_mppi import measure_mppi_ms
-    from ditch_drake.benchmarks.bench_normal_image import measure_normal_image_ms
-    from ditch_drake.benchmarks.bench_training import measure_policy_step_ms
+    from ditch_drake.perf.bench_dwa import measure_dwa_ms
+    from ditch_drake.perf.bench_lidar import measure_lidar_ms
+    from ditch_drake.perf.bench_mppi import measure_mppi_ms
+    from ditch_drake.perf.bench_normal_image import measure_normal_image_ms
+    from ditch_drake.perf.bench_training import measure_policy_step_ms
 
     lidar = measure_lidar_ms("wide")
     normal_image = measure_normal_image_ms(repeats=30)
@@ -153,14 +153,14 @@ def measure_rollouts_per_minute(rollouts: int = 4, environment: str = "wide") ->
 
 def measure_gym_figures() -> dict:
     """The Gymnasium environment's steps per second and its time per step over the closed
-    loop's (`ditch_drake.benchmarks.bench_gym`); none without the `gym` extra, which says so on stderr."""
+    loop's (`ditch_drake.perf.bench_gym`); none without the `gym` extra, which says so on stderr."""
     import importlib.util
     import sys
 
     if importlib.util.find_spec("gymnasium") is None:
         print("bench: gymnasium is not installed (pip install -e '.[gym]'): no gym_* figures", file=sys.stderr)
         return {}
-    from ditch_drake.benchmarks.bench_gym import measure_gym_env
+    from ditch_drake.perf.bench_gym import measure_gym_env
 
     return measure_gym_env()
 
@@ -198,13 +198,13 @@ def run_bench(environments: list[str] | None = None, training: bool = False, env
     figures.update(measure_closed_loops(environments, environments_file=environments_file))
     figures["closed_loop_min_rtf"] = min(figures[f"closed_loop_{name}_rtf"] for name in environments)
     figures.update(measure_blocks())
-    from ditch_drake.benchmarks.bench_training import measure_training_throughput, shipped_model_figures
+    from ditch_drake.perf.bench_training import measure_training_throughput, shipped_model_figures
 
     figures.update(measure_training_throughput())
     figures.update(shipped_model_figures())
     figures.update(measure_rollouts_per_minute())
     figures.update(measure_gym_figures())
-    from ditch_drake.benchmarks.bench_scene import (
+    from ditch_drake.perf.bench_scene import (
         measure_benchmark_rollouts_per_min,
         measure_diagram_rss,
         measure_scene_build,
@@ -215,7 +215,7 @@ def run_bench(environments: list[str] | None = None, training: bool = False, env
     figures.update({key: value for key, value in rss.items() if key.endswith("_mib")})
     figures.update(measure_benchmark_rollouts_per_min())
     if training:
-        from ditch_drake.benchmarks.bench_training import measure_training_memory_mib
+        from ditch_drake.perf.bench_training import measure_training_memory_mib
 
         memory = measure_training_memory_mib()
         figures["train_peak_rss_mib"] = memory["train_peak_rss_mib"]

@@ -1,7 +1,7 @@
 """Times the rollover-aware MPPI baseline (`ditch_drake.systems.mppi_controller.MppiController`).
 
-Run: `python -m ditch_drake.benchmarks.bench_mppi [environment] [task] [seconds]`. As the DWA's
-bench (`ditch_drake.benchmarks.bench_dwa`): a closed-loop drive of the MPPI itself through
+Run: `python -m ditch_drake.perf.bench_mppi [environment] [task] [seconds]`. As the DWA's
+bench (`ditch_drake.perf.bench_dwa`): a closed-loop drive of the MPPI itself through
 the environment's task (seed 0) records what the controller saw at each control step, the
 rendered lidar's organized cloud and the chassis pose; a fresh controller then replays those
 steps, timing each whole periodic update (window roll, fusion of the cloud, footprint fill and
@@ -21,7 +21,7 @@ import sys
 import numpy as np
 from pydrake.math import RigidTransform
 
-from ditch_drake.benchmarks.bench_dwa import LidarDrive, record_lidar_drive, recorded_cloud, timed_update
+from ditch_drake.perf.bench_dwa import LidarDrive, record_lidar_drive, recorded_cloud, timed_update
 from ditch_drake.diagrams.rollout import MppiBaselineConfig
 from ditch_drake.spec import robot
 from ditch_drake.systems.mppi_controller import MppiController

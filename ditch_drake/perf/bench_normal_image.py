@@ -1,6 +1,6 @@
 """Times the surface-normal image (`ditch_drake.perception.normal_image`) on a lidar-like cloud.
 
-Run: `python benchmarks/bench_normal_image.py [points_count] [repeats]`. Prints the median
+Run: `python -m ditch_drake.perf.bench_normal_image.py [points_count] [repeats]`. Prints the median
 times (ms, one process, one core) of the whole cloud -> image step with the organized
 (fast) and the PCA (reference) normal estimators.
 """

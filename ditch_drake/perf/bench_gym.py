@@ -1,6 +1,6 @@
 """The Gymnasium environment's speed against the closed loop it wraps: `gym_env_steps_per_s`.
 
-    python -m ditch_drake.benchmarks.bench_gym [episodes]
+    python -m ditch_drake.perf.bench_gym [episodes]
 
 The closed loop is the bench's (`MakeClosedLoopDiagram`, as `measure_closed_loops` times it):
 the scene with every perception block at 10 Hz and a fixed straight command, advanced by one
@@ -18,7 +18,7 @@ import time
 
 import numpy as np
 
-from ditch_drake.benchmarks.closed_loop import (
+from ditch_drake.perf.closed_loop import (
     TRAVERSAL_S,
     WARMUP_S,
     MakeClosedLoopDiagram,

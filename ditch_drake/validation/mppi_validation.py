@@ -1,6 +1,6 @@
 """The MPPI's attitude model against the simulator, along the scripted expert's drives.
 
-Run: `python -m ditch_drake.benchmarks.mppi_validation [--seeds 0 1] [--out-figure PNG] [--out-data NPZ]`.
+Run: `python -m ditch_drake.validation.mppi_validation [--seeds 0 1] [--out-figure PNG] [--out-data NPZ]`.
 
 Each drive is a rollout diagram with the registered `expert` (style drawn from the seed)
 driving, and an `MppiController` block added as an observer: it gets its own lidar and the

@@ -1,6 +1,6 @@
 """Times the lidar (`ditch_drake.systems.lidar`): one control step's render and point cloud.
 
-Run: `python -m ditch_drake.benchmarks.bench_lidar [environment] [repeats] [terrain_faces]`
+Run: `python -m ditch_drake.perf.bench_lidar [environment] [repeats] [terrain_faces]`
 (`LidarConfig.terrain_faces`: up, top or all; default up). Prints the median wall and CPU
 times (ms, one process) of the lidar's update (both cameras' depth renders through
 `RenderEngineVtk` plus the conversion to the organized cloud; the returns-only
