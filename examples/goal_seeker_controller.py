@@ -12,7 +12,7 @@ and from Python:
     from ditch_drake.evaluation.batch import evaluate, make_specs
     evaluate(make_specs(goal_seeker_controller.GoalSeekerConfig(), "", "wide", rollouts=2), "seeker.jsonl")
 
-(docs/extending.md walks through it.)
+(docs/tutorials/your_controller.md walks through it.)
 """
 
 from dataclasses import dataclass

@@ -6,7 +6,7 @@
 Stable-Baselines3's `MultiInputPolicy` takes the Dict observation as it is (the float image
 stack goes through its flattening MLP extractor; a CNN extractor wants uint8 images). The
 default 2048 timesteps are one PPO update, a smoke test of the wiring, not a trained policy:
-crossing takes many more (docs/gym.md).
+crossing takes many more (docs/tutorials/gym.md).
 """
 
 import sys

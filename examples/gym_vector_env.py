@@ -1,4 +1,4 @@
-"""Two DitchDrake-v0 environments stepping in two spawned processes (docs/gym.md).
+"""Two DitchDrake-v0 environments stepping in two spawned processes (docs/tutorials/gym.md).
 
     python examples/gym_vector_env.py
 

@@ -16,7 +16,7 @@ def test_table_matches_the_paper_examples():
 
 @pytest.mark.parametrize("label", range(17))
 def test_every_label_follows_the_spec_formula(label):
-    # SPEC: w(8) = 0; w(l) = sign(l - 8) * (0.05 + 0.1 |l - 8|); v = 1.0 for every label.
+    # docs/design.md, "The action table": w(8) = 0; w(l) = sign(l - 8) * (0.05 + 0.1 |l - 8|); v = 1.0 for every label.
     expected = 0.0 if label == 8 else np.sign(label - 8) * (0.05 + 0.1 * abs(label - 8))
     assert actions.label_to_command(label) == pytest.approx([1.0, expected])
     assert actions.quantize([1.0, expected]) == label

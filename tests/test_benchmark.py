@@ -205,7 +205,7 @@ def test_crossing_turn_of_the_paper_tasks_and_of_generated_ones():
 def test_report_names_checkpoints_of_one_stem_by_their_folders():
     from dataclasses import fields
 
-    from ditch_drake.evaluation.report import controller_labels
+    from ditch_drake.evaluation.model_labels import controller_labels
     from ditch_drake.evaluation.results import RolloutRecord
 
     def record(controller, checkpoint):
@@ -262,8 +262,8 @@ def test_train_generalist_refuses_mirror_with_canonical_side_before_any_work(tmp
 
 
 def test_train_generalist_refuses_to_resume_a_work_dir_made_with_other_settings(tmp_path, capsys):
-    from ditch_drake.pipelines.generalist import GENERALIST_TRAIN_RANGES, RECIPE_FILE, GeneralistConfig, _check_recipe
     from ditch_drake.benchmark.ranges import packaged_ranges_path
+    from ditch_drake.pipelines.generalist import GENERALIST_TRAIN_RANGES, RECIPE_FILE, GeneralistConfig, _check_recipe
 
     work = tmp_path / "generalist"
     work.mkdir()
@@ -282,8 +282,8 @@ def test_train_generalist_refuses_to_resume_a_work_dir_made_with_other_settings(
 def test_the_generalist_trains_on_the_benchmark_ranges_with_craters_from_8_m():
     from dataclasses import asdict
 
-    from ditch_drake.pipelines.generalist import GENERALIST_TRAIN_RANGES
     from ditch_drake.benchmark.ranges import packaged_ranges_path
+    from ditch_drake.pipelines.generalist import GENERALIST_TRAIN_RANGES
 
     train, benchmark = asdict(load_ranges(packaged_ranges_path(GENERALIST_TRAIN_RANGES))), asdict(load_ranges())
     assert train.pop("crater_diameter_m") == [8.0, 12.0] and benchmark.pop("crater_diameter_m") == [10.0, 12.0]

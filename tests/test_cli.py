@@ -124,3 +124,45 @@ def test_collect_lead_in_reaches_the_expert_and_the_labeller(monkeypatch, tmp_pa
     assert main(["collect", "--env", "narrow", "--out", out]) == 0
     assert [config.variation.lead_in for config in seen] == [True, True, False]
     assert seen[0].variation.steering_noise_radps > 0.0  # The demonstrators' variation, not the labeller's.
+
+
+def test_defaults_are_the_config_dataclasses():
+    from ditch_drake.benchmark.run import BenchmarkConfig
+    from ditch_drake.diagrams.scenario import Scenario
+    from ditch_drake.pipelines.generalist import GeneralistConfig
+
+    benchmark = build_parser().parse_args(["benchmark"])
+    config = BenchmarkConfig()
+    assert (benchmark.split, benchmark.controller, benchmark.geometries, benchmark.rollouts, benchmark.seed,
+            benchmark.out, benchmark.ranges, benchmark.time_limit, benchmark.workers, benchmark.backend,
+            benchmark.address) == (config.split, config.controller, config.geometries, config.rollouts, config.seed,
+                                   config.out, config.ranges, config.time_limit_s, config.workers, config.backend,
+                                   config.address)
+    generalist = build_parser().parse_args(["train-generalist"])
+    config = GeneralistConfig()
+    assert all(getattr(generalist, name) == getattr(config, name)
+               for name in ("out", "work_dir", "train_geometries", "demos_per_task", "dagger_rounds", "val_geometries",
+                            "dagger_stride", "epochs", "seed", "workers", "ranges", "train_ranges"))
+    demo = build_parser().parse_args(["demo"])
+    assert (demo.env, demo.task, demo.seed) == (Scenario().environment, Scenario().task, Scenario().seed)
+
+
+@pytest.mark.parametrize("argv, named", [
+    (["evaluate", "--controller", "constant", "--checkpoint", "wide", "--env", "wide", "--rollouts", "1"],
+     "checkpoint 'wide' with controller 'constant'"),
+    (["replay", "--controller", "dwa", "--checkpoint", "wide"], "--checkpoint wide"),
+    (["view", "--realtime-rate", "nan"], "--realtime-rate nan"),
+    (["teleop", "--realtime-rate", "-1", "--out", "unused"], "--realtime-rate -1.0"),
+])
+def test_an_option_the_command_cannot_use_exits_2_naming_it(argv, named, capsys, tmp_path):
+    assert main([*argv, *(["--out", str(tmp_path / "x.jsonl")] if argv[0] == "evaluate" else [])]) == 2
+    error = capsys.readouterr().err
+    assert named in error and error.count("\n") == 1
+
+
+def test_an_import_that_raises_exits_2_naming_the_module(capsys, tmp_path):
+    module = tmp_path / "raises_at_import.py"
+    module.write_text("raise RuntimeError('broken extension')\n")
+    assert main(["--import", str(module), "scenario"]) == 2
+    error = capsys.readouterr().err
+    assert "raises_at_import.py" in error and "RuntimeError: broken extension" in error

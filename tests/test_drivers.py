@@ -5,8 +5,8 @@ The 10-trial calibration is `ditch-drake calibrate` / `pytest -m slow`.
 
 import pytest
 
-from ditch_drake.validation.calibration import driven_trials
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
+from ditch_drake.validation.calibration import driven_trials
 
 HEAD_ON = EdgeAngleDriverConfig(wall_angle_deg=90.0, climb_angle_deg=None)
 

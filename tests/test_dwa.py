@@ -47,7 +47,7 @@ def cloud_from_points(p_LP: np.ndarray) -> PointCloud:
 
 
 class TerrainRayCaster(LeafSystem):
-    """A synthetic lidar in frame L: rays over the SPEC's field of view, cast on `terrain.height`.
+    """A synthetic lidar in frame L: rays over the lidar's field of view, cast on `terrain.height`.
 
     Each ray is marched in 5 cm steps to the first point below the surface, then bisected;
     rays with no hit within range are NaN, so the cloud is organized (`ray_directions_L`).
@@ -496,7 +496,8 @@ def test_rollout_diagram_with_the_dwa_baseline_drives_toward_the_goal_in_a_ditch
 
 
 def test_dwa_benchmark_reports_the_update_and_the_global_plan_apart():
-    from ditch_drake.perf.bench_dwa import measure_dwa_ms, record_lidar_drive
+    from ditch_drake.perf.bench_dwa import measure_dwa_ms
+    from ditch_drake.perf.recorded_drive import record_lidar_drive
 
     drive = record_lidar_drive("narrow", duration_s=1.5)
     assert drive.clouds.shape[:2] == (15, len(drive.ray_directions_L))

@@ -1,5 +1,6 @@
-"""Every example of docs/extending.md runs: the custom ditches, the custom controller, the
-scenario file and the study, each as the page tells a user to run it (from the repository root)."""
+"""Every example of the tutorials docs/tutorials/your_{ditch,controller,study}.md runs: the custom
+ditches, the custom controller, the scenario file and the study, each as the page tells a user to run
+it (from the repository root)."""
 
 import dataclasses
 import importlib

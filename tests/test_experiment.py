@@ -7,6 +7,9 @@ from pathlib import Path
 
 import pytest
 
+from ditch_drake.evaluation.report import write_report
+from ditch_drake.evaluation.results import read_records
+from ditch_drake.evaluation.runs import read_runs
 from ditch_drake.pipelines.experiment import (
     ModelSpec,
     code_revision,
@@ -16,9 +19,6 @@ from ditch_drake.pipelines.experiment import (
     plan,
     run_experiment,
 )
-from ditch_drake.evaluation.report import write_report
-from ditch_drake.evaluation.results import read_records
-from ditch_drake.evaluation.runs import read_runs
 from ditch_drake.world.environments import ConfigError
 
 TINY = """

@@ -18,7 +18,7 @@ from ditch_drake.gym.env import DitchDrakeEnv, RewardConfig
 from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
 from ditch_drake.spec import actions
 from ditch_drake.spec.observation_layout import IMAGE_STACK_SIZE
-from ditch_drake.systems.action_label_input import ActionLabelInput
+from ditch_drake.systems.action_label_input import NO_ACTION, ActionLabelInput
 from ditch_drake.systems.observation_dict import ObservationDict
 from ditch_drake.systems.policy import LearnedPolicy
 
@@ -185,7 +185,7 @@ def test_the_issue_bar_in_a_fresh_process():
 def test_the_action_block_commands_the_labels_row_and_stands_still_without_one():
     block = ActionLabelInput()
     context = block.CreateDefaultContext()
-    block.GetInputPort("action").FixValue(context, None)
+    block.GetInputPort("action").FixValue(context, NO_ACTION)  # None, where Drake takes it: test_versions.py
     assert list(block.GetOutputPort("command").Eval(context)) == [0.0, 0.0]
     assert list(block.GetOutputPort("label").Eval(context)) == [-1.0]
     block.GetInputPort("action").FixValue(context, np.int64(12))

@@ -12,7 +12,7 @@ from pydrake.systems.analysis import Simulator
 from ditch_drake.diagrams.rollout import ConstantCommandConfig
 from ditch_drake.evaluation import rollout_worker
 from ditch_drake.evaluation.batch import make_specs
-from ditch_drake.evaluation.report import _table
+from ditch_drake.evaluation.report_data import study_table
 from ditch_drake.evaluation.results import SCHEMA_VERSION, RolloutRecord, read_records, record_key
 from ditch_drake.evaluation.summary import summarize
 from ditch_drake.systems.halt_counter import HaltCounter
@@ -139,9 +139,9 @@ def test_summaries_and_the_table_sum_halts_over_the_records_that_count_them():
     summary = summarize([*counted, _record(), _record(status="error", halts_by_region=halts(beyond=9))])
     assert summary.halts_by_region == halts(up_wall=3, floor=1) and summary.halts_counted == 2
     assert summarize([_record()]).halts_by_region == {}
-    lines, _ = _table(counted)
+    lines, _ = study_table(counted)
     assert lines[0].split(" | ")[-2] == "halts (region)" and "| floor 1, up_wall 3 |" in lines[2]
-    assert "| - |" in _table([_record()])[0][2]
+    assert "| - |" in study_table([_record()])[0][2]
 
 
 @pytest.fixture(scope="module")

@@ -28,7 +28,7 @@ LAYERS = [
     {"cli"},
 ]
 RANK = {part: rank for rank, parts in enumerate(LAYERS) for part in parts}
-TOP_LEVEL_MODULES = {"__init__.py", "cli.py"}
+TOP_LEVEL_MODULES = {"__init__.py"}
 
 
 def _modules() -> dict[str, Path]:

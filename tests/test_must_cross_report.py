@@ -10,17 +10,11 @@ from pathlib import Path
 import pytest
 from scipy.stats import boschloo_exact
 
-from ditch_drake.evaluation.report import (
-    ALPHA,
-    beats_verdict,
-    compare,
-    load_report_data,
-    must_cross_groups,
-    two_proportion_test,
-    walled_base,
-    write_report,
-)
+from ditch_drake.evaluation.paper_findings import must_cross_groups, walled_base
+from ditch_drake.evaluation.report import write_report
+from ditch_drake.evaluation.report_data import load_report_data
 from ditch_drake.evaluation.results import RolloutRecord
+from ditch_drake.evaluation.statistics import ALPHA, beats_verdict, compare, two_proportion_test
 from ditch_drake.evaluation.summary import summarize, wilson_interval
 
 HALTS_UP_WALL = {"approach": 1, "down_wall": 0, "floor": 2, "up_wall": 5, "beyond": 0}

@@ -9,7 +9,6 @@ from pydrake.perception import BaseField, Fields, PointCloud
 from pydrake.systems.analysis import Simulator
 from scipy.spatial import cKDTree
 
-from ditch_drake.perf import bench_normal_image as bench
 from ditch_drake.perception import normal_image as ni
 from ditch_drake.perception.normal_image import (
     IMAGE_SHAPE,
@@ -21,6 +20,7 @@ from ditch_drake.perception.normal_image import (
     normalize_to_unit_ball,
     organized_cloud_to_normal_image,
 )
+from ditch_drake.perf import bench_normal_image as bench
 from ditch_drake.spec import robot
 from ditch_drake.systems.normal_image_converter import NormalImageConverter
 

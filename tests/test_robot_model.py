@@ -1,4 +1,4 @@
-"""The Husky model agrees with the SPEC numbers in ditch_drake/spec/robot.py."""
+"""The Husky model agrees with the numbers in ditch_drake/spec/robot.py (docs/design.md, "The robot")."""
 
 import numpy as np
 import pytest

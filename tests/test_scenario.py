@@ -188,9 +188,9 @@ def test_replay_and_view_take_a_custom_environment(custom_file, tmp_path, capsys
 
 
 def test_demo_collect_calibrate_and_bench_pass_the_environments_file_on(custom_file, tmp_path, monkeypatch):
+    from ditch_drake.demos import collect as collect_module
     from ditch_drake.perf import bench
     from ditch_drake.validation import calibration
-    from ditch_drake.demos import collect as collect_module
 
     seen = {}
 

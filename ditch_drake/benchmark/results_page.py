@@ -10,7 +10,6 @@ From benchmark results files (and the ditches file beside each, `splits.ditches_
 """
 
 import itertools
-import math
 import os
 from collections import defaultdict
 from collections.abc import Callable
@@ -21,10 +20,12 @@ import numpy as np
 from ditch_drake.benchmark.run import replay_command
 from ditch_drake.benchmark.splits import PAPER_SPLIT, SPLITS, ditches_file, split_of_environment
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.common.files import atomic_write_text, save_figure
+from ditch_drake.common.files import atomic_write_text, prepare_output, remove_stale_temporaries, save_figure
+from ditch_drake.common.outputs import figures_beside, refuse_outputs_over_inputs
 from ditch_drake.evaluation.batch import load_results
-from ditch_drake.evaluation.report import controller_labels
+from ditch_drake.evaluation.model_labels import controller_labels
 from ditch_drake.evaluation.results import RolloutRecord, current_records
+from ditch_drake.evaluation.statistics import percent
 from ditch_drake.evaluation.summary import summarize
 from ditch_drake.world.crossing import crossing_turn_deg
 from ditch_drake.world.environments import Environment, get_environment, load_environments
@@ -57,23 +58,46 @@ def _record_features(records: list[RolloutRecord], environments: dict[str, Envir
             for name, task in tasks}
 
 
-def _environments_of(results_path: Path) -> dict[str, Environment]:
-    path = ditches_file(results_path)
-    return dict(load_environments(path, prove_walls=False)) if path.exists() else {}
+def _environments_of(results_path: Path, records: list[RolloutRecord]) -> dict[str, Environment]:
+    """The generated ditches `records` (of `results_path`) ran in: from the ditches file beside
+    the results, then from the files the records name (a results file moved away from its own).
+
+    Raises:
+        ConfigError: a record's ditch is in none of those files, naming them.
+    """
+    beside = ditches_file(results_path)
+    files = [beside, *sorted({Path(r.environments_file) for r in records if r.environments_file} - {beside})]
+    environments: dict[str, Environment] = {}
+    for file in files:
+        if file.exists():
+            found = load_environments(file, prove_walls=False)
+            environments.update({name: found[name] for name in found if name not in environments})
+    missing = sorted({r.environment for r in records if r.environment not in environments
+                      and split_of_environment(r.environment) != PAPER_SPLIT})
+    if missing:
+        more = f" and {len(missing) - 1} more" if len(missing) > 1 else ""
+        raise ConfigError(f"{results_path}: ditch {missing[0]}{more} is in none of {', '.join(map(str, files))} (each "
+                          "missing or without it); expected the ditches file the benchmark wrote beside the results "
+                          "(move it along with them)")
+    return environments
 
 
 def load_benchmark(results: list[str | os.PathLike]) -> tuple[list[RolloutRecord], dict[str, Environment], list[str]]:
     """The current records of the results files, the environments they ran in, and notes.
 
     Raises:
-        ConfigError: two files ran different ditches of the same name (other ranges).
+        ConfigError: two files ran different ditches of the same name (other ranges), a file
+            with no complete record, or a ditch that no ditches file holds (`_environments_of`).
     """
     records, environments, notes = [], {}, []
     source: dict[str, Path] = {}
     for path in results:
         path = Path(path)
-        records += load_results([path])
-        for name, environment in _environments_of(path).items():
+        file_records = load_results([path])
+        if not file_records:
+            raise ConfigError(f"no complete records in {path}; expected the results of `ditch-drake benchmark`")
+        records += file_records
+        for name, environment in _environments_of(path, file_records).items():
             if name in environments and repr(environments[name]) != repr(environment):
                 raise ConfigError(f"{path}: its {name} differs from {source[name]}'s (ditches drawn from other "
                                   "ranges?): report results of one ranges file together")
@@ -83,10 +107,6 @@ def load_benchmark(results: list[str | os.PathLike]) -> tuple[list[RolloutRecord
         if record.environment not in environments and split_of_environment(record.environment) == PAPER_SPLIT:
             environments[record.environment] = get_environment(record.environment)
     return records, environments, notes
-
-
-def _pct(value: float) -> str:
-    return "-" if math.isnan(value) else f"{100 * value:.0f}%"
 
 
 def _success_table(groups: dict[tuple[str, str], list[RolloutRecord]], controllers: list[str]) -> list[str]:
@@ -100,8 +120,9 @@ def _success_table(groups: dict[tuple[str, str], list[RolloutRecord]], controlle
                 cells.append("-")
                 continue
             summary = summarize(group)
-            cells.append(f"{summary.successes}/{summary.trials} ({_pct(summary.rate)}, "
-                         f"{_pct(summary.low)}-{_pct(summary.high)})" + (f", {summary.errors} errors" if summary.errors else ""))
+            cells.append(f"{summary.successes}/{summary.trials} ({percent(summary.rate, '-')}, "
+                         f"{percent(summary.low, '-')}-{percent(summary.high, '-')})"
+                         + (f", {summary.errors} errors" if summary.errors else ""))
         lines.append(f"| {controller} | " + " | ".join(cells) + " |")
     return lines
 
@@ -161,16 +182,28 @@ def _figure(records: list[RolloutRecord], features: dict[tuple, dict], name_of: 
 def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathLike,
                            figures_dir: str | os.PathLike | None = None, title: str = "Procedural ditch benchmark",
                            command: str = "") -> Path:
-    """Writes the page (and its figure) from benchmark results files; returns the page's path."""
+    """Writes the page (and its figure) from benchmark results files; returns the page's path.
+
+    Raises:
+        ConfigError: a results file that cannot be read, or a page or figures folder that
+            cannot be written, or that is one of `results` or the ditches file beside one
+            (`common.outputs.refuse_outputs_over_inputs`; nothing is written), naming the path.
+    """
+    figures = Path(figures_dir) if figures_dir else figures_beside(out)
+    refuse_outputs_over_inputs({"report page": out, "figures folder": figures},
+                               [*results, *map(ditches_file, results)], recursive=True)
+    out = prepare_output(out, "report page")
     records, environments, notes = load_benchmark(results)
-    out = Path(out)
-    figures = Path(figures_dir) if figures_dir else out.with_name(out.stem + "_img")
+    remove_stale_temporaries(out.parent)  # A killed run's half-written page or figure.
+    remove_stale_temporaries(figures)
     groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
     name_of = controller_labels(records)
     for record in records:
         groups[(name_of(record), split_of_environment(record.environment))].append(record)
     controllers = sorted({key[0] for key in groups})
     generated = [r for r in records if split_of_environment(r.environment) not in ("", PAPER_SPLIT)]
+    if generated:  # Only a page with a figure needs the folder: none is made for one without.
+        prepare_output(figures, "figures folder", folder=True)
     ditches = {name: ditch_features(env) for name, env in environments.items()}
     features = _record_features(generated, environments, ditches)
     lines = [f"# {title}", ""]
@@ -206,7 +239,7 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
             for name in names:
                 group = by_environment.get((controller, name))
                 summary = summarize(group) if group else None
-                cells.append(f"{summary.successes}/{summary.trials} ({_pct(summary.low)}-{_pct(summary.high)})"
+                cells.append(f"{summary.successes}/{summary.trials} ({percent(summary.low, '-')}-{percent(summary.high, '-')})"
                              if summary else "-")
             lines.append(f"| {controller} | " + " | ".join(cells) + " |")
         lines.append("")

@@ -10,14 +10,18 @@ The paper split runs the four packaged environments instead.
 import shlex
 import sys
 from dataclasses import dataclass
-from pathlib import Path
 
 from tqdm import tqdm
 
 from ditch_drake.benchmark.generator import SampledDitch, sample_ditch
 from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges
-from ditch_drake.benchmark.splits import PAPER_SPLIT, ditches_file, split_seeds, write_ditches
+from ditch_drake.benchmark.splits import PAPER_SPLIT, check_split, ditches_file, split_seeds, write_ditches
+from ditch_drake.common.checks import check_count, check_finite_positive
+from ditch_drake.common.config_yaml import safe_load_yaml
 from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.files import prepare_output, remove_stale_temporaries
+from ditch_drake.common.seeds import check_seed
+from ditch_drake.diagrams.controllers import controller_config
 from ditch_drake.evaluation.batch import EvaluationReport, evaluate, make_specs
 from ditch_drake.evaluation.results import RolloutRecord, RolloutSpec
 from ditch_drake.learning.checkpoint import GENERALIST_MODEL as GENERALIST
@@ -53,7 +57,7 @@ class BenchmarkConfig:
     geometries: int | None = None
     rollouts: int = 1
     seed: int = 0
-    out: str = "results/benchmark/test_expert.jsonl"
+    out: str = "results/benchmark/benchmark.jsonl"
     ranges: str = ""
     time_limit_s: float = EpisodeConfig.time_limit_s
     workers: int | None = None
@@ -81,7 +85,6 @@ def replay_command(record: RolloutRecord, out: str = "") -> str:
     import yaml
 
     from ditch_drake.common.config_yaml import config_to_yaml
-    from ditch_drake.diagrams.controllers import controller_config
 
     parts = ["ditch-drake", "replay"]
     if record.environments_file:
@@ -90,7 +93,8 @@ def replay_command(record: RolloutRecord, out: str = "") -> str:
     if config_to_yaml(controller_config(record.controller, record.checkpoint)) == record.controller_config:
         parts += ["--controller", record.controller] + (["--checkpoint", record.checkpoint] if record.checkpoint else [])
     else:
-        body = yaml.safe_dump(yaml.safe_load(record.controller_config), default_flow_style=True, width=10_000).strip()
+        config = safe_load_yaml(record.controller_config, f"controller config of the record {record.key}")
+        body = yaml.safe_dump(config, default_flow_style=True, width=10_000).strip()
         parts += ["--override", f"{{controller: !{record.controller_type.rpartition(':')[2]} {body}}}"]
     parts += ["--out", out or f"{record.environment}_{record.task}_{record.seed}.html"]
     return shlex.join(parts)
@@ -103,18 +107,37 @@ def sample_split(split: str, geometries: int | None, ranges: BenchmarkRanges,
                                                         file=sys.stderr)]
 
 
+def check_benchmark_config(config: BenchmarkConfig) -> None:
+    """Raises ConfigError naming the first setting out of range: split, geometries (None or
+    >= 1, for every split), rollouts, seed, time limit, or a checkpoint given to a controller
+    that takes none."""
+    check_split(config.split)
+    if config.geometries is not None:
+        check_count(config.geometries, "geometries")
+    check_count(config.rollouts, "rollouts")
+    check_seed(config.seed, config.rollouts)
+    check_finite_positive(config.time_limit_s, "time_limit_s")
+    if config.checkpoint and not hasattr(controller_config(config.controller), "checkpoint"):
+        raise ConfigError(f"checkpoint {config.checkpoint!r} with controller {config.controller!r}, which takes "
+                          "none; expected a checkpoint only with a controller that takes one, such as 'learned'")
+
+
 def benchmark_specs(config: BenchmarkConfig, progress: bool = True) -> list[RolloutSpec]:
     """The run's rollouts; writes (adds to) its ditches file first.
 
     Raises:
-        ConfigError: a bad split, count, controller, checkpoint or ranges file, each named.
+        ConfigError: a bad split, count, controller, checkpoint, ranges file or results
+            path, each named.
     """
+    check_benchmark_config(config)
+    prepare_output(config.out, "results file")
     ranges = load_ranges(config.ranges or None)
-    checkpoint = (config.checkpoint or GENERALIST) if config.controller == "learned" else ""
+    checkpoint = (config.checkpoint or GENERALIST) if config.controller == "learned" else config.checkpoint
     if config.split == PAPER_SPLIT:
         names, environments_file = environment_names(), ""
     else:
         ditches = sample_split(config.split, config.geometries, ranges, progress)
+        remove_stale_temporaries(ditches_file(config.out).parent)  # A killed run's half-written ditches file.
         environments_file = str(write_ditches(ditches_file(config.out), ditches))
         names = [ditch.name for ditch in ditches]
     controller = benchmark_controller(config.controller)
@@ -129,9 +152,8 @@ def run_benchmark(config: BenchmarkConfig, progress: bool = True,
                   specs: list[RolloutSpec] | None = None) -> EvaluationReport:
     """Runs the rollouts of `config` (or `specs`, its `benchmark_specs` made already) not yet
     in its results file (see the module docstring)."""
-    if not isinstance(config.rollouts, int) or config.rollouts < 1:
-        raise ConfigError(f"rollouts={config.rollouts!r} must be a positive integer")
-    Path(config.out).parent.mkdir(parents=True, exist_ok=True)
+    check_benchmark_config(config)
+    prepare_output(config.out, "results file")
     specs = benchmark_specs(config, progress) if specs is None else specs
     return evaluate(specs, config.out, workers=config.workers, progress=progress, backend=config.backend,
                     address=config.address, rollouts_per_worker=ROLLOUTS_PER_WORKER)

@@ -46,6 +46,31 @@ def atomic_output(path: str | os.PathLike):
     _fsync_folder(path.parent)
 
 
+def prepare_output(path: str | os.PathLike, what: str, folder: bool = False) -> Path:
+    """`path`, after creating the folder it is written into (`path` itself with `folder`) and
+    checking that this process may write there: a command refuses an unwritable output before
+    its work, not with a traceback after it.
+
+    Raises:
+        ConfigError: the folder cannot be created (a part of the path is a file, no
+            permission) or is not writable, or a file's path is a folder, naming `what` and `path`.
+    """
+    from ditch_drake.common.errors import ConfigError
+
+    path = Path(path)
+    target = path if folder else path.parent
+    try:
+        target.mkdir(parents=True, exist_ok=True)
+    except OSError as error:
+        raise ConfigError(f"{what} {path}: cannot create the folder {target} ({error.strerror or error}); expected "
+                          "a path in a writable folder") from error
+    if not os.access(target, os.W_OK | os.X_OK):
+        raise ConfigError(f"{what} {path}: the folder {target} is not writable; expected a path in a writable folder")
+    if not folder and path.is_dir():
+        raise ConfigError(f"{what} {path} is a folder; expected a file's path")
+    return path
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     """Writes `data` to `path` atomically; returns `path`."""
     with atomic_output(path) as file:
@@ -104,3 +129,46 @@ def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
             candidate.unlink(missing_ok=True)
             removed.append(candidate)
     return removed
+
+
+@contextlib.contextmanager
+def exclusive_use(path: str | os.PathLike, what: str):
+    """Holds `<path>.lock` (an advisory `flock`) for the block, so that two runs never append to
+    one file at once; the lock file says which process holds it and is removed as the block ends.
+
+    Raises:
+        ConfigError: another process holds it, naming `what`, `path` and that process.
+    """
+    import fcntl
+    import shlex
+    import sys
+
+    from ditch_drake.common.errors import ConfigError
+
+    lock = Path(f"{path}.lock")
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    while True:
+        descriptor = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.read(descriptor, 4096).decode("utf-8", "replace").strip() or "a process"
+            os.close(descriptor)
+            raise ConfigError(f"{what} {path} is being written by another run ({holder}, holding {lock}); expected "
+                              "one run per file: wait for that one to end, or write to another file") from None
+        try:
+            same = os.fstat(descriptor).st_ino == os.stat(lock).st_ino
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        # The holder removed the file between our open and our lock: this lock guards nothing.
+        os.close(descriptor)
+    try:
+        os.ftruncate(descriptor, 0)
+        os.write(descriptor, f"process {os.getpid()}: {shlex.join(sys.argv)}\n".encode())
+        yield
+    finally:
+        # Removed while still locked: a run that opened it meanwhile finds it gone (the inode check) and makes anew.
+        lock.unlink(missing_ok=True)
+        os.close(descriptor)

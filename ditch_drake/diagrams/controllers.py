@@ -6,7 +6,7 @@ their `command` output port ([v m/s, w rad/s]), and one `register_controller` li
 built-in ones are registered below by "module:attribute" strings, so that this module
 imports nothing heavy and `ditch-drake --help` lists them at once; `ControllerEntry`
 imports a module only when its config or builder is first used. A user registers hers with
-the objects themselves (docs/extending.md):
+the objects themselves (docs/tutorials/your_controller.md):
 
     register_controller("mine", MyConfig, AddMine, "what it does")
 
@@ -100,6 +100,8 @@ class ControllerEntry:
 
 
 _REGISTRY: dict[str, ControllerEntry] = {}
+# The package's own controllers' names, once they are registered (at the end of this module).
+_BUILT_IN: frozenset[str] = frozenset()
 
 
 def register_controller(name: str, config, builder, description: str, default=None,
@@ -107,14 +109,22 @@ def register_controller(name: str, config, builder, description: str, default=No
     """Registers a controller under `name` (see the module docstring); returns its entry.
 
     Raises:
-        ValueError: `name` is taken by another controller, or is not a lower_snake_case word.
+        ConfigError: `name` is one of the package's own controllers, is taken by another
+            controller, or is not a lower_snake_case word.
     """
-    if not name.replace("_", "").isalnum() or name != name.lower():
-        raise ValueError(f"controller name {name!r}: expected lower_snake_case")
+    from ditch_drake.common.errors import ConfigError
+
+    if not isinstance(name, str) or not name.replace("_", "").isalnum() or name != name.lower():
+        raise ConfigError(f"controller name {name!r}: expected lower_snake_case")
+    # Replacing a built-in would change what every recorded rollout of that name means.
+    if name in _BUILT_IN:
+        raise ConfigError(f"controller name {name!r} is one of the package's own controllers "
+                          f"{sorted(_BUILT_IN)}; expected another name")
     entry = ControllerEntry(name, description, config, builder, default, per_seed)
     known = _REGISTRY.get(name)
     if known is not None and (known.config, known.builder) != (config, builder):
-        raise ValueError(f"controller {name!r} is already registered with config {known.config}")
+        raise ConfigError(f"controller {name!r} is already registered with config {known.config}; expected "
+                          "another name")
     _REGISTRY[name] = entry
     return entry
 
@@ -176,6 +186,45 @@ def controller_config(name: str, checkpoint: str = "", seed: int | None = None):
     if checkpoint and any(f.name == "checkpoint" for f in dataclasses.fields(config)):
         config = dataclasses.replace(config, checkpoint=checkpoint)
     return entry.for_seed(config, seed) if seed is not None else config
+
+
+def check_controller_config(config) -> ControllerEntry:
+    """The entry of a registered controller's config, after checking every value of it the
+    controller's blocks would check when built: each nested config's `validate()` and no NaN.
+    Cheap (nothing is built), so a batch checks its config before any rollout rather than
+    recording each rollout as an error.
+
+    Raises:
+        ConfigError: a config of no registered controller, or a value out of range, naming
+            the controller and the value.
+    """
+    from ditch_drake.common.checks import check_no_nan
+    from ditch_drake.common.errors import ConfigError
+
+    entry = entry_for_config(config)
+    check_no_nan(config, f"controller {entry.name!r} config")
+    for part in _nested_configs(config):
+        validate = getattr(part, "validate", None)
+        if callable(validate):
+            try:
+                validate()
+            except (ValueError, TypeError) as error:  # Some configs raise plain ValueError.
+                raise ConfigError(f"controller {entry.name!r}: {error}") from error
+    return entry
+
+
+def _nested_configs(config):
+    """`config` and every dataclass inside it (fields, lists, dicts), outermost first."""
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        yield config
+        for f in dataclasses.fields(config):
+            yield from _nested_configs(getattr(config, f.name))
+    elif isinstance(config, (list, tuple)):
+        for item in config:
+            yield from _nested_configs(item)
+    elif isinstance(config, dict):
+        for item in config.values():
+            yield from _nested_configs(item)
 
 
 def config_checkpoint(config) -> str:
@@ -252,3 +301,4 @@ register_controller(
 register_controller(
     "constant", "ditch_drake.diagrams.rollout:ConstantCommandConfig", "ditch_drake.diagrams.rollout:AddConstantCommand",
     "a fixed command [v m/s, w rad/s] (flat-ground tests)")
+_BUILT_IN = frozenset(_REGISTRY)

@@ -24,6 +24,7 @@ from pydrake.geometry import (
     Role,
     SceneGraph,
 )
+from pydrake.lcm import DrakeLcm
 from pydrake.math import RigidTransform, RotationMatrix
 from pydrake.multibody.parsing import Parser
 from pydrake.multibody.plant import (
@@ -35,6 +36,7 @@ from pydrake.multibody.plant import (
 from pydrake.multibody.tree import JointActuatorIndex, ModelInstanceIndex, PdControllerGains, QuaternionFloatingJoint
 from pydrake.symbolic import Expression, Variable, cos, sin
 from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.lcm import LcmInterfaceSystem
 from pydrake.visualization import ApplyVisualizationConfig, VisualizationConfig
 
 from ditch_drake.spec import robot
@@ -54,7 +56,7 @@ TERRAIN_COLORS = {
 
 
 def DefaultPlantConfig() -> MultibodyPlantConfig:
-    """Point contact on box pieces with a 20 ms discrete step (docs/physics.md)."""
+    """Point contact on box pieces with a 20 ms discrete step (docs/concepts/physics.md)."""
     return MultibodyPlantConfig(time_step=0.02, contact_model="point", discrete_contact_approximation="lagged")
 
 
@@ -334,7 +336,11 @@ def AddDitchScene(builder: DiagramBuilder, config: SceneConfig, meshcat: Meshcat
     builder.Connect(plant.get_body_poses_output_port(), monitor.GetInputPort("body_poses"))
 
     if meshcat is not None:
-        ApplyVisualizationConfig(VisualizationConfig(publish_contacts=False), builder, meshcat=meshcat)
+        # The visualization's LCM messages (for Drake's Meldis) stay in this process: on the default
+        # UDP multicast bus, LCM warned every newcomer about the kernel's receive buffer size.
+        lcm = DrakeLcm("memq://")
+        builder.AddNamedSystem("visualization_lcm", LcmInterfaceSystem(lcm))  # Owns `lcm`.
+        ApplyVisualizationConfig(VisualizationConfig(publish_contacts=False), builder, meshcat=meshcat, lcm=lcm)
     return DitchScene(plant, scene_graph, husky, drive, monitor, terrain, environment, task, config.episode,
                       config.schedule, config.environment)
 

@@ -32,6 +32,7 @@ from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import RandomSource
 from pydrake.systems.sensors import RgbdSensor
 
+from ditch_drake.common.native_libraries import load_triton_before_mesa
 from ditch_drake.diagrams.ditch_scene import AddTerrainPerception
 from ditch_drake.perception.lidar_model import (
     LidarConfig,
@@ -125,6 +126,7 @@ def AddLidar(builder: DiagramBuilder, scene, config: LidarConfig | None = None, 
     if config.rasterizer_threads is not None:
         os.environ.setdefault("LP_NUM_THREADS", str(config.rasterizer_threads))
     if not scene_graph.HasRenderer(config.renderer_name):
+        load_triton_before_mesa()  # Before Mesa's LLVM: see ditch_drake.common.native_libraries.
         scene_graph.AddRenderer(config.renderer_name, MakeRenderEngineVtk(RenderEngineVtkParams()))
     info = lidar_camera_info(config, X_BL)
     near_m = 0.01

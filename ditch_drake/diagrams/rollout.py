@@ -40,6 +40,10 @@ class ConstantCommandConfig:
 
     command: list[float] = field(default_factory=lambda: [1.0, 0.0])
 
+    def validate(self) -> None:
+        if len(self.command) != 2 or not all(math.isfinite(value) for value in self.command):
+            raise ConfigError(f"constant command {self.command} must be finite [v m/s, w rad/s]")
+
 
 @dataclass
 class ExpertConfig:
@@ -98,6 +102,13 @@ class MppiBaselineConfig:
     elevation_map: ElevationMapConfig = field(default_factory=ElevationMapConfig)
     goal_tolerance_m: float = 1.0
     lidar: LidarConfig = field(default_factory=LidarConfig)
+
+    def validate(self) -> None:
+        """Raises ConfigError naming the first value out of range (`MppiController` checks these when built)."""
+        self.planner.validate()
+        self.elevation_map.validate()
+        if not self.goal_tolerance_m >= 0:
+            raise ConfigError(f"mppi goal_tolerance_m={self.goal_tolerance_m!r}: expected >= 0")
 
 
 @dataclass
@@ -174,8 +185,7 @@ def AddEdgeAngleDriver(builder: DiagramBuilder, scene: DitchScene, config: EdgeA
 
 
 def AddConstantCommand(builder: DiagramBuilder, scene: DitchScene, config: ConstantCommandConfig) -> OutputPort:
-    if len(config.command) != 2 or not all(math.isfinite(value) for value in config.command):
-        raise ConfigError(f"constant command {config.command} must be finite [v m/s, w rad/s]")
+    config.validate()
     return builder.AddNamedSystem("constant_command", ConstantVectorSource(config.command)).get_output_port()
 
 

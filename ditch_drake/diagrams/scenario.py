@@ -22,7 +22,8 @@ from pydrake.common.yaml import yaml_dump_typed, yaml_load_typed
 from pydrake.multibody.plant import MultibodyPlantConfig
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
 
-from ditch_drake.common.config_yaml import _check_node
+from ditch_drake.common.checks import check_finite_positive, check_no_nan
+from ditch_drake.common.config_yaml import _check_node, compose_yaml, read_yaml_text
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.seeds import check_seed
 from ditch_drake.diagrams.controllers import controller_config_types
@@ -85,7 +86,7 @@ def _schema() -> type:
 
 
 def _load(schema: type, where: str, defaults: Scenario, text: str, scenario_name: str | None):
-    root = yaml.compose(text, Loader=yaml.SafeLoader)
+    root = compose_yaml(text, where)
     if root is None:
         raise ConfigError(f"{where} is empty; expected a mapping of Scenario's fields"
                           + (f" under {scenario_name!r}" if scenario_name else ""))
@@ -121,10 +122,7 @@ def load_scenario(filename: str | Path | None = None, scenario_name: str | None 
     scenario = dataclasses.replace(defaults) if defaults is not None else Scenario()
     if filename:
         path = Path(filename)
-        try:
-            text = path.read_text()
-        except OSError as error:
-            raise ConfigError(f"cannot read scenario file {path}: {error}") from error
+        text = read_yaml_text(path, "scenario file")
         scenario = _load(schema, f"scenario file {path}", scenario, text, scenario_name)
     elif scenario_name is not None:
         raise ConfigError(f"scenario name {scenario_name!r} needs a scenario file")
@@ -136,17 +134,18 @@ def load_scenario(filename: str | Path | None = None, scenario_name: str | None 
 
 def check_scenario(scenario: Scenario) -> None:
     """Raises ConfigError for values out of range: seed, task, episode, plant, controller."""
-    from ditch_drake.diagrams.controllers import entry_for_config
+    from ditch_drake.diagrams.controllers import check_controller_config
     from ditch_drake.world.environments import get_environment, get_task
 
     check_seed(scenario.seed, where="scenario seed")
     environment = get_environment(scenario.environment, scenario.environments_file or None, scenario.environments)
     get_task(environment, scenario.task)
-    if not scenario.episode.time_limit_s > 0 or not scenario.episode.goal_radius_m > 0:
-        raise ConfigError(f"scenario episode {scenario.episode}: expected a positive time_limit_s and goal_radius_m")
+    check_finite_positive(scenario.episode.time_limit_s, "scenario episode.time_limit_s")
+    check_finite_positive(scenario.episode.goal_radius_m, "scenario episode.goal_radius_m", "metres")
+    check_no_nan(scenario.episode, "scenario episode")
     if not scenario.plant.time_step > 0:
         raise ConfigError(f"scenario plant.time_step={scenario.plant.time_step}: expected > 0 (a discrete plant)")
-    entry_for_config(scenario.controller)
+    check_controller_config(scenario.controller)
 
 
 def scenario_yaml(scenario: Scenario | None = None) -> str:

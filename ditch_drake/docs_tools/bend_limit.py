@@ -1,4 +1,4 @@
-"""Measures the bend-radius limit of the ditch family (docs/terrain_family.md).
+"""Measures the bend-radius limit of the ditch family (docs/concepts/terrain_family.md).
 
 For sine and arc courses of several cross-sections it sweeps the tightest bend radius and
 prints the largest |height - pieces_height| (m) on a 5 cm grid over the ditch (one half of

@@ -33,8 +33,10 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from ditch_drake.common.checks import check_count, check_finite_positive
 from ditch_drake.common.config_yaml import config_digest, config_to_yaml, type_path
 from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.files import exclusive_use, prepare_output
 from ditch_drake.common.parallel import (
     WorkerPool,
     check_workers,
@@ -44,7 +46,12 @@ from ditch_drake.common.parallel import (
     worker_count,
 )
 from ditch_drake.common.seeds import check_seed
-from ditch_drake.diagrams.controllers import config_checkpoint, controller_config, entry_for_config
+from ditch_drake.diagrams.controllers import (
+    check_controller_config,
+    config_checkpoint,
+    controller_config,
+    controller_names,
+)
 from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, finished_keys, read_records
 from ditch_drake.evaluation.rollout_worker import error_record, initialize_worker, run_rollout
 from ditch_drake.learning.checkpoint import (
@@ -112,14 +119,21 @@ def make_specs(controller, checkpoint: str, environment: str, tasks: list[int] |
     controller's config.
 
     Raises:
-        ConfigError: an unknown controller, environment or task, a missing checkpoint,
-            non-positive counts or a negative seed, each named.
+        ConfigError: an unknown controller, environment or task, a controller config value out
+            of range, a checkpoint given to a controller that takes none, a missing checkpoint,
+            non-positive counts, a time limit that is not a finite positive number or a
+            negative seed, each named.
         CheckpointError: a checkpoint that does not load, with the loader's message.
     """
-    if isinstance(controller, str):
-        name, config = controller, controller_config(controller, checkpoint)
-    else:
-        name, config = entry_for_config(controller).name, controller
+    config = controller_config(controller, checkpoint) if isinstance(controller, str) else controller
+    entry = check_controller_config(config)  # Before any rollout: one message, not an error record each.
+    name = controller if isinstance(controller, str) else entry.name  # Several names may share a config type.
+    if checkpoint and not hasattr(config, "checkpoint"):
+        takers = [known for known in controller_names() if hasattr(controller_config(known), "checkpoint")]
+        raise ConfigError(f"checkpoint {checkpoint!r} with controller {name!r}, which takes none; expected a "
+                          f"checkpoint only with {takers}")
+    check_count(rollouts, "rollouts")
+    check_finite_positive(time_limit_s, "time_limit_s")
     if hasattr(config, "checkpoint") and not config.checkpoint:  # The learned policy's default: the environment's.
         config = replace(config, checkpoint=environment_model(environment, environments_file))
     checkpoint = config_checkpoint(config)
@@ -129,11 +143,10 @@ def make_specs(controller, checkpoint: str, environment: str, tasks: list[int] |
     bad = [task for task in tasks if not 0 <= task < task_count]
     if bad:
         raise ConfigError(f"tasks {bad} of {environment!r} do not exist; expected indices in 0..{task_count - 1}")
-    if rollouts < 1 or not time_limit_s > 0:
-        raise ConfigError(f"rollouts={rollouts} must be >= 1 and time_limit_s={time_limit_s} positive")
     check_seed(seed, rollouts)
     fields = {"controller": name, "controller_type": type_path(type(config)),
-              "controller_config": config_to_yaml(config), "controller_sha256": config_digest(config), "checkpoint": checkpoint, "checkpoint_sha256": digest,
+              "controller_config": config_to_yaml(config), "controller_sha256": config_digest(config),
+              "checkpoint": checkpoint, "checkpoint_sha256": digest,
               "environment": environment, "environments_file": str(environments_file or "")}
     return [RolloutSpec(**fields, task=task, seed=seed + i, time_limit_s=float(time_limit_s),
                         goal_radius_m=float(EpisodeConfig.goal_radius_m))
@@ -180,11 +193,27 @@ def evaluate(specs: list[RolloutSpec], results_path: str | os.PathLike, workers:
 
     Raises:
         ResultsError: the results file is of another schema or version.
-        ConfigError: an unknown backend, a negative worker count, or Ray asked for but not installed.
+        ConfigError: an unknown backend, a negative worker count, Ray asked for but not
+            installed, a malformed or unreachable Ray address, a results file that cannot be
+            written, or one that another run is writing (`common.files.exclusive_use`).
     """
     if backend not in BACKENDS:
         raise ConfigError(f"unknown backend {backend!r}; expected one of {list(BACKENDS)}")
     check_workers(workers)
+    prepare_output(results_path, "results file")
+    if backend == "ray":
+        from ditch_drake.evaluation.ray_backend import check_address
+
+        check_address(address)
+    # Two runs on one file would each run (and append) the rollouts the other has not finished yet.
+    with exclusive_use(results_path, "results file"):
+        return _evaluate_locked(specs, results_path, workers, progress, backend, address, rollouts_per_worker)
+
+
+def _evaluate_locked(specs: list[RolloutSpec], results_path: str | os.PathLike, workers: int | None,
+                     progress: bool, backend: str, address: str | None,
+                     rollouts_per_worker: int) -> EvaluationReport:
+    """`evaluate`, once this process holds the results file."""
     start = time.perf_counter()
     existing, warnings = read_records(results_path)
     done = finished_keys(existing)

@@ -11,7 +11,7 @@ from ditch_drake.world.regions import REGIONS
 
 # A rollout that reached the goal with the chassis never tilted this far went around the
 # ditch's end instead of through it: a 55 deg wall tilts it by 20 deg or more however
-# shallow the crossing (docs/physics.md).
+# shallow the crossing (docs/concepts/physics.md).
 AROUND_TILT_DEG = 15.0
 
 

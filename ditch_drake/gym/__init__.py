@@ -1,4 +1,4 @@
-"""The Gymnasium environment `DitchDrake-v0` (`ditch_drake.gym.env.DitchDrakeEnv`); docs/gym.md.
+"""The Gymnasium environment `DitchDrake-v0` (`ditch_drake.gym.env.DitchDrakeEnv`); docs/tutorials/gym.md.
 
 Needs the `gym` extra (`pip install -e '.[gym]'`). Importing this module registers the id;
 so does `import ditch_drake` when Gymnasium is imported already (importing Gymnasium costs

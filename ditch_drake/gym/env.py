@@ -1,7 +1,7 @@
 """`DitchDrakeEnv`: a Scenario as a Gymnasium environment, on Drake's own `pydrake.gym.DrakeGymEnv`.
 
 The agent takes the learned policy's place: every step it reads the frame stacker's four
-stacks and picks one of the SPEC's 17 action labels, which the diagram executes for one
+stacks and picks one of the 17 action labels (docs/design.md, "The action table"), which the diagram executes for one
 control period (`MakeExternalAgentDiagram`). Steps begin and end at the policy block's
 ticks (`ScheduleConfig.controller_offset_s` + k * period), after the stacker's, so the agent
 sees exactly what the `LearnedPolicy` block would see at its update and its label takes
@@ -13,7 +13,10 @@ command, while the environment's label is set before the plant's step.)
 """
 
 import dataclasses
+import functools
+import gc
 import math
+import weakref
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +26,7 @@ from gymnasium import spaces
 from pydrake.geometry import Meshcat
 from pydrake.gym import DrakeGymEnv
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.seeds import SEED_LIMIT, check_seed
@@ -37,10 +41,38 @@ from ditch_drake.spec.observation_layout import (
     IMAGE_STACK_SHAPE,
     STACK_DEPTH,
 )
+from ditch_drake.systems.action_label_input import NO_ACTION
 
 # The monitor's outcomes that end the task itself (terminated) and the one that only cuts it short (truncated).
 TERMINAL_STATUSES = ("reached_goal", "rolled_over", "stuck")
 TIME_LIMIT_STATUS = "timeout"
+
+# The diagrams of closed environments, by the Scenario (its repr) they were built from, each
+# taken by the next environment of that Scenario. Drake 1.51 never frees a diagram that holds
+# a Python LeafSystem (a reference cycle through C++ that the garbage collector cannot see;
+# drake#22515), about 30 MB each, so an environment that built its own at every `make` grew the
+# process by that much per make/close. Nothing is evicted: an evicted diagram would not be freed either.
+# Drakes whose bindings free such diagrams (1.58 does) keep no pool (`_drake_frees_python_systems`).
+_IDLE_DIAGRAMS: dict[str, list[tuple]] = {}
+
+
+@functools.cache
+def _drake_frees_python_systems() -> bool:
+    """Whether this Drake frees a diagram holding a Python LeafSystem once nothing refers to it:
+    measured once on a one-system diagram, since the fix came with a change of binding library."""
+
+    class Probe(LeafSystem):  # Defined in Python: what the bindings failed to free.
+        def __init__(self):
+            super().__init__()
+            self.DeclareVectorOutputPort("y", 1, lambda context, output: output.SetFromVector([0.0]))
+
+    builder = DiagramBuilder()
+    builder.AddSystem(Probe())
+    diagram = builder.Build()
+    freed = weakref.ref(diagram)
+    del builder, diagram
+    gc.collect()
+    return freed() is None
 
 
 class DitchDrakeEnvError(gym.error.Error, ConfigError):
@@ -119,7 +151,7 @@ class DitchDrakeEnv(DrakeGymEnv):
     """A ditch crossing as a Gymnasium environment (`gymnasium.make("DitchDrake-v0", env="wide", task=0)`).
 
     Spaces:
-        action: `Discrete(17)`, the SPEC's labels (`ditch_drake.spec.actions`): v = 1 m/s,
+        action: `Discrete(17)`, the action table's labels (`ditch_drake.spec.actions`): v = 1 m/s,
             w from -0.85 to 0.85 rad/s, 8 straight; executed for one control period.
         observation: `Dict` of "image" (4, 128, 128) float32, "imu" (8,), "distance" (4,)
             and "bearing" (4,), newest first (`observation_space`).
@@ -169,7 +201,10 @@ class DitchDrakeEnv(DrakeGymEnv):
         if render_mode == "human" and meshcat is None:
             meshcat = Meshcat()
         self.meshcat = meshcat
-        self.diagram, self.scene = MakeExternalAgentDiagram(self.scenario, meshcat)
+        # A diagram drawing in a Meshcat is that Meshcat's: only those without one are shared.
+        self._diagram_key = repr(self.scenario) if meshcat is None and not _drake_frees_python_systems() else None
+        idle = _IDLE_DIAGRAMS.get(self._diagram_key, [])
+        self.diagram, self.scene = idle.pop() if idle else MakeExternalAgentDiagram(self.scenario, meshcat)
         simulator = Simulator(self.diagram)
         ApplySimulatorConfig(self.scenario.simulator, simulator)
         schedule = self.scene.schedule
@@ -198,7 +233,7 @@ class DitchDrakeEnv(DrakeGymEnv):
         if seed is None:
             seed = int(self.np_random.integers(SEED_LIMIT))
         check_seed(seed, where="reset seed")
-        self.action_port.FixValue(self.simulator.get_mutable_context(), None)  # Stand still until the first step.
+        self.action_port.FixValue(self.simulator.get_mutable_context(), NO_ACTION)  # Stand still until the first step.
         StartEpisode(self.simulator, self.diagram, seed)
         self.simulator.AdvanceTo(self._first_boundary_s)
         context = self.simulator.get_context()
@@ -242,6 +277,14 @@ class DitchDrakeEnv(DrakeGymEnv):
         config = self.reward_config
         return {"reached_goal": config.goal_bonus, "rolled_over": -config.rollover_penalty,
                 "stuck": -config.stuck_penalty}.get(status, 0.0)
+
+    def close(self):
+        """Gives the diagram to the next environment of this Scenario (see `_IDLE_DIAGRAMS`); each
+        environment simulates it in its own Context, so a closed one that is still stepped is unharmed."""
+        super().close()
+        if self._diagram_key is not None:
+            _IDLE_DIAGRAMS.setdefault(self._diagram_key, []).append((self.diagram, self.scene))
+            self._diagram_key = None  # Given once, however often close() is called.
 
     def _info(self, context) -> dict:
         return {"seed": self._episode_seed, "time_s": context.get_time(),

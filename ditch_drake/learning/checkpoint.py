@@ -41,10 +41,10 @@ from ditch_drake.spec import actions
 SCHEMA = "ditch_drake.policy_checkpoint"
 SCHEMA_VERSION = 1
 # The trained policies that ship inside the package (`ditch_drake/models/<name>.pt`), made by
-# the commands in docs/learning.md: per environment, `<env>` is the best measured policy (40
+# the commands in docs/results/shipped_models.md: per environment, `<env>` is the best measured policy (40
 # expert demonstrations plus one DAgger round), `<env>_bc40` the paper's method alone (the 40
 # demonstrations, trained on this 2-core CPU in the 15-minute budget). `generalist` was trained
-# over the procedural benchmark's train split and chosen on its val split (docs/benchmark.md).
+# over the procedural benchmark's train split and chosen on its val split (docs/results/benchmark.md).
 SHIPPED_MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 ENVIRONMENT_MODELS = ("crater", "wide", "narrow", "sine")
 GENERALIST_MODEL = "generalist"

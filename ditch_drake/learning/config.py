@@ -120,7 +120,7 @@ class SmoteConfig:
     def __post_init__(self):
         if not 0.0 <= self.target_fraction <= 1.0:
             raise ConfigError(f"SmoteConfig.target_fraction={self.target_fraction} must be in [0, 1]")
-        if self.max_synthetic_fraction < 0.0:
+        if not self.max_synthetic_fraction >= 0.0:  # NaN too.
             raise ConfigError(f"max_synthetic_fraction={self.max_synthetic_fraction}: expected >= 0 synthetic samples "
                               "per real one (--synthetic-fraction)")
         if self.k_neighbors < 1 or self.chunk_size < 1 or self.max_base_samples < 2:
@@ -186,7 +186,7 @@ class TrainConfig:
             epoch draws its batches from a fresh shuffle of the whole training set, so a
             capped epoch is a random 96 x 64 = 6,144-sample subset; the defaults (8 such
             epochs, SMOTE up to half the real samples) fit one environment's 40
-            demonstrations into the 15-minute training budget on 2 CPU cores (docs/learning.md).
+            demonstrations into the 15-minute training budget on 2 CPU cores (docs/concepts/learning.md).
         model: the network's shape.
     """
 

@@ -1,6 +1,6 @@
-"""The paper's four-input behavioural-cloning classifier (paper 3.4, SPEC "Network and training").
+"""The paper's four-input behavioural-cloning classifier (paper 3.4; docs/design.md, "The network and training").
 
-Layers, as the SPEC reads the paper:
+Layers, as we read the paper (docs/design.md, "Reading the paper"):
 
 - image (4 x 128 x 128, values in [0, 1]): Conv2d 4 -> 64 (3 x 3, ELU), Conv2d 64 -> 32
   (3 x 3, ELU), max pooling, dropout 0.4, flatten;

@@ -59,6 +59,7 @@ import ditch_drake
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import remove_stale_temporaries
 from ditch_drake.common.parallel import interrupt_exit_code
+from ditch_drake.common.progress import log_progress
 from ditch_drake.learning.balance import smote_samples
 from ditch_drake.learning.checkpoint import (
     CheckpointError,
@@ -288,7 +289,7 @@ def train(
     stats = InputStats.fit(arrays, train_rows)
     start = time.perf_counter()
     synthetic = smote_samples(arrays, config.smote, config.seed, train_rows, stats)
-    _log(
+    log_progress(
         progress,
         f"{len(train_rows)} training samples ({len(np.unique(arrays.demo_id[train_rows]))} demonstrations), "
         f"{len(val_rows)} validation ({len(np.unique(arrays.demo_id[val_rows]))}); SMOTE added {len(synthetic)} "
@@ -348,7 +349,7 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
     state_file = None if output_path is None else resume_path(output_path)
     if resume and state_file.exists():
         start_epoch = _restore(state_file, config, summary, model, optimizer, run)
-        _log(progress, f"resuming from {state_file} after epoch {start_epoch - 1}")
+        log_progress(progress, f"resuming from {state_file} after epoch {start_epoch - 1}")
 
     n = len(samples)
     steps = -(-n // config.batch_size)
@@ -404,7 +405,7 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
                 run["best_state"] = copy.deepcopy(model.state_dict())
             else:
                 run["bad_epochs"] += 1
-            _log(progress, _epoch_line(record, improved))
+            log_progress(progress, _epoch_line(record, improved))
             if output_path is not None:
                 # Only the resume file, never a checkpoint at output_path mid-run: a run killed
                 # between epochs must not leave a file there that reads as a finished one.
@@ -415,9 +416,9 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
     except KeyboardInterrupt as error:
         interrupted, exit_code = True, interrupt_exit_code(error)
         if run["best_state"] is None:
-            _log(progress, "interrupted before the first epoch finished: no checkpoint is saved")
+            log_progress(progress, "interrupted before the first epoch finished: no checkpoint is saved")
         else:
-            _log(progress, f"interrupted; keeping the weights of epoch {run['best_epoch']}")
+            log_progress(progress, f"interrupted; keeping the weights of epoch {run['best_epoch']}")
     trained = run["best_state"] is not None
     if not trained:  # Interrupted in the first epoch: the initial weights, returned but never saved.
         run["best_state"] = copy.deepcopy(model.state_dict())
@@ -426,7 +427,7 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
     if output_path is not None and trained:
         saved_to = interrupted_path(output_path) if interrupted and output_path.exists() else output_path
         save_checkpoint(checkpoint, saved_to)
-        _log(progress, f"saved {saved_to} (weights of epoch {run['best_epoch']})")
+        log_progress(progress, f"saved {saved_to} (weights of epoch {run['best_epoch']})")
     if state_file is not None:
         if interrupted:
             kept_state = state_file if state_file.exists() else None
@@ -520,8 +521,3 @@ def _epoch_line(record: dict, improved: bool) -> str:
         f"val loss {record['val_loss']:.4f} acc {record['val_exact_accuracy']:.3f} "
         f"ord {record['val_ordinal_accuracy']:.3f}  {record['seconds']:.1f} s{'  *' if improved else ''}"
     )
-
-
-def _log(progress: bool, line: str) -> None:
-    if progress:
-        tqdm.write(line, file=sys.stderr)

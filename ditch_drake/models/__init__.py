@@ -1,1 +1,2 @@
-"""Trained policies shipped with the package (`<environment>.pt`); see docs/learning.md for the commands that made them."""
+"""Trained policies shipped with the package (`<environment>.pt`); docs/results/shipped_models.md has the
+commands that made them."""

@@ -1,4 +1,4 @@
-"""The lidar's model (SPEC "Robot"): its settings, and the geometry of the depth cameras that
+"""The lidar's model (docs/design.md, "The observation"): its settings, and the geometry of the depth cameras that
 emulate it (Drake has no ray casting, drake#15260). The LeafSystem that turns their images
 into clouds is `ditch_drake.systems.lidar`; `ditch_drake.diagrams.lidar_rig` adds it all to a
 scene.

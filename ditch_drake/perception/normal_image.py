@@ -1,4 +1,4 @@
-"""The surface-normal image (paper section 3.1; SPEC "State"), in plain numpy/scipy.
+"""The surface-normal image (paper section 3.1; docs/design.md, "The observation"), in plain numpy/scipy.
 
 The lidar's cloud becomes a 128 x 128 image whose pixels are the z component of the
 terrain's surface normals: 1 on level ground, cos(t) on a slope of t, 0 on a vertical
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-# SPEC: the image is N x M = 128 x 128.
+# The paper's image is N x M = 128 x 128 (section 3.1).
 IMAGE_SHAPE = (128, 128)
 NORMAL_METHODS = ("organized", "pca")
 DEFAULT_PCA_K = 12

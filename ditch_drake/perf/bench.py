@@ -9,6 +9,8 @@ import time
 
 import numpy as np
 
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import ConstantCommandConfig, MakeRolloutDiagram, RolloutConfig
 from ditch_drake.perf.closed_loop import (
     CLOSED_LOOP_EPISODES,
     TRAVERSAL_S,
@@ -16,8 +18,6 @@ from ditch_drake.perf.closed_loop import (
     MakeClosedLoopDiagram,
     timed_run,
 )
-from ditch_drake.diagrams.ditch_scene import SceneConfig
-from ditch_drake.diagrams.rollout import ConstantCommandConfig, MakeRolloutDiagram, RolloutConfig
 from ditch_drake.spec import robot
 from ditch_drake.world.environments import environment_names, get_environment, load_environments
 

@@ -18,16 +18,16 @@ import time
 
 import numpy as np
 
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import ConstantCommandConfig
+from ditch_drake.diagrams.scenario import Scenario
+from ditch_drake.gym.env import DitchDrakeEnv
 from ditch_drake.perf.closed_loop import (
     TRAVERSAL_S,
     WARMUP_S,
     MakeClosedLoopDiagram,
     timed_run,
 )
-from ditch_drake.diagrams.ditch_scene import SceneConfig
-from ditch_drake.diagrams.rollout import ConstantCommandConfig
-from ditch_drake.diagrams.scenario import Scenario
-from ditch_drake.gym.env import DitchDrakeEnv
 from ditch_drake.spec import actions, robot
 
 STRAIGHT_COMMAND = actions.COMMANDS[actions.STRAIGHT_LABEL]

@@ -9,11 +9,9 @@ one MPPI plan of all samples). The default drive, wide_walled task 1 for 15 s, g
 start over the flat to the ditch's down wall, so the map fills and the walls' cells enter the
 samples' attitude predictions, the expensive case.
 
-Wall time is what a real-time loop sees; CPU time (`time.process_time`) is the time on one
-core. Each step is replayed `repeats` times and its fastest run kept, as `timeit` does, so a
-step that lost the core to another process counts at its own cost. numpy runs one thread here
-only if the caller limits BLAS threads; the update's work is elementwise numpy, which is
-single-threaded anyway.
+The timing loop, with what its wall and CPU times mean, is `ditch_drake.perf.recorded_drive`'s.
+numpy runs one thread here only if the caller limits BLAS threads; the update's work is
+elementwise numpy, which is single-threaded anyway.
 """
 
 import sys
@@ -21,16 +19,20 @@ import sys
 import numpy as np
 from pydrake.math import RigidTransform
 
-from ditch_drake.perf.bench_dwa import LidarDrive, record_lidar_drive, recorded_cloud, timed_update
 from ditch_drake.diagrams.rollout import MppiBaselineConfig
-from ditch_drake.spec import robot
+from ditch_drake.perf.recorded_drive import (
+    REPLAY_CHASSIS_INDEX,
+    LidarDrive,
+    record_lidar_drive,
+    time_replayed_updates,
+)
 from ditch_drake.systems.mppi_controller import MppiController
 
 
 def record_mppi_drive(environment: str = "wide_walled", task: int = 1, seed: int = 0, duration_s: float = 15.0,
                       config: MppiBaselineConfig | None = None) -> LidarDrive:
     """Drives the MPPI baseline for `duration_s` (s), or until the episode ends, and records its
-    inputs at each control step (`bench_dwa.record_lidar_drive`)."""
+    inputs at each control step (`recorded_drive.record_lidar_drive`)."""
     return record_lidar_drive(environment, task, seed, duration_s, config or MppiBaselineConfig(), "mppi")
 
 
@@ -50,19 +52,9 @@ def measure_mppi_ms(drive: LidarDrive | None = None, repeats: int = 3, config: M
     """
     drive = drive if drive is not None else record_mppi_drive()
     config = config or MppiBaselineConfig()
-    controller = MppiController(drive.goal_xy, 1, RigidTransform(drive.X_BL), config.planner, config.elevation_map,
-                                goal_tolerance_m=config.goal_tolerance_m)
-    clouds = [recorded_cloud(p_LP) for p_LP in drive.clouds]
-    steps = len(clouds)
-    wall, cpu = np.full((repeats, steps), np.inf), np.full((repeats, steps), np.inf)
-    for repeat in range(repeats):
-        context = controller.CreateDefaultContext()
-        for step, (cloud, X_WB) in enumerate(zip(clouds, drive.poses, strict=True)):
-            controller.GetInputPort("point_cloud").FixValue(context, cloud)
-            controller.GetInputPort("body_poses").FixValue(context, [RigidTransform(), RigidTransform(X_WB)])
-            context.SetTime(step * robot.CONTROL_PERIOD_S)
-            wall[repeat, step], cpu[repeat, step] = timed_update(controller, context)
-    wall, cpu = 1e3 * wall.min(axis=0)[1:], 1e3 * cpu.min(axis=0)[1:]
+    controller = MppiController(drive.goal_xy, REPLAY_CHASSIS_INDEX, RigidTransform(drive.X_BL), config.planner,
+                                config.elevation_map, goal_tolerance_m=config.goal_tolerance_m)
+    wall, cpu = time_replayed_updates(controller, drive, repeats)
     return {
         "mppi_update_ms": float(np.median(wall)),
         "mppi_update_cpu_ms": float(np.median(cpu)),

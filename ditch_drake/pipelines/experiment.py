@@ -1,7 +1,7 @@
 """The paper's experiments as data: collect, train, evaluate and report, each stage resumable.
 
 An experiment YAML (`experiments/paper.yaml`) names the studies of the paper (section 5,
-SPEC "Experiments"): scalability (10/20/40 demonstrations, evaluated in the training
+docs/design.md, "The experiments"): scalability (10/20/40 demonstrations, evaluated in the training
 environment), generalization (each 40-demonstration model in the other environments),
 baseline (the DWA in every environment), amalgam (one model trained on several
 environments, evaluated in another) and must_cross (issue 20: the classical controllers and
@@ -24,9 +24,9 @@ which the report shows.
 
 import datetime
 import json
+import math
 import os
 import platform
-import sys
 import time
 import typing
 from dataclasses import dataclass, field, fields, replace
@@ -34,9 +34,18 @@ from pathlib import Path
 
 from ditch_drake.common.config_yaml import load_typed_yaml
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.common.parallel import Terminated, check_workers
+from ditch_drake.common.outputs import figures_beside
+from ditch_drake.common.parallel import check_workers
+from ditch_drake.common.progress import log_progress
 from ditch_drake.evaluation.results import RolloutSpec
 from ditch_drake.evaluation.runs import record_run
+from ditch_drake.pipelines.stages import (
+    collect_demonstrations,
+    pass_on_stop,
+    train_or_resume,
+    training_device,
+    training_precision,
+)
 from ditch_drake.world.environments import environment_names, get_environment, load_environments
 
 
@@ -206,9 +215,9 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
     unknown = sorted({env for env in named if env not in known})
     if unknown:
         raise ConfigError(f"experiment file {path} names unknown environments {unknown}; expected some of {sorted(known)}")
-    if config.rollouts < 1 or not config.time_limit_s > 0:
+    if config.rollouts < 1 or not 0 < config.time_limit_s < math.inf:
         raise ConfigError(f"experiment file {path}: rollouts={config.rollouts} must be >= 1 and "
-                          f"time_limit_s={config.time_limit_s} positive")
+                          f"time_limit_s={config.time_limit_s} finite and positive")
     check_workers(config.workers, f"experiment file {path}: workers")
     _check_must_cross(config, path)
     if config.training.precision not in ("auto", "fp32", "bf16"):
@@ -373,7 +382,7 @@ def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stag
         from ditch_drake.evaluation.report import write_report
 
         page = Path(config.report or Path(config.results_dir) / "report.md")
-        figures = Path(config.figures_dir or page.with_name(f"{page.stem}_img"))
+        figures = Path(config.figures_dir or figures_beside(page))
         write_report([config.results_dir], page, figures, title=config.name, command=command)
 
     runners = {
@@ -424,50 +433,34 @@ def code_revision() -> str:
 
 
 def _collect(config: ExperimentConfig, models: list[ModelSpec], progress: bool) -> None:
-    from ditch_drake.demos.collect import CollectConfig, collect
+    from ditch_drake.demos.collect import CollectConfig
 
     needed: dict[str, int] = {}
     for model in models:
         for env in model.environments:
             needed[env] = max(needed.get(env, 0), model.demos)
     for env, demos in needed.items():
-        report = collect(CollectConfig(environment=env, demos=demos, seed=config.seed,
-                                       out=str(Path(config.demos_dir) / env), workers=config.workers), progress)
-        _log(progress, f"collect {env}: {report['kept_before']} kept, {report['recorded']} recorded")
-        if report["interrupted"]:
-            _stop(report["exit_code"])
+        collect_demonstrations(CollectConfig(environment=env, demos=demos, seed=config.seed,
+                                             out=str(Path(config.demos_dir) / env), workers=config.workers),
+                               env, progress)
 
 
 def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
     from ditch_drake.demos.dataset import load_dataset, to_array_set
-    from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
     from ditch_drake.learning.config import TrainConfig
-    from ditch_drake.learning.train import available_device, available_precision, resume_path, train
 
-    out = model_path(config, model)
-    if out.exists() and not resume_path(out).exists():
-        try:
-            if not load_checkpoint(out).metrics.get("interrupted", False):
-                _log(progress, f"train {model.name}: {out} exists, kept")
-                return
-            _log(progress, f"train {model.name}: {out} is from an interrupted run; training again")
-        except CheckpointError as error:
-            _log(progress, f"train {model.name}: {error}; training again")
-    demonstrations = []
-    for env in model.environments:
-        demonstrations += load_dataset(Path(config.demos_dir) / env, max_demos=model.demos)
+    def samples():
+        return to_array_set([demonstration for env in model.environments
+                             for demonstration in load_dataset(Path(config.demos_dir) / env, max_demos=model.demos)])
+
     settings = config.training
     defaults = TrainConfig()
-    device = available_device()
-    precision = available_precision(device) if settings.precision == "auto" else settings.precision
+    device = training_device("auto")
     train_config = TrainConfig(epochs=settings.epochs, patience=settings.patience, seed=config.seed,
-                               device=device, precision=precision,
+                               device=device, precision=training_precision(device, settings.precision),
                                max_batches_per_epoch=settings.batches_per_epoch,
                                smote=replace(defaults.smote, max_synthetic_fraction=settings.synthetic_fraction))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    result = train(to_array_set(demonstrations), train_config, progress=progress, output_path=out, resume=True)
-    if result.interrupted:  # `train` kept what it could (see its docstring); the pipeline stops here.
-        _stop(result.exit_code)
+    train_or_resume(model_path(config, model), model.name, samples, train_config, progress)
 
 
 def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool) -> None:
@@ -477,22 +470,12 @@ def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress:
     for evaluation in evaluations:
         specs = evaluation_specs(config, evaluation)
         if not specs and evaluation.model:
-            _log(progress, f"evaluate {evaluation.study}: no checkpoint {model_path(config, evaluation.model)}; skipped")
+            log_progress(progress, f"evaluate {evaluation.study}: no checkpoint {model_path(config, evaluation.model)}; skipped")
         by_study.setdefault(evaluation.study, []).extend(specs)
     for study, specs in by_study.items():
         report = evaluate(specs, Path(config.results_dir) / f"{study}.jsonl", workers=config.workers,
                           progress=progress)
-        _log(progress, f"evaluate {study}: " + json.dumps(
+        log_progress(progress, f"evaluate {study}: " + json.dumps(
             {"recorded": report.recorded, "skipped": report.skipped, "wall_s": round(report.wall_s, 1)}))
         if report.interrupted:
-            _stop(report.exit_code)
-
-
-def _stop(exit_code: int) -> None:
-    """Passes on the stop a stage caught and reported: Ctrl-C or SIGTERM, by its exit code."""
-    raise Terminated() if exit_code == Terminated.exit_code else KeyboardInterrupt()
-
-
-def _log(progress: bool, line: str) -> None:
-    if progress:
-        print(line, file=sys.stderr, flush=True)
+            pass_on_stop(report.exit_code)

@@ -25,7 +25,6 @@ resumed with others. The test split plays no part.
 """
 
 import json
-import sys
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
@@ -35,10 +34,18 @@ from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges, packaged_
 from ditch_drake.benchmark.run import BenchmarkConfig, run_benchmark
 from ditch_drake.benchmark.splits import split_ditches, write_ditches
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.common.files import atomic_write_bytes, atomic_write_text
+from ditch_drake.common.files import atomic_write_bytes, atomic_write_text, prepare_output, remove_stale_temporaries
+from ditch_drake.common.progress import log_progress
 from ditch_drake.evaluation.batch import load_results
 from ditch_drake.evaluation.results import current_records
 from ditch_drake.learning.mirror import mirror_left_right
+from ditch_drake.pipelines.stages import (
+    collect_demonstrations,
+    pass_on_stop,
+    train_or_resume,
+    training_device,
+    training_precision,
+)
 from ditch_drake.world.crossing import crossing_sides, crossing_turn_deg
 from ditch_drake.world.environments import load_environments
 from ditch_drake.world.terrain import DitchTerrain
@@ -61,7 +68,9 @@ class GeneralistConfig:
     """What `train_generalist` does (see the module docstring).
 
     Attributes:
-        out: where the chosen checkpoint is copied.
+        out: where the chosen checkpoint is copied ("": `<work_dir>/generalist.pt`). Not the
+            shipped `ditch_drake/models/generalist.pt` by default: a run replaces that only
+            when asked to, after its val scores were looked at.
         work_dir: demonstrations, each round's checkpoint and the val results.
         train_geometries: the train split's first N ditches.
         demos_per_task: expert demonstrations per task of each.
@@ -93,7 +102,7 @@ class GeneralistConfig:
         train_ranges: the train ditches' ranges YAML file ("": `generalist_train_ranges.yaml`).
     """
 
-    out: str = "ditch_drake/models/generalist.pt"
+    out: str = ""
     work_dir: str = "data/generalist"
     train_geometries: int = 40
     demos_per_task: int = 1
@@ -110,25 +119,17 @@ class GeneralistConfig:
     train_ranges: str = ""
 
 
-def _log(progress: bool, line: str) -> None:
-    if progress:
-        print(line, file=sys.stderr, flush=True)
-
-
 def _collect(config: GeneralistConfig, names: list[str], ditches: str, out: Path, learner: str | None,
              seed: int, progress: bool) -> None:
-    from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect
+    from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig
     from ditch_drake.systems.expert import ExpertVariation
 
     variation = replace(LABELLER_VARIATION if learner else ExpertVariation(), lead_in=True)
-    report = collect(CollectConfig(environment=names[0], environments=names, environments_file=ditches,
-                                   demos=len(names) * 3 * (1 if learner else config.demos_per_task), seed=seed,
-                                   out=str(out), workers=config.workers, variation=variation, learner=learner),
-                     progress)
-    _log(progress, f"collect {out}: {report['kept_before']} kept, {report['recorded']} recorded, "
-                   f"unfilled {report['unfilled_slots']}")
-    if report["interrupted"]:
-        raise KeyboardInterrupt
+    collect_demonstrations(CollectConfig(environment=names[0], environments=names, environments_file=ditches,
+                                         demos=len(names) * 3 * (1 if learner else config.demos_per_task),
+                                         seed=seed, out=str(out), workers=config.workers, variation=variation,
+                                         learner=learner),
+                           str(out), progress)
 
 
 def _training_samples(config: GeneralistConfig, data: list[Path], ditches: str, progress: bool = False):
@@ -158,7 +159,7 @@ def _training_samples(config: GeneralistConfig, data: list[Path], ditches: str, 
     if config.canonical_side:
         left = np.concatenate(sides) < 0.0
         mirror_left_right({name: getattr(arrays, name) for name in ("image", "imu", "bearing", "label")}, left)
-        _log(progress, f"canonical side: {int(left.sum())} of {len(left)} samples reflected (their crossings turn left)")
+        log_progress(progress, f"canonical side: {int(left.sum())} of {len(left)} samples reflected (their crossings turn left)")
     return arrays
 
 
@@ -185,25 +186,14 @@ def _train(config: GeneralistConfig, data: list[Path], ditches: str, out: Path, 
     """Trains on the demonstrations of data[0] and every dagger_stride-th step of the rest
     (and their reflections, `GeneralistConfig.mirror`, or in one side's frame,
     `GeneralistConfig.canonical_side`), in the ditches of the file `ditches`."""
-    from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
     from ditch_drake.learning.config import ModelConfig, TrainConfig
-    from ditch_drake.learning.train import available_device, available_precision, resume_path, train
 
-    if out.exists() and not resume_path(out).exists():
-        try:
-            if not load_checkpoint(out).metrics.get("interrupted", False):
-                _log(progress, f"train {out}: exists, kept")
-                return
-        except CheckpointError as error:
-            _log(progress, f"train {out}: {error}; training again")
-    device = available_device()
+    device = training_device("auto")
     train_config = TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, device=device,
                                model=ModelConfig(canonical_side=config.canonical_side),
-                               precision=available_precision(device))
-    result = train(_training_samples(config, data, ditches, progress), train_config, progress=progress,
-                   output_path=out, resume=True)
-    if result.interrupted:
-        raise KeyboardInterrupt
+                               precision=training_precision(device))
+    train_or_resume(out, out.stem, lambda: _training_samples(config, data, ditches, progress), train_config,
+                    progress)
 
 
 def _check_recipe(work: Path, config: GeneralistConfig, train_ranges: BenchmarkRanges) -> None:
@@ -221,7 +211,14 @@ def _check_recipe(work: Path, config: GeneralistConfig, train_ranges: BenchmarkR
     if not path.exists():
         atomic_write_text(path, json.dumps(recipe, indent=2) + "\n")
         return
-    made_with = json.loads(path.read_text())
+    try:
+        made_with = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as error:  # Unreadable, not UTF-8, or not JSON.
+        raise ConfigError(f"{path}: {error}; expected the JSON object of the settings this work dir was made "
+                          "with (or pass a fresh --work-dir)") from error
+    if not isinstance(made_with, dict):
+        raise ConfigError(f"{path} holds a JSON {type(made_with).__name__}; expected the JSON object of the "
+                          "settings this work dir was made with (or pass a fresh --work-dir)")
     for name, value in recipe.items():
         if made_with.get(name) != value:
             raise ConfigError(f"{name}={value}: expected {made_with.get(name)}, the setting {work} was made with "
@@ -238,8 +235,10 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
     """Runs the stages (module docstring); returns each candidate's val success and the choice.
 
     Raises:
-        ConfigError: counts out of range, a bad ranges file.
-        KeyboardInterrupt: Ctrl-C or SIGTERM during a stage (what finished is kept).
+        ConfigError: counts out of range, a bad ranges file, a work dir or output that cannot
+            be written, or a work dir made with other settings or with a damaged `recipe.json`.
+        KeyboardInterrupt: Ctrl-C during a stage, or `Terminated` (a KeyboardInterrupt) for
+            SIGTERM (what finished is kept).
     """
     for name, lowest in (("dagger_rounds", 0), ("demos_per_task", 1), ("dagger_stride", 1)):
         if getattr(config, name) < lowest:
@@ -250,8 +249,9 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
                           "that learns only right-turned crossings has no use for their reflections")
     load_ranges(config.ranges or None)  # A bad val ranges file is refused before hours of training, not after.
     train_ranges = load_ranges(config.train_ranges or packaged_ranges_path(GENERALIST_TRAIN_RANGES))
-    work = Path(config.work_dir)
-    work.mkdir(parents=True, exist_ok=True)
+    work = prepare_output(config.work_dir, "work dir", folder=True)
+    remove_stale_temporaries(work)  # A killed run's recipe.json or choice.json half-written.
+    out = prepare_output(config.out or work / "generalist.pt", "output checkpoint")
     _check_recipe(work, config, train_ranges)
     ditches = split_ditches("train", config.train_geometries, train_ranges)
     ditches_path = str(write_ditches(work / "train.ditches.yaml", ditches))
@@ -275,14 +275,13 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
                                                out=str(val_results), ranges=config.ranges, workers=config.workers),
                                progress)
         if report.interrupted:
-            raise KeyboardInterrupt
+            pass_on_stop(report.exit_code)
         scores[str(candidate)] = _val_success(val_results, candidate)
-        _log(progress, f"val {candidate}: {scores[str(candidate)][0]}/{scores[str(candidate)][1]}")
+        log_progress(progress, f"val {candidate}: {scores[str(candidate)][0]}/{scores[str(candidate)][1]}")
     chosen = max(reversed(candidates), key=lambda c: scores[str(c)][0] / max(scores[str(c)][1], 1))
-    Path(config.out).parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_bytes(config.out, chosen.read_bytes())
+    atomic_write_bytes(out, chosen.read_bytes())
     summary = {"config": asdict(config), "val_success": {k: list(v) for k, v in scores.items()},
-               "chosen": str(chosen), "out": config.out}
+               "chosen": str(chosen), "out": str(out)}
     atomic_write_text(work / "choice.json", json.dumps(summary, indent=2) + "\n")
     return summary
 

@@ -1,6 +1,19 @@
-"""The stages the training pipelines share (the paper's protocol, the generalist's recipe)."""
+"""The stages the training pipelines share (the paper's protocol, the generalist's recipe), each
+written once: collect with resume and interruption, train-or-resume a checkpoint, the device and
+precision of training, and passing on a stop.
+
+Each stage does only what an earlier run left undone, so a pipeline run again resumes; a stage
+that was stopped (Ctrl-C or SIGTERM) keeps what it finished, reports it, and the pipeline stops
+with the same signal (`pass_on_stop`).
+"""
+
+import os
+from collections.abc import Callable
+from pathlib import Path
 
 from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.parallel import Terminated
+from ditch_drake.common.progress import log_progress
 
 
 def training_device(requested: str) -> str:
@@ -19,3 +32,64 @@ def training_device(requested: str) -> str:
     if requested == "cuda" and not torch.cuda.is_available():
         raise ConfigError("--device cuda: torch sees no CUDA device; use --device cpu or auto")
     return requested
+
+
+def training_precision(device: str, requested: str = "auto") -> str:
+    """The precision a training run on `device` asks for: `auto` (`available_precision`: bf16 on
+    a CPU that runs it natively, else fp32), `fp32` or `bf16`."""
+    from ditch_drake.learning.train import available_precision
+
+    return available_precision(device) if requested == "auto" else requested
+
+
+def pass_on_stop(exit_code: int) -> None:
+    """Raises the stop a stage caught and reported, by its exit code: `Terminated` for SIGTERM's
+    (143), else KeyboardInterrupt (Ctrl-C's 130), so the command exits with the same code."""
+    raise Terminated() if exit_code == Terminated.exit_code else KeyboardInterrupt()
+
+
+def collect_demonstrations(config, name: str, progress: bool) -> dict:
+    """Collects the demonstrations `config` (a `CollectConfig`) asks for that its folder does not
+    hold yet (`collect` writes each as it ends, so a rerun does only the rest), says how many were
+    kept and recorded, and passes on a stop.
+
+    Returns:
+        `collect`'s report.
+    """
+    from ditch_drake.demos.collect import collect
+
+    report = collect(config, progress)
+    unfilled = report["unfilled_slots"]
+    log_progress(progress, f"collect {name}: {report['kept_before']} kept, {report['recorded']} recorded"
+                 + (f", unfilled {unfilled}" if unfilled else ""))
+    if report["interrupted"]:
+        pass_on_stop(report["exit_code"])
+    return report
+
+
+def train_or_resume(out: str | os.PathLike, name: str, samples: Callable[[], object], config,
+                    progress: bool) -> None:
+    """Trains `config` (a `TrainConfig`) on `samples()` (an `ArraySet`, loaded only when training
+    runs) into the checkpoint `out`, unless an earlier run finished it.
+
+    A finished checkpoint at `out` is kept; one from an interrupted run, or one that does not
+    load, is trained again; a `.resume` file beside `out` (`train`'s state after its last
+    finished epoch) is resumed from. A stop during training keeps what `train` keeps (see its
+    docstring) and is passed on.
+    """
+    from ditch_drake.learning.checkpoint import CheckpointError, load_checkpoint
+    from ditch_drake.learning.train import resume_path, train
+
+    out = Path(out)
+    if out.exists() and not resume_path(out).exists():
+        try:
+            if not load_checkpoint(out).metrics.get("interrupted", False):
+                log_progress(progress, f"train {name}: {out} exists, kept")
+                return
+            log_progress(progress, f"train {name}: {out} is from an interrupted run; training again")
+        except CheckpointError as error:
+            log_progress(progress, f"train {name}: {error}; training again")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    result = train(samples(), config, progress=progress, output_path=out, resume=True)
+    if result.interrupted:
+        pass_on_stop(result.exit_code)

@@ -27,7 +27,7 @@ linear in n_z between the two slopes (so roughly quadratic in the slope angle), 
 `lethal_slope_deg`. With `lethal_slope_deg` infinite (YAML `.inf`) no slope is lethal and top
 is 90 deg: the cost rises from 0 at `free_slope_deg` to 252 (MAX_NON_OBSTACLE) for a vertical
 normal. (Infinite, not None: Drake's `yaml_dump_typed` leaves None out, which would read back
-as the default 45.) The two curves in use (`docs/baseline.md`; drawn by
+as the default 45.) The two curves in use (`docs/concepts/baseline.md`; drawn by
 `ditch_drake.docs_tools.figures.cost_curve_figure`):
 - `dwa` (`CostmapConfig()`): 0 up to 5 deg, then linear in n_z to 252 just below 45 deg,
   LETHAL from 45 deg on; the ditches' 55 deg walls are lethal.
@@ -102,7 +102,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
-from ditch_drake.planning.rolling_window import RollingWindow
+from ditch_drake.planning.rolling_window import MAX_WINDOW_CELLS, RollingWindow, window_cells
 from ditch_drake.spec import robot
 
 FREE_SPACE = 0
@@ -181,6 +181,11 @@ class CostmapConfig:
         if not (self.resolution > 0 and self.width >= 4 * self.resolution and self.height >= 4 * self.resolution):
             raise ValueError(f"costmap width {self.width}, height {self.height} and resolution {self.resolution} "
                              "must be positive, with at least 4 cells a side")
+        cells = window_cells(self.width, self.height, self.resolution)
+        if cells > MAX_WINDOW_CELLS:
+            raise ValueError(f"costmap width {self.width}, height {self.height} at resolution {self.resolution} is "
+                             f"{cells:,} cells; expected at most {MAX_WINDOW_CELLS:,} (a coarser resolution or a "
+                             "smaller window)")
         top = 90.0 if self.lethal_slope_deg == math.inf else self.lethal_slope_deg
         if not 0.0 <= self.free_slope_deg < top <= 90.0:
             raise ValueError(f"need 0 <= free_slope_deg ({self.free_slope_deg}) < lethal_slope_deg "

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.planning.rolling_window import RollingWindow
+from ditch_drake.planning.rolling_window import MAX_WINDOW_CELLS, RollingWindow, window_cells
 
 
 @dataclass
@@ -60,6 +60,11 @@ class ElevationMapConfig:
             raise ConfigError(f"elevation map resolution_m={self.resolution_m!r}: expected a positive length")
         if not (math.isfinite(self.size_m) and self.size_m >= 4 * self.resolution_m):
             raise ConfigError(f"elevation map size_m={self.size_m!r}: expected at least 4 cells of resolution_m")
+        cells = window_cells(self.size_m, self.size_m, self.resolution_m)
+        if cells > MAX_WINDOW_CELLS:
+            raise ConfigError(f"elevation map size_m={self.size_m!r} at resolution_m={self.resolution_m!r} is "
+                              f"{cells:,} cells; expected at most {MAX_WINDOW_CELLS:,} (a coarser resolution_m or "
+                              "a smaller size_m)")
         if not 0.0 < self.new_weight <= 1.0:
             raise ConfigError(f"elevation map new_weight={self.new_weight!r}: expected 0 < new_weight <= 1")
         if not self.reset_jump_m > 0.0:

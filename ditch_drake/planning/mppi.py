@@ -2,7 +2,7 @@
 
 Model. Skid-steer unicycle kinematics at a fixed speed: x' = v cos(yaw), y' = v sin(yaw),
 yaw' = w, integrated at `step_s` (the control period) over `horizon_s`. The speed is fixed at
-the SPEC's label speed (`ditch_drake.spec.actions.SPEED_MPS`, 1 m/s) and only w is sampled,
+the label speed (`ditch_drake.spec.actions.SPEED_MPS`, 1 m/s; docs/design.md, "The action table"); only w is sampled,
 continuous in [-max_w, max_w]: every one of the 17 labels drives at that speed, so a plan with
 another speed could not be executed. The first command is quantized to the label table at the
 output (`ditch_drake.spec.actions.quantize`), so the planner executes the same command set as
@@ -54,8 +54,8 @@ Thresholds. On a plane of the ditches' 55 deg, the static model (`ditch_drake.pl
 gives sideways/fore-aft margins of 6.6/59.6 deg driving along the edge, 7.8/36.9 at 10 deg to
 it, 9.3/28.5 at 15, 11.3/22.2 at 20, 13.7/17.6 at 25, 16.4/14.3 at 30, 26.2/8.5 at 45 and 61.6/4.6
 head-on. The simulator rolled the robot over head-on and at 30-45 deg and got it across at
-15-25 deg (SPEC, measured facts), so the smaller of the two (largest near 30 deg) cannot be the
-rule alone: the fore-aft direction needs a larger allowance, as the speed acts along the
+15-25 deg (docs/design.md, "Measured facts"), so the smaller of the two (largest near 30 deg) cannot
+be the rule alone: the fore-aft direction needs a larger allowance, as the speed acts along the
 heading (the chassis pitches over the rounded hinge and into the toe under its momentum). The
 defaults, 8 deg sideways and 16 deg fore-aft, admit about 12-26 deg to the edge on a 55 deg
 wall: the band that crossed in the simulator.
@@ -104,6 +104,11 @@ _DROP_PROBE_M = (1.0, 1.5)
 _DROP_PROBE_EVERY = 5
 # The samples averaged are those turning the same way as the best one when it turns more than this.
 _SIDE_MIN_TURN_RAD = 0.1
+# The most sample steps (samples x horizon steps) one plan may simulate and cost. Every plan holds
+# a few float arrays of this many poses, at each control update: the default 256 x 35 is 8,960;
+# 2 million keeps a plan's arrays within a few hundred MB and its time within seconds, where
+# an unbounded horizon (a long horizon_s, a tiny step_s) ran out of memory mid-rollout.
+MAX_SAMPLE_STEPS = 2_000_000
 
 
 @dataclass
@@ -161,6 +166,10 @@ class MppiPlannerConfig:
                 raise ConfigError(f"mppi {name}={getattr(self, name)!r}: expected > 0")
         if self.horizon_s < self.step_s:
             raise ConfigError(f"mppi horizon_s={self.horizon_s!r}: expected at least one step_s ({self.step_s})")
+        if self.samples * self.steps > MAX_SAMPLE_STEPS:
+            raise ConfigError(f"mppi samples={self.samples!r} over horizon_s={self.horizon_s!r} in step_s="
+                              f"{self.step_s!r} is {self.samples * self.steps:,} sample steps a plan; expected at "
+                              f"most {MAX_SAMPLE_STEPS:,} (fewer samples, a shorter horizon_s or a longer step_s)")
         if not 0.0 < self.presumed_drop_slope_deg < 90.0:
             raise ConfigError(f"mppi presumed_drop_slope_deg={self.presumed_drop_slope_deg!r}: expected in (0, 90)")
         if not 0.0 < self.drop_ahead_slope_deg < 90.0:

@@ -3,7 +3,24 @@ the elevation map: square cells of side `resolution` on a world lattice, an orig
 cells, arrays indexed [iy, ix] so that cell (iy, ix) covers x in [(ox + ix) r, (ox + ix + 1) r),
 y in [(oy + iy) r, (oy + iy + 1) r)."""
 
+import math
+
 import numpy as np
+
+# The most cells a rolling map may hold (1000 x 1000). A map is part of its controller's state,
+# copied at every control update, and a fine resolution grows it as its square: at the default
+# 0.1 m the maps hold 14,400 (elevation) and 40,000 (costmap) cells, while 0.0001 m would ask
+# for 10^10 and end in a MemoryError mid-rollout.
+MAX_WINDOW_CELLS = 1_000_000
+
+
+def window_cells(size_x_m: float, size_y_m: float, resolution_m: float) -> float:
+    """How many cells a window of these sides (m) holds at `resolution_m`, rounded as the maps
+    round (inf for an infinite side)."""
+    sides = [size_x_m / resolution_m, size_y_m / resolution_m]
+    if not all(math.isfinite(side) for side in sides):
+        return math.inf
+    return max(4, round(sides[0])) * max(4, round(sides[1]))
 
 
 class RollingWindow:
@@ -48,3 +65,13 @@ class RollingWindow:
         out[max(-dy, 0):ny + min(-dy, 0), max(-dx, 0):nx + min(-dx, 0)] = \
             values[max(dy, 0):ny + min(dy, 0), max(dx, 0):nx + min(dx, 0)]
         return out
+
+    def pack(self, origin_m: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """The window as a controller's output vector: [origin_x (m), origin_y (m), values
+        row-major]; `unpack` reads it back."""
+        return np.concatenate([origin_m, np.reshape(values, -1)])
+
+    def unpack(self, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(origin xy (m), values of `shape`) from a vector made by `pack`."""
+        value = np.asarray(value)
+        return value[:2].copy(), value[2:].reshape(self.shape).copy()

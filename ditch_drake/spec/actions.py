@@ -1,4 +1,4 @@
-"""The action space (SPEC "Action space", paper 3.3): 17 labels <-> (v, w) commands.
+"""The action space (paper 3.3; docs/design.md, "The action table"): 17 labels <-> (v, w) commands.
 
 v = 1.0 m/s for every label; label 8 drives straight; label l turns at
 w = sign(l - 8) * (0.05 + 0.1 |l - 8|) rad/s, positive w turning left

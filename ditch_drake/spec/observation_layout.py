@@ -1,4 +1,4 @@
-"""The observation's numbers (SPEC "State"), in one place.
+"""The observation's numbers (docs/design.md, "The observation"), in one place.
 
 One control step observes a surface-normal image, the chassis roll and pitch, and the
 distance and bearing to the goal; the policy sees the last `STACK_DEPTH` steps of each,
@@ -12,12 +12,12 @@ Layouts (all flat float vectors on Drake ports):
 - distance and bearing stacks: [value_t, value_t-1, ...], newest first.
 """
 
-# SPEC: the image is N x M = 128 x 128.
+# The paper's image is N x M = 128 x 128 (section 3.1).
 IMAGE_SIZE = 128
 IMAGE_SHAPE = (IMAGE_SIZE, IMAGE_SIZE)
 IMAGE_PIXELS = IMAGE_SIZE * IMAGE_SIZE
 
-# SPEC: every input is stacked over 4 control steps.
+# The paper stacks every input over 4 control steps (section 3.2).
 STACK_DEPTH = 4
 
 # One step's scalar observations.

@@ -10,6 +10,7 @@ from pydrake.math import RigidTransform
 from pydrake.perception import PointCloud
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from ditch_drake.perception.lidar_points import returns_in_world
 from ditch_drake.planning.costmap import CostmapConfig, SlopeCostmap
 from ditch_drake.planning.dwa import (
     DwaPlannerConfig,
@@ -169,7 +170,7 @@ class DwaController(LeafSystem):
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         self._command_index = self.DeclareDiscreteState(2)
         self._layer_index = self.DeclareDiscreteState(self._costmap.empty_layer().reshape(-1))
-        self._costmap_index = self.DeclareDiscreteState(np.concatenate([[0.0, 0.0], self._costmap.empty_layer().ravel()]))
+        self._costmap_index = self.DeclareDiscreteState(self._costmap.pack(np.zeros(2), self._costmap.empty_layer()))
         self._path_index = self.DeclareDiscreteState(1 + 2 * self._config.max_path_points)
         status = np.zeros(_STATUS_SIZE)
         status[[_LAST_PLAN_T, _PLAN_FAIL_SINCE, _CONTROL_FAIL_SINCE, _STATIONARY_X, _STATIONARY_Y]] = np.nan
@@ -199,8 +200,7 @@ class DwaController(LeafSystem):
 
     def unpack_costmap(self, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(origin xy (m), costs (ny, nx)) from a `costmap` output value."""
-        value = np.asarray(value)
-        return value[:2].copy(), value[2:].reshape(self._costmap.shape).copy()
+        return self._costmap.unpack(value)
 
     @staticmethod
     def unpack_path(value: np.ndarray) -> np.ndarray:
@@ -223,20 +223,15 @@ class DwaController(LeafSystem):
         """The cloud's points (N, 3) in W, less those above or below the footprint; p_WL; the
         directions (M, 3) in W of the rays without a return (none unless `ray_directions_L`);
         and the number of returns (finite points) in the cloud."""
-        xyzs = cloud.xyzs() if cloud.size() else np.zeros((3, 0))
-        returned = np.isfinite(xyzs).all(axis=0)
+        if self._rays_B is not None and cloud.size() > 0 and cloud.size() != len(self._rays_B):
+            raise ValueError(f"point_cloud has {cloud.size()} points; ray_directions_L has {len(self._rays_B)}")
+        p_WP, returned = returns_in_world(cloud, self._X_BL, X_WB,
+                                          lambda p_BP: self._costmap.inside_footprint(p_BP[:2].T))
         no_return_B = np.zeros((0, 3))
         if self._rays_B is not None and cloud.size() > 0:  # Empty: no data, handled by the caller.
-            if cloud.size() != len(self._rays_B):
-                raise ValueError(f"point_cloud has {cloud.size()} points; ray_directions_L has {len(self._rays_B)}")
             no_return_B = self._rays_B[~returned & np.isfinite(self._rays_B[:, 0])]
-        # Only the returns go on (an organized cloud is about half NaN); plain matrix products
-        # cost less than RigidTransform.multiply's shape-matching wrapper.
-        p_BP = self._X_BL.rotation().matrix() @ xyzs[:, returned] + self._X_BL.translation()[:, None]
-        p_BP = p_BP[:, ~self._costmap.inside_footprint(p_BP[:2].T)]
-        R_WB, p_WB = X_WB.rotation().matrix(), X_WB.translation()
-        p_WP = (R_WB @ p_BP).T + p_WB
-        return p_WP, X_WB.multiply(self._X_BL.translation()), no_return_B @ R_WB.T, int(returned.sum())
+        no_return_W = no_return_B @ X_WB.rotation().matrix().T
+        return p_WP, X_WB.multiply(self._X_BL.translation()), no_return_W, int(returned.sum())
 
     def _update(self, context, discrete_state) -> None:
         config, costmap, t = self._config, self._costmap, context.get_time()
@@ -324,7 +319,7 @@ class DwaController(LeafSystem):
         limits = [config.local_planner.max_vel_x, config.local_planner.max_vel_theta]
         discrete_state.set_value(self._command_index, np.clip(command, np.negative(limits), limits))
         discrete_state.set_value(self._layer_index, layer.reshape(-1))
-        discrete_state.set_value(self._costmap_index, np.concatenate([origin_m, master.reshape(-1)]))
+        discrete_state.set_value(self._costmap_index, costmap.pack(origin_m, master))
         discrete_state.set_value(self._path_index, self._pack_path(path))
         discrete_state.set_value(self._status_index, status)
 

@@ -23,7 +23,7 @@ class EdgeAngleDriverConfig:
             the approach zone; 90 drives head-on, perpendicular to the edge.
         climb_angle_deg: heading angle to the local edge going up a wall; on a
             steep wall the wheels slip sideways, so climbing needs a steeper
-            heading than descending to gain height (docs/physics.md). None: the
+            heading than descending to gain height (docs/concepts/physics.md). None: the
             same as `wall_angle_deg`.
         bottom_angle_deg: angle to the edge while crossing the interior of a wide bottom.
         approach_margin_m: how far before the hinge line the driver is already

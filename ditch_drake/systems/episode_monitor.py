@@ -28,11 +28,11 @@ class EpisodeConfig:
         goal_radius_m: success when the chassis origin is this close to the goal, in the plane.
             Larger than the tightest turn at full speed (v / w_max = 1.0 / 0.85 = 1.18 m):
             with 1.0 m, a policy that passed the goal a little off could only circle it
-            just outside the radius until the timeout (measured: docs/learning.md).
+            just outside the radius until the timeout (measured: docs/concepts/learning.md).
         time_limit_s: timeout.
         rollover_tilt_deg: rolled over when the chassis up-axis leans further than
             this from vertical. The static tip-over angles are about 60 deg
-            (docs/physics.md), and a 55 deg wall crossed at a shallow angle tilts
+            (docs/concepts/physics.md), and a 55 deg wall crossed at a shallow angle tilts
             the chassis by about 55 deg, so 75 deg means the robot is going over.
         stuck_window_s: stuck when the robot has not moved `stuck_distance_m`
             within this long.

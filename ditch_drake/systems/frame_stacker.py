@@ -18,7 +18,7 @@ class FrameStacker(LeafSystem):
     """Stacks the last `depth` control steps of the observation, newest first.
 
     Each stack is a discrete state vector of `depth` blocks of its input's size,
-    block 0 newest; all start as zeros (SPEC "State"). A periodic discrete update
+    block 0 newest; all start as zeros (docs/design.md, "The observation"). A periodic discrete update
     every `period_s` (at times t_k = k * period_s, k = 0, 1, ...) shifts every stack
     one block toward the old end, dropping the oldest, and writes the inputs into
     block 0. The same update is declared as a forced discrete update, so

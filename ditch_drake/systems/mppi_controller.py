@@ -9,6 +9,7 @@ from pydrake.perception import PointCloud
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ditch_drake.common.errors import ConfigError
+from ditch_drake.perception.lidar_points import returns_in_world, within_chassis_in_plan
 from ditch_drake.planning.elevation_map import ElevationGrid, ElevationMapConfig
 from ditch_drake.planning.mppi import MppiPlanner, MppiPlannerConfig
 from ditch_drake.spec import robot
@@ -84,7 +85,8 @@ class MppiController(LeafSystem):
         self._goal_xy = np.asarray(goal_xy, dtype=float)[:2]
         self._goal_tolerance_m = float(goal_tolerance_m)
         self._chassis_index = int(chassis_body_index)
-        self._R_BL, self._p_BL = X_BL.rotation().matrix(), X_BL.translation()
+        self._X_BL = X_BL
+        self._on_robot_B = within_chassis_in_plan(_SELF_MARGIN_M)
         self._cloud_port = self.DeclareAbstractInputPort("point_cloud", Value(PointCloud()))
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         self._command_index = self.DeclareDiscreteState(2)
@@ -113,8 +115,12 @@ class MppiController(LeafSystem):
 
     def unpack_map(self, value: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(origin xy (m), heights (ny, nx)) from an `elevation_map` output value."""
-        value = np.asarray(value)
-        return value[:2].copy(), value[2:].reshape(self._grid.shape).copy()
+        return self._grid.unpack(value)
+
+    def cloud_in_world(self, cloud: PointCloud, X_WB: RigidTransform) -> np.ndarray:
+        """The cloud's returns (N, 3) in W as this block fuses them: less those within the chassis
+        box in plan (the robot itself)."""
+        return returns_in_world(cloud, self._X_BL, X_WB, self._on_robot_B)[0]
 
     def planner_status(self, context) -> dict[str, int]:
         """Counters of this system's `context`: mode, updates, halts, no_data, goal_reached, fallbacks."""
@@ -126,19 +132,10 @@ class MppiController(LeafSystem):
     def _calc_map(self, context, output) -> None:
         status = context.get_discrete_state(self._status_index).get_value()
         origin_m = self._grid.origin_m(status[_WX:_WY + 1]) if status[_WINDOW_VALID] else np.zeros(2)
-        output.SetFromVector(np.concatenate([origin_m, context.get_discrete_state(self._map_index).get_value()]))
+        output.SetFromVector(self._grid.pack(origin_m, context.get_discrete_state(self._map_index).get_value()))
 
     def _calc_status(self, context, output) -> None:
         output.SetFromVector(context.get_discrete_state(self._status_index).get_value()[list(_STATUS_OUTPUT)])
-
-    def _cloud_in_world(self, cloud: PointCloud, X_WB: RigidTransform) -> np.ndarray:
-        """The cloud's returns (N, 3) in W, less those within the chassis box in plan."""
-        xyzs = cloud.xyzs() if cloud.size() else np.zeros((3, 0))
-        returned = np.isfinite(xyzs).all(axis=0)
-        p_BP = self._R_BL @ xyzs[:, returned] + self._p_BL[:, None]
-        half = robot.CHASSIS_SIZE_M[:2] / 2 + _SELF_MARGIN_M
-        p_BP = p_BP[:, (np.abs(p_BP[0]) > half[0]) | (np.abs(p_BP[1]) > half[1])]
-        return (X_WB.rotation().matrix() @ p_BP).T + X_WB.translation()
 
     def _update(self, context, discrete_state) -> None:
         grid = self._grid
@@ -151,7 +148,7 @@ class MppiController(LeafSystem):
         if status[_WINDOW_VALID]:
             heights = grid.roll(heights, status[_WX:_WY + 1].astype(int), origin)
         status[_WX:_WINDOW_VALID + 1] = [*origin, 1.0]
-        points_W = self._cloud_in_world(self._cloud_port.Eval(context), X_WB)
+        points_W = self.cloud_in_world(self._cloud_port.Eval(context), X_WB)
         if len(points_W):
             heights = grid.fuse(heights, origin, points_W)
         # The ground under the wheels, which the lidar never sees: the plane through the contacts.

@@ -11,7 +11,7 @@ def effective_track_m(w_radps: float) -> float:
 
     Skid-steering loses yaw rate to lateral wheel scrub, more at low rates, so the
     map widens the track by a factor interpolated in `robot.SKID_STEER_TRACK_FACTORS`
-    (measured on flat ground by `ditch-drake calibrate`, docs/physics.md).
+    (measured on flat ground by `ditch-drake calibrate`, docs/concepts/physics.md).
     """
     rates, factors = robot.SKID_STEER_TRACK_FACTORS
     return robot.TRACK_M * float(np.interp(abs(w_radps), rates, factors))

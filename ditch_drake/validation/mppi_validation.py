@@ -39,13 +39,11 @@ from ditch_drake.diagrams.rollout import AddController, ExpertConfig, RunEpisode
 from ditch_drake.planning.attitude import predict_attitude
 from ditch_drake.planning.elevation_map import ElevationGrid
 from ditch_drake.planning.mppi import MppiPlannerConfig
-from ditch_drake.spec import actions, robot
+from ditch_drake.spec import actions
 from ditch_drake.spec.planar import planar_yaw
 from ditch_drake.systems.mppi_controller import MppiController
 
 WALLED_ENVIRONMENTS = ("crater_walled", "wide_walled", "narrow_walled", "sine_walled")
-# Points within this of the chassis box in plan are the robot itself (as the block drops them).
-_SELF_MARGIN_M = 0.05
 
 
 @dataclass
@@ -74,15 +72,6 @@ class AttitudeTrace:
     def arrays(self) -> dict[str, np.ndarray]:
         return {name: np.asarray(getattr(self, name), dtype=float) for name in
                 ("time_s", "true_rpy", "controller", "controller_unknown", "lidar", "lidar_unknown")}
-
-
-def _cloud_in_world(xyzs: np.ndarray, X_BL, X_WB) -> np.ndarray:
-    """Returns (N, 3) in W of a cloud's xyzs (3, N) in L, less those on the robot (as the block)."""
-    returned = np.isfinite(xyzs).all(axis=0)
-    p_BP = X_BL.rotation().matrix() @ xyzs[:, returned] + X_BL.translation()[:, None]
-    half = robot.CHASSIS_SIZE_M[:2] / 2 + _SELF_MARGIN_M
-    p_BP = p_BP[:, (np.abs(p_BP[0]) > half[0]) | (np.abs(p_BP[1]) > half[1])]
-    return (X_WB.rotation().matrix() @ p_BP).T + X_WB.translation()
 
 
 def trace_expert_drive(environment: str, task: int, seed: int, end_time_s: float | None = None) -> AttitudeTrace:
@@ -120,7 +109,7 @@ def trace_expert_drive(environment: str, task: int, seed: int, end_time_s: float
         if lidar_map["origin"] is not None:
             lidar_map["heights"] = grid.roll(lidar_map["heights"], lidar_map["origin"], window)
         lidar_map["origin"] = window
-        points_W = _cloud_in_world(observer.GetInputPort("point_cloud").Eval(own).xyzs(), lidar.X_BL, X_WB)
+        points_W = observer.cloud_in_world(observer.GetInputPort("point_cloud").Eval(own), X_WB)
         if len(points_W):
             lidar_map["heights"] = grid.fuse(lidar_map["heights"], window, points_W)
         rpy = RollPitchYaw(X_WB.rotation())

@@ -1,4 +1,4 @@
-"""One parametric family of negative-obstacle terrain (SPEC "Terrain").
+"""One parametric family of negative-obstacle terrain (docs/design.md, "The ditches").
 
 A ditch is everything within some distance of a *course*: a polyline in the ground
 plane (a straight line, a sine, or a single point for a round crater). The terrain
@@ -12,7 +12,7 @@ The same description gives
 - collision and visual geometry: rotated `Box` pieces swept along the course
   segments and revolved around its bends and ends, a floor box, and flat-ground
   boxes. Boxes under point contact are exact and fast; a terrain `Mesh` would
-  collide as its convex hull (docs/physics.md), so a winding ditch's collision geometry
+  collide as its convex hull (docs/concepts/physics.md), so a winding ditch's collision geometry
   joins each section's wall, hinge and flat edge, whose solid is convex, into one
   `Convex` (`ConvexPiece`).
 
@@ -61,7 +61,7 @@ class TerrainParams:
             "point" (a round crater centred on the origin) or "arc" (a circular arc of
             radius arc_radius_m, its midpoint at the origin heading +x, bending toward +y).
             A sine's or an arc's tightest bend radius must be at least
-            `min_bend_radius_m` (docs/terrain_family.md).
+            `min_bend_radius_m` (docs/concepts/terrain_family.md).
         length_m: length of the course along x ("line" and "sine"), its arc length ("arc").
         sine_amplitude_m: A, for "sine".
         sine_wavelength_m: L_w, for "sine".
@@ -166,7 +166,7 @@ FLAT_REACH_M = math.sqrt(2.0) + 0.05
 def min_bend_radius_m(params: TerrainParams) -> float:
     """The tightest bend radius (m) of a "sine" or "arc" course for which the collision
     geometry (`DitchTerrain.box_pieces`) still matches the analytic `DitchTerrain.height`
-    (measured: `python -m ditch_drake.docs_tools.bend_limit`, docs/terrain_family.md).
+    (measured: `python -m ditch_drake.docs_tools.bend_limit`, docs/concepts/terrain_family.md).
 
     On a bend's inner side the pieces of one segment reach straight out from it; past the
     bend's centre of curvature they lie over ground nearer to another part of the course,
@@ -605,7 +605,7 @@ class DitchTerrain:
         Drake's collision filter keeps an entry for every pair of proximity geometries, twice
         in the geometry model and twice again in each Context, so a scene's memory and build
         time grow with the square of the number of pieces (`ditch_drake.perf.bench_scene`,
-        docs/benchmark.md). A convex section has the surface of its slabs' tops, and a sphere
+        docs/results/benchmark.md). A convex section has the surface of its slabs' tops, and a sphere
         touching it gets one contact point instead of one per slab it reaches. Straight ditches
         and craters, a few hundred pieces, keep the slabs. The visual geometry stays
         `box_pieces`, so the lidar sees the same terrain either way.

@@ -1,0 +1,250 @@
+"""Commands of data and training: collect, dataset-info, train, checkpoint-info, train-generalist."""
+
+import json
+import sys
+
+from ditch_drake.cli.options import (
+    Commands,
+    ConfigDefault,
+    add_env,
+    add_environments_file,
+    add_json,
+    add_out,
+    add_workers,
+    print_table,
+)
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.parallel import check_workers, interrupt_exit_code
+from ditch_drake.common.seeds import check_seed
+
+COLLECT = "ditch_drake.demos.collect:CollectConfig"
+TRAIN = "ditch_drake.learning.config:TrainConfig"
+GENERALIST = "ditch_drake.pipelines.generalist:GeneralistConfig"
+
+
+def add_collect(commands: Commands) -> None:
+    collect = commands.add("collect", "record expert demonstrations (resumable; Ctrl-C keeps what finished)")
+    add_env(collect, default=ConfigDefault(COLLECT, "environment"))
+    add_environments_file(collect)
+    collect.add_argument("--demos", type=int, default=ConfigDefault(COLLECT, "demos"),
+                         help="successful demonstrations, spread over the tasks")
+    collect.add_argument("--seed", type=int, default=ConfigDefault(COLLECT, "seed"),
+                         help="demonstration i's first attempt uses seed + i")
+    add_out(collect, "directory of demo_NNN.npz files")
+    add_workers(collect, "demonstrations", default=ConfigDefault(COLLECT, "workers"))
+    collect.add_argument("--learner", default=ConfigDefault(COLLECT, "learner"), metavar="CHECKPOINT",
+                         help="DAgger: this policy drives, the expert labels; every rollout is kept "
+                              "(--demos rollouts, one per seed)")
+    collect.add_argument("--labeller", choices=["latched", "replanning"], default="latched",
+                         help="with --learner: the expert keeps the plan it chose before the wall (latched) "
+                              "or decides it afresh from the current pose every step (replanning)")
+    collect.add_argument("--lead-in", action="store_true",
+                         help="the expert first makes room along the ditch when the crossing would not fit "
+                              "before the ditch's end (EdgeAngleDriverConfig.lead_in)")
+    collect.set_defaults(run=cmd_collect)
+
+
+def cmd_collect(args) -> int:
+    check_workers(args.workers, "--workers")
+    check_seed(args.seed, args.demos if args.demos > 0 else 1)
+    if args.learner is None and args.labeller != "latched":
+        raise ConfigError(f"--labeller {args.labeller}: a labeller needs --learner (a DAgger round)")
+    from dataclasses import replace
+
+    from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect
+
+    config = CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out, workers=args.workers,
+                           environments_file=args.environments or "")
+    config = replace(config, variation=replace(config.variation, lead_in=args.lead_in))
+    if args.learner is not None:
+        config = replace(config, learner=args.learner, variation=replace(
+            LABELLER_VARIATION, replan_each_step=args.labeller == "replanning", lead_in=args.lead_in))
+    report = collect(config)
+    print(json.dumps(report, indent=2))
+    if report["interrupted"]:
+        print(f"interrupted: {report['recorded']} demonstrations recorded by this run, "
+              f"{report['kept_before'] + report['recorded']} of {args.demos} in {args.out}; "
+              "run the same command again to continue", file=sys.stderr)
+        return report["exit_code"]
+    return 0 if not report["unfilled_slots"] else 1
+
+
+def add_dataset_info(commands: Commands) -> None:
+    info = commands.add("dataset-info", "counts per label and task, class imbalance")
+    info.add_argument("path", help="a directory of demonstrations")
+    add_json(info)
+    info.set_defaults(run=cmd_dataset_info)
+
+
+def cmd_dataset_info(args) -> int:
+    from ditch_drake.demos.dataset import dataset_summary, load_dataset
+    from ditch_drake.spec.actions import ANGULAR_RATES_RADPS
+
+    summary = dataset_summary(load_dataset(args.path))
+    if args.json:
+        print(json.dumps(summary))
+        return 0
+    print(f"{args.path}: {summary['demonstrations']} demonstrations, {summary['steps']} steps")
+    print("per task: " + ", ".join(f"{name} {count}" for name, count in summary["per_task"].items()))
+    print("outcomes: " + ", ".join(f"{name} {count}" for name, count in sorted(summary["per_outcome"].items())))
+    print("driven by: " + ", ".join(f"{name} {count}" for name, count in summary["per_driver"].items()))
+    rows = [{"label": label, "w_radps": f"{rate:+.2f}", "steps": count,
+             "share": f"{count / max(1, summary['steps']):.1%}"}
+            for label, (rate, count) in enumerate(zip(ANGULAR_RATES_RADPS, summary["per_label"]))]
+    print_table(rows, ["label", "w_radps", "steps", "share"])
+    print(f"straight (label 8) share {summary['straight_fraction']:.1%}; "
+          f"majority/minority ratio {summary['majority_to_minority_ratio']:.1f}")
+    return 0
+
+
+def add_checkpoint_info(commands: Commands) -> None:
+    info = commands.add("checkpoint-info", "training data and validation metrics of checkpoints")
+    info.add_argument("checkpoints", nargs="+", help="shipped model names or .pt files")
+    info.add_argument("--confusion", action="store_true", help="also the validation confusion matrices")
+    info.set_defaults(run=cmd_checkpoint_info)
+
+
+def cmd_checkpoint_info(args) -> int:
+    """What each checkpoint was trained on and how it validated."""
+    from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
+
+    checkpoints = {name: load_checkpoint(resolve_checkpoint_path(name), allow_untrained=True)
+                   for name in args.checkpoints}
+    rows = [{"checkpoint": name, **checkpoint.summary()} for name, checkpoint in checkpoints.items()]
+    print_table(rows, list(rows[0]))
+    if args.confusion:
+        for name, checkpoint in checkpoints.items():
+            matrix = checkpoint.metrics.get("val_confusion_matrix") or []
+            print(f"\n{name}: validation confusion matrix (row: demonstrated label, column: predicted)")
+            print_table([{"label": str(label), **{str(j): str(v) for j, v in enumerate(row)}}
+                         for label, row in enumerate(matrix)], ["label", *map(str, range(len(matrix)))])
+    return 0
+
+
+def add_train(commands: Commands) -> None:
+    training = commands.add("train", "behavioural cloning from demonstrations (Ctrl-C keeps the best finished epoch)")
+    training.add_argument("--data", action="append", required=True, metavar="DIR",
+                          help="demonstration directory (repeat for an amalgam of environments)")
+    add_out(training, "checkpoint path (.pt)")
+    training.add_argument("--seed", type=int, default=ConfigDefault(TRAIN, "seed"),
+                          help="seeds the split, SMOTE, initialization, shuffling and dropout")
+    training.add_argument("--max-demos", type=int, default=None,
+                          help="use the first N demonstrations of each directory (default None: all)")
+    training.add_argument("--epochs", type=int, default=ConfigDefault(TRAIN, "epochs"), help="most epochs to run")
+    training.add_argument("--patience", type=int, default=ConfigDefault(TRAIN, "patience"),
+                          help="epochs without a better validation accuracy before stopping")
+    training.add_argument("--batch-size", type=int, default=ConfigDefault(TRAIN, "batch_size"),
+                          help="samples per optimizer step")
+    training.add_argument("--batches-per-epoch", type=int, default=ConfigDefault(TRAIN, "max_batches_per_epoch"),
+                          help="batches drawn (without replacement) from the shuffled training set per epoch")
+    training.add_argument("--synthetic-fraction", type=float,
+                          default=ConfigDefault(TRAIN, "smote.max_synthetic_fraction"),
+                          help="at most this many SMOTE samples per real training sample")
+    training.add_argument("--threads", type=int, default=ConfigDefault(TRAIN, "num_threads"),
+                          help="torch threads (default %(default)s: all cores)")
+    # "auto" is the command line's own choice; TrainConfig takes the device and precision it picks.
+    training.add_argument("--device", choices=["auto", "cpu", "cuda"], default="auto",
+                          help="auto: CUDA when torch sees a GPU, else the CPU (a CUDA run is not bitwise "
+                               "reproducible on the CPU)")
+    training.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto",
+                          help="bf16: training steps under bfloat16 autocast; auto: bf16 on a CPU with native "
+                               "bf16 (AVX512-BF16 or AMX), else fp32")
+    training.add_argument("--resume", action="store_true",
+                          help="continue an interrupted run from its .resume file beside --out")
+    training.set_defaults(run=cmd_train)
+
+
+def cmd_train(args) -> int:
+    from dataclasses import replace
+
+    from ditch_drake.learning.config import TrainConfig
+
+    # Every setting is checked here, before minutes of loading: a bad value fails at once.
+    config = TrainConfig.from_options(
+        epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
+        max_batches_per_epoch=args.batches_per_epoch, synthetic_fraction=args.synthetic_fraction,
+        num_threads=args.threads)
+    if args.max_demos is not None and args.max_demos < 1:
+        raise ConfigError(f"--max-demos {args.max_demos}: expected >= 1 demonstrations per directory")
+    from ditch_drake.demos.dataset import load_dataset, to_array_set
+    from ditch_drake.learning.train import train
+    from ditch_drake.pipelines.stages import training_device, training_precision
+
+    device = training_device(args.device)
+    precision = training_precision(device, args.precision)
+    config = replace(config, device=device, precision=precision)
+    demonstrations = []
+    for directory in args.data:  # Several directories train the amalgam model.
+        demonstrations += load_dataset(directory, max_demos=args.max_demos)
+    result = train(to_array_set(demonstrations), config, output_path=args.out, resume=args.resume)
+    best = next((record for record in result.history if record["epoch"] == result.best_epoch), {})
+    print(json.dumps({"out": str(result.output_path) if result.output_path else None,
+                      "resume_file": str(result.resume_file) if result.resume_file else None,
+                      "best_epoch": result.best_epoch, "stopped_early": result.stopped_early,
+                      "interrupted": result.interrupted, "best": best}, default=float))
+    if result.interrupted:
+        print("interrupted: " + (f"the best finished epoch is in {result.output_path}" if result.output_path
+                                 else "no epoch had finished, so no checkpoint was written")
+              + (f"; --resume continues from {result.resume_file}" if result.resume_file else ""), file=sys.stderr)
+        return result.exit_code
+    return 0
+
+
+def add_train_generalist(commands: Commands) -> None:
+    generalist = commands.add("train-generalist", "the generalist policy: expert demonstrations and DAgger over the "
+                                                  "train split's ditches, the best round on the val split (resumable)")
+    add_out(generalist, "the chosen checkpoint (default: <work dir>/generalist.pt)",
+            default=ConfigDefault(GENERALIST, "out"))
+    generalist.add_argument("--work-dir", default=ConfigDefault(GENERALIST, "work_dir"),
+                            help="demonstrations, each round's checkpoint and the val results")
+    generalist.add_argument("--train-geometries", type=int, default=ConfigDefault(GENERALIST, "train_geometries"),
+                            help="the train split's first N ditches")
+    generalist.add_argument("--demos-per-task", type=int, default=ConfigDefault(GENERALIST, "demos_per_task"),
+                            help="expert demonstrations per task")
+    generalist.add_argument("--dagger-rounds", type=int, default=ConfigDefault(GENERALIST, "dagger_rounds"),
+                            help="DAgger rounds after the first clone")
+    generalist.add_argument("--val-geometries", type=int, default=ConfigDefault(GENERALIST, "val_geometries"),
+                            help="the val split's first N ditches")
+    generalist.add_argument("--dagger-stride", type=int, default=ConfigDefault(GENERALIST, "dagger_stride"),
+                            help="train on every k-th control step of the DAgger rollouts (memory)")
+    generalist.add_argument("--epochs", type=int, default=ConfigDefault(GENERALIST, "epochs"),
+                            help="most epochs per training")
+    generalist.add_argument("--mirror", action="store_true",
+                            help="also train on the left-right reflection of each rollout whose crossing turns "
+                                 "clearly to one side (ditch_drake/pipelines/generalist.py)")
+    generalist.add_argument("--canonical-side", action="store_true",
+                            help="reflect every step that crosses turned left along the edge, and tell the clone "
+                                 "the side to cross on from a map of the ditch (systems/crossing_side.py)")
+    generalist.add_argument("--seed", type=int, default=ConfigDefault(GENERALIST, "seed"),
+                            help="seeds demonstrations, training and val rollouts")
+    generalist.add_argument("--ranges", default=ConfigDefault(GENERALIST, "ranges"),
+                            help="the val split's ranges YAML file (default: the benchmark's)")
+    generalist.add_argument("--train-ranges", default=ConfigDefault(GENERALIST, "train_ranges"),
+                            help="the train ditches' ranges YAML file (default: the packaged "
+                                 "generalist_train_ranges.yaml)")
+    add_workers(generalist, "demonstrations and val rollouts", default=ConfigDefault(GENERALIST, "workers"))
+    generalist.set_defaults(run=cmd_train_generalist)
+
+
+def cmd_train_generalist(args) -> int:
+    """The generalist: demonstrations and DAgger over the train split, the best round on val."""
+    check_workers(args.workers, "--workers")
+    check_seed(args.seed)
+    from ditch_drake.benchmark.splits import split_seeds
+    from ditch_drake.pipelines.generalist import GeneralistConfig, train_generalist
+
+    split_seeds("train", args.train_geometries)
+    split_seeds("val", args.val_geometries)
+    config = GeneralistConfig(out=args.out, work_dir=args.work_dir, train_geometries=args.train_geometries,
+                              demos_per_task=args.demos_per_task, dagger_rounds=args.dagger_rounds,
+                              val_geometries=args.val_geometries, dagger_stride=args.dagger_stride,
+                              epochs=args.epochs, seed=args.seed, mirror=args.mirror,
+                              canonical_side=args.canonical_side, workers=args.workers,
+                              ranges=args.ranges or "", train_ranges=args.train_ranges or "")
+    try:
+        summary = train_generalist(config)
+    except KeyboardInterrupt as error:
+        print("interrupted; finished stages are kept, run the same command again to continue", file=sys.stderr)
+        return interrupt_exit_code(error)
+    print(json.dumps(summary))
+    return 0

@@ -1,0 +1,122 @@
+"""What a results page summarises: the current records of each results file, grouped by study,
+with their summaries and tables (`load_report_data`).
+
+A study is recognized from a results file's name (`scalability.jsonl`, ...); any other file is
+a study of its own, under its name. Only the current records count (`results.current_records`):
+one per rollout key (a real outcome beats an error record), and per learned checkpoint name only
+the records of the file as it is now where it still resolves. What was set aside is a note.
+"""
+
+import os
+from collections import defaultdict
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ditch_drake.evaluation.model_labels import controller_labels
+from ditch_drake.evaluation.results import RolloutRecord, current_records, read_records
+from ditch_drake.evaluation.statistics import percent
+from ditch_drake.evaluation.summary import GroupSummary, summarize
+
+# The paper's studies, in its order: the results files of these names are read as theirs.
+STUDIES = ("scalability", "generalization", "baseline", "amalgam", "must_cross")
+
+
+@dataclass
+class ReportData:
+    """What a results page summarises.
+
+    Attributes:
+        records: the current records of each study (results file name), in file order.
+        notes: what was set aside or could not be read, one sentence each.
+        summaries: per study, a `GroupSummary` per (model, environment).
+        tables: per study, its Markdown table's lines.
+    """
+
+    records: dict[str, list[RolloutRecord]]
+    notes: list[str] = field(default_factory=list)
+    summaries: dict[str, dict[tuple[str, str], GroupSummary]] = field(default_factory=dict)
+    tables: dict[str, list[str]] = field(default_factory=dict)
+
+    @property
+    def studies(self) -> list[str]:
+        """The paper's studies present, in the paper's order, then the other files' names."""
+        return [*(study for study in STUDIES if study in self.records), *sorted(set(self.records) - set(STUDIES))]
+
+    def markdown_tables(self) -> str:
+        """Every study's table under its name (what `ditch-drake report` prints)."""
+        return "\n".join(f"## {study}\n\n" + "\n".join(self.tables[study]) + "\n" for study in self.studies)
+
+
+def load_by_study(results: list[str | os.PathLike]) -> dict[str, list[RolloutRecord]]:
+    """Records per results file name (a study's, or any other), from files or folders of them."""
+    return _read_by_study(results, [])
+
+
+def _read_by_study(results: list[str | os.PathLike], notes: list[str]) -> dict[str, list[RolloutRecord]]:
+    by_study: dict[str, list[RolloutRecord]] = defaultdict(list)
+    for entry in results:
+        entry = Path(entry)
+        for file in sorted(entry.glob("*.jsonl")) if entry.is_dir() else [entry]:
+            records, warnings = read_records(file)
+            by_study[file.stem] += records
+            notes += warnings
+    return dict(by_study)
+
+
+def checkpoint_digests(records: list[RolloutRecord]) -> dict[str, str]:
+    """The digest of each learned checkpoint name in `records` whose file resolves now (by
+    `learning.checkpoint.checkpoint_digest`; a name that resolves to no file is left out)."""
+    from ditch_drake.learning.checkpoint import checkpoint_digest
+
+    digests = {}
+    for name in sorted({record.checkpoint for record in records if record.checkpoint}):
+        try:
+            digests[name] = checkpoint_digest(name)
+        except OSError:
+            pass
+    return digests
+
+
+def load_report_data(results: list[str | os.PathLike]) -> ReportData:
+    """The current records of every results file or folder, their notes, summaries and tables.
+
+    Raises:
+        ResultsError: a line that is not a record (from `read_records`).
+    """
+    notes: list[str] = []
+    by_study = _read_by_study(results, notes)
+    digests = checkpoint_digests([record for records in by_study.values() for record in records])
+    data = ReportData(records={}, notes=notes)
+    for study, records in by_study.items():
+        kept, set_aside = current_records(records, digests)
+        data.records[study] = kept
+        data.notes += [f"{study}: {note}" for note in set_aside]
+        repeated = len(records) - len({record.key for record in records})
+        if repeated:
+            data.notes.append(f"{study}: {repeated} records of rollouts recorded more than once left out (an error "
+                              "record is superseded by an outcome of the same rollout): each rollout counts once")
+    for study in data.studies:
+        data.tables[study], data.summaries[study] = study_table(data.records[study])
+    return data
+
+
+def study_table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str, str], GroupSummary]]:
+    """A study's Markdown table (one row per model and environment: successes, Wilson interval,
+    failures by status and region, halts by region, errors) and the summaries behind it."""
+    groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
+    name_of = controller_labels(records)
+    for record in records:
+        groups[(name_of(record), record.environment)].append(record)
+    summaries = {key: summarize(group) for key, group in sorted(groups.items())}
+    lines = [("| model | environment | success | rate | 95 % Wilson | of which around the ditch | "
+              "failures (status@region) | halts (region) | errors |"),
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for (model, env), s in summaries.items():
+        failures = ", ".join(f"{k} {v}" for k, v in sorted(s.failure_regions.items())) or "-"
+        # The regions a crossing meets, in order; "-": records from before halts were counted.
+        halts = ", ".join(f"{k} {v}" for k, v in s.halts_by_region.items() if v) or ("0" if s.halts_counted else "-")
+        if 0 < s.halts_counted < s.trials:
+            halts += f" (in {s.halts_counted} of {s.trials} trials)"
+        lines.append(f"| {model} | {env} | {s.successes}/{s.trials} | {percent(s.rate)} | "
+                     f"{percent(s.low)}-{percent(s.high)} | {s.around} | {failures} | {halts} | {s.errors} |")
+    return lines, summaries
