@@ -1395,3 +1395,12 @@ def test_a_scene_drawn_in_meshcat_prints_no_lcm_warning():
                             timeout=300)
     assert result.returncode == 0, result.stderr
     assert "LCM Warning" not in result.stderr and "UDP" not in result.stderr, result.stderr
+
+
+@pytest.mark.parametrize("command", ["report", "benchmark-report"])
+def test_a_results_file_that_is_not_utf8_is_named(command, tmp_path, capsys):
+    results = tmp_path / "bad.jsonl"
+    results.write_bytes(b'\xff\xfe{"a": 1}\n')
+    assert main([command, str(results), "--out", str(tmp_path / "page.md")]) == 2
+    assert f"{results}: byte 0 is not UTF-8" in capsys.readouterr().err
+    assert results.read_bytes() == b'\xff\xfe{"a": 1}\n' and not (tmp_path / "page.md").exists()

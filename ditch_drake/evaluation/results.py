@@ -183,7 +183,10 @@ def read_records(path: str | os.PathLike) -> tuple[list[RolloutRecord], list[str
     path = Path(path)
     if not path.exists():
         return [], []
-    text = path.read_text()
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise ResultsError(f"{path}: byte {error.start} is not UTF-8; expected a results file of JSON lines") from error
     lines = text.split("\n")
     warnings = []
     if lines and lines[-1] != "":
