@@ -60,7 +60,7 @@ def cluster_endpoint(address: str | None) -> tuple[str, int] | None:
     if address == "auto":
         found = os.environ.get("RAY_ADDRESS", "")
         return cluster_endpoint(found) if found not in ("", "auto", "local") else None
-    expected = ("expected host:port of a running Ray cluster (e.g. 10.0.0.5:6379), ray://host:port, 'auto' "
+    expected = ("expected host:port of a running Ray cluster (e.g. head-node:6379), ray://host:port, 'auto' "
                 "(RAY_ADDRESS or the cluster running here) or 'local' (start Ray here)")
     text = str(address).strip()
     client = text.startswith("ray://")
