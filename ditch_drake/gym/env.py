@@ -13,10 +13,7 @@ command, while the environment's label is set before the plant's step.)
 """
 
 import dataclasses
-import functools
-import gc
 import math
-import weakref
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,7 +23,6 @@ from gymnasium import spaces
 from pydrake.geometry import Meshcat
 from pydrake.gym import DrakeGymEnv
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
-from pydrake.systems.framework import DiagramBuilder, LeafSystem
 
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.seeds import SEED_LIMIT, check_seed
@@ -52,27 +48,10 @@ TIME_LIMIT_STATUS = "timeout"
 # a Python LeafSystem (a reference cycle through C++ that the garbage collector cannot see;
 # drake#22515), about 30 MB each, so an environment that built its own at every `make` grew the
 # process by that much per make/close. Nothing is evicted: an evicted diagram would not be freed either.
-# Drakes whose bindings free such diagrams (1.58 does) keep no pool (`_drake_frees_python_systems`).
+# Drake 1.58 frees a one-system diagram of a Python LeafSystem, but this environment's diagram
+# still grew the process by 32 MB per make/close there: the pool stays on every version.
 _IDLE_DIAGRAMS: dict[str, list[tuple]] = {}
 
-
-@functools.cache
-def _drake_frees_python_systems() -> bool:
-    """Whether this Drake frees a diagram holding a Python LeafSystem once nothing refers to it:
-    measured once on a one-system diagram, since the fix came with a change of binding library."""
-
-    class Probe(LeafSystem):  # Defined in Python: what the bindings failed to free.
-        def __init__(self):
-            super().__init__()
-            self.DeclareVectorOutputPort("y", 1, lambda context, output: output.SetFromVector([0.0]))
-
-    builder = DiagramBuilder()
-    builder.AddSystem(Probe())
-    diagram = builder.Build()
-    freed = weakref.ref(diagram)
-    del builder, diagram
-    gc.collect()
-    return freed() is None
 
 
 class DitchDrakeEnvError(gym.error.Error, ConfigError):
@@ -202,7 +181,7 @@ class DitchDrakeEnv(DrakeGymEnv):
             meshcat = Meshcat()
         self.meshcat = meshcat
         # A diagram drawing in a Meshcat is that Meshcat's: only those without one are shared.
-        self._diagram_key = repr(self.scenario) if meshcat is None and not _drake_frees_python_systems() else None
+        self._diagram_key = repr(self.scenario) if meshcat is None else None
         idle = _IDLE_DIAGRAMS.get(self._diagram_key, [])
         self.diagram, self.scene = idle.pop() if idle else MakeExternalAgentDiagram(self.scenario, meshcat)
         simulator = Simulator(self.diagram)
