@@ -6,13 +6,14 @@ import json
 import numpy as np
 import pytest
 
-from ditch_drake.benchmark.generator import MAX_DRAWS, sample_ditch
-from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges
-from ditch_drake.benchmark.run import replay_command
+from ditch_drake.benchmark.generator import CRATER_MAX_CROSSING_DEG, MAX_DRAWS, sample_ditch
+from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges, packaged_ranges_path
+from ditch_drake.benchmark.run import BenchmarkConfig, benchmark_specs, replay_command
 from ditch_drake.benchmark.splits import (
     SEED_SPLITS,
     ditches_file,
     split_of_environment,
+    split_ranges,
     split_seeds,
     write_ditches,
 )
@@ -23,7 +24,7 @@ from ditch_drake.evaluation.results import read_records
 from ditch_drake.world.bypass import check_no_bypass, rasterize_field
 from ditch_drake.world.crossing import crossing_turn_deg
 from ditch_drake.world.environments import crosses_ditch, get_environment, load_environments, validate_environment
-from ditch_drake.world.terrain import DitchTerrain
+from ditch_drake.world.terrain import DitchTerrain, min_bend_radius_m
 
 
 def test_the_same_seed_always_gives_the_same_ditch():
@@ -37,12 +38,13 @@ def test_the_same_seed_always_gives_the_same_ditch():
 def test_the_splits_are_disjoint_and_a_seed_names_its_split():
     seeds = {name: set(values) for name, values in SEED_SPLITS.items()}
     assert seeds["train"] == set(range(200)) and seeds["val"] == set(range(1000, 1050))
-    assert seeds["test"] == set(range(2000, 2100))
+    assert seeds["test"] == set(range(2000, 2100)) and seeds["stress"] == set(range(3000, 3100))
     for a, values_a in seeds.items():
         for b, values_b in seeds.items():
             assert a == b or not values_a & values_b
     assert split_of_environment("ditch_0012") == "train" and split_of_environment("ditch_2099") == "test"
     assert split_of_environment("sine") == "paper" and split_of_environment("ditch_0500") == ""
+    assert split_of_environment("ditch_3042") == "stress" and split_seeds("stress", 2) == [3000, 3001]
     assert split_seeds("val", 3) == [1000, 1001, 1002]
     with pytest.raises(ConfigError, match="expected one of"):
         split_seeds("holdout")
@@ -106,7 +108,7 @@ def test_bad_ranges_name_the_key_and_the_allowed_values(field, value, message):
 def test_the_cli_refuses_a_bad_split_or_ranges_file_with_exit_2(tmp_path, capsys):
     out = str(tmp_path / "b.jsonl")
     assert main(["benchmark", "--split", "holdout", "--out", out]) == 2
-    assert "unknown split 'holdout': expected one of ['train', 'val', 'test', 'paper']" in capsys.readouterr().err
+    assert "unknown split 'holdout': expected one of ['train', 'val', 'test', 'stress', 'paper']" in capsys.readouterr().err
     ranges = tmp_path / "ranges.yaml"
     ranges.write_text("slope_deg: [50.0, 40.0]\n")
     assert main(["benchmark", "--split", "val", "--ranges", str(ranges), "--out", out]) == 2
@@ -140,6 +142,129 @@ def test_the_packaged_ranges_file_is_the_default():
     assert load_ranges() == BenchmarkRanges()
 
 
+STRESS_RANGES = packaged_ranges_path("stress_ranges.yaml")
+
+
+def test_the_stress_split_draws_beyond_the_train_ranges_from_its_own_file(tmp_path):
+    stress, train = split_ranges("stress"), BenchmarkRanges()
+    assert stress == load_ranges(STRESS_RANGES)
+    assert split_ranges("test") == split_ranges("val") == split_ranges("train") == train
+    assert stress.slope_deg[0] >= train.slope_deg[1] and stress.depth_m[0] >= train.depth_m[1]
+    assert stress.bottom_width_m[1] <= train.bottom_width_m[0] and stress.arc_radius_m[1] <= train.arc_radius_m[0]
+    assert stress.crossing_angle_deg[0] >= train.crossing_angle_deg[1]
+    assert stress.course_kinds == train.course_kinds
+    # Arcs down to the family's bend limit of the widest stress ditch.
+    assert 0.0 <= stress.arc_radius_m[0] - stress.widest_arc_bend_limit_m() < 0.1
+    # A ranges file named for the run overrides the split's.
+    other = tmp_path / "ranges.yaml"
+    other.write_text("slope_deg: [40.0, 45.0]\n")
+    assert split_ranges("stress", other) == BenchmarkRanges(slope_deg=[40.0, 45.0])
+
+
+def _check_stress_ditches(seeds) -> list:
+    """Samples the stress ditches of `seeds` (`sample_ditch` validates each draw as the packaged
+    walled environments are: the family's limits, the clearances and the bypass proof), checks
+    that they lie in the stress ranges and that every task's line crosses its ditch, turned by
+    the drawn angle; returns their terrains."""
+    ranges = split_ranges("stress")
+    terrains = []
+    for seed in seeds:
+        ditch = sample_ditch(seed, ranges)
+        environment, params = ditch.environment, ditch.environment.terrain
+        terrain = DitchTerrain(params)
+        terrains.append(params)
+        assert ranges.slope_deg[0] <= params.slope_deg <= ranges.slope_deg[1]
+        assert ranges.depth_m[0] <= params.depth_m <= ranges.depth_m[1]
+        if params.course == "arc":
+            assert params.arc_radius_m >= min_bend_radius_m(params)
+            assert params.length_m / params.arc_radius_m <= np.radians(ranges.arc_max_sweep_deg)
+        for index, task in enumerate(environment.tasks):
+            assert crosses_ditch(terrain, task.start[:2], task.goal), (ditch.name, task.name)
+            turn = abs(crossing_turn_deg(environment, index))
+            if params.course == "point":
+                assert turn <= CRATER_MAX_CROSSING_DEG + 0.01
+            else:
+                assert ranges.crossing_angle_deg[0] - 0.5 <= turn <= ranges.crossing_angle_deg[1] + 0.5, ditch.name
+    return terrains
+
+
+def test_stress_ditches_build_and_every_task_crosses_its_ditch():
+    """The first 12 seeds and the tightest arc (all 100: the slow test below)."""
+    terrains = _check_stress_ditches([*range(3000, 3012), 3040])
+    assert {params.course for params in terrains} == {"line", "sine", "arc", "point"}
+    assert terrains[-1].course == "arc" and terrains[-1].arc_radius_m < split_ranges("stress").arc_radius_m[0] + 0.2
+
+
+@pytest.mark.slow
+def test_every_stress_ditch_builds_and_every_task_crosses_its_ditch():
+    terrains = _check_stress_ditches(split_seeds("stress"))  # about 15 s
+    assert sum(params.course == "arc" for params in terrains) >= 10
+
+
+def test_a_stress_ditch_builds_in_a_plant():
+    ranges = split_ranges("stress")
+    for seed in (3040, 3001):  # the tightest arc (6.82 m, its bend limit 5.75 m) and a sine
+        ditch = sample_ditch(seed, ranges)
+        MakeDitchDiagram(SceneConfig(environment=ditch.name, environments={ditch.name: ditch.environment}))
+
+
+def test_a_benchmark_run_writes_the_ditches_of_its_splits_ranges_or_of_the_ranges_it_names(tmp_path):
+    out = tmp_path / "stress.jsonl"
+    specs = benchmark_specs(BenchmarkConfig(split="stress", controller="head_on", geometries=2, out=str(out)),
+                            progress=False)
+    assert sorted({spec.environment for spec in specs}) == ["ditch_3000", "ditch_3001"] and len(specs) == 6
+    stress = split_ranges("stress")
+    write_ditches(ditches_file(out), [sample_ditch(3000, stress)])  # the same ditch: accepted
+    with pytest.raises(ConfigError, match="holds a different ditch_3000"):
+        write_ditches(ditches_file(out), [sample_ditch(3000, BenchmarkRanges())])
+    named = tmp_path / "named.jsonl"
+    benchmark_specs(BenchmarkConfig(split="stress", controller="head_on", geometries=1, out=str(named),
+                                    ranges=str(packaged_ranges_path())), progress=False)
+    write_ditches(ditches_file(named), [sample_ditch(3000, BenchmarkRanges())])
+    assert load_environments(ditches_file(named))["ditch_3000"].terrain.slope_deg <= BenchmarkRanges().slope_deg[1]
+
+
+@pytest.mark.parametrize("changes, message", [
+    ({"arc_radius_m": [10.0, 30.0]}, r"arc_radius_m=\[10.0, 30.0\] bends tighter .* at least 10.31 m"),
+    ({"arc_max_sweep_deg": 200.0}, r"arc_max_sweep_deg=200.0 is out of bounds"),
+])
+def test_ranges_beyond_the_familys_bend_limit_are_refused(changes, message):
+    with pytest.raises(ConfigError, match=message):
+        BenchmarkRanges(**changes).validate()
+    # Arcs that are not drawn need no radius the family builds.
+    BenchmarkRanges(course_kinds=["line", "point"], arc_radius_m=[10.0, 30.0]).validate()
+
+
+@pytest.mark.parametrize("change, message", [
+    ("arc_radius_m: [6.0, 12.0]", ("arc_radius_m=[6.0, 12.0] bends tighter than the terrain family builds: "
+                                   "expected a low end of at least 6.66 m")),
+    ("depth_m: [5.0, 7.0]", "depth_m=[5.0, 7.0] is out of bounds: expected [low, high] with 1 <= low <= high <= 6"),
+])
+def test_a_stress_ranges_file_out_of_the_familys_limits_exits_2_naming_the_key(tmp_path, capsys, change, message):
+    key = change.partition(":")[0]
+    lines = [change if line.startswith(key + ":") else line for line in STRESS_RANGES.read_text().splitlines()]
+    bad = tmp_path / "stress_ranges.yaml"
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ConfigError, match=key):
+        load_ranges(bad)
+    out = tmp_path / "stress.jsonl"
+    assert main(["benchmark", "--split", "stress", "--ranges", str(bad), "--geometries", "1", "--out", str(out)]) == 2
+    assert message in capsys.readouterr().err
+    assert not out.exists() and not ditches_file(out).exists()
+
+
+@pytest.mark.slow
+def test_the_expert_on_the_first_stress_ditch_records_its_three_tasks(tmp_path, capsys):
+    """The issue's bar: `benchmark --split stress --controller expert --geometries 1 --rollouts 1`."""
+    out = tmp_path / "stress_expert.jsonl"
+    assert main(["benchmark", "--split", "stress", "--controller", "expert", "--geometries", "1", "--rollouts", "1",
+                 "--workers", "0", "--out", str(out)]) == 0
+    assert json.loads(capsys.readouterr().out.strip().splitlines()[-1])["recorded"] == 3
+    records = [json.loads(line) for line in out.read_text().splitlines()]
+    assert sorted((r["environment"], r["task"]) for r in records) == [("ditch_3000", task) for task in range(3)]
+    assert load_environments(ditches_file(out))["ditch_3000"] == sample_ditch(3000, split_ranges("stress")).environment
+
+
 def test_a_benchmark_run_records_every_task_of_every_ditch_and_its_report_names_the_failures(tmp_path, capsys):
     """The bar's command on the val split, in-process (the test split is for reports only)."""
     out = tmp_path / "val_expert.jsonl"
@@ -154,10 +279,11 @@ def test_a_benchmark_run_records_every_task_of_every_ditch_and_its_report_names_
     page = tmp_path / "report.md"
     assert main(["benchmark-report", str(out), "--out", str(page)]) == 0
     text = page.read_text()
-    assert "| expert | " in text and "## Failed generated ditches" in text
+    assert "| expert (privileged: analytic terrain) | " in text and "## Failed generated ditches" in text
     assert (tmp_path / "report_img" / "benchmark_success_by_parameter.png").exists()
     assert "| wall slope (deg) | 45-50 | 50-55 | 55-57 | 57-60 |" in text  # the figure's numbers
-    assert "| crossing's turn from square (deg; + left) | -35 to -15 | -15 to -5 | -5 to 5 | 5 to 15 | 15 to 35 |" in text
+    assert ("| crossing's turn from square (deg; + left) | -45 to -35 | -35 to -15 | -15 to -5 | -5 to 5 | 5 to 15 | "
+            "15 to 35 | 35 to 45 |") in text
     # Results of ditches drawn from other ranges under the same names are not pooled.
     other = tmp_path / "other.jsonl"
     other.write_text(out.read_text())
@@ -241,7 +367,8 @@ def test_the_paper_split_runs_the_four_packaged_ditches_and_its_report_has_a_col
     assert main(["benchmark-report", str(out), "--out", str(page)]) == 0
     text = page.read_text()
     assert "| controller | crater | narrow | sine | wide |" in text
-    assert "| head_on | 0/3 (0%-56%) | 0/3 (0%-56%) | 0/3 (0%-56%) | 0/3 (0%-56%) |" in text
+    assert ("| head_on (privileged: analytic terrain) | 0/3 (0%-56%) | 0/3 (0%-56%) | 0/3 (0%-56%) | 0/3 (0%-56%) |"
+            in text)
 
 
 @pytest.mark.parametrize("option, value", [("--dagger-stride", "0"), ("--dagger-rounds", "-1"),

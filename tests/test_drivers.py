@@ -151,19 +151,19 @@ def test_with_lead_in_the_straight_across_crossing_stays_out_of_the_ditch_end():
     assert farthest_east[True] < 12.0
 
 
-def test_crossing_side_follows_the_goal_until_the_approach_zone_and_holds_its_side_there():
+def test_oracle_crossing_side_follows_the_goal_until_the_approach_zone_and_holds_its_side_there():
     import numpy as np
     from pydrake.math import RigidTransform
     from pydrake.systems.analysis import Simulator
 
-    from ditch_drake.systems.crossing_side import CrossingSide
+    from ditch_drake.systems.oracle_crossing_side import OracleCrossingSide
     from ditch_drake.world.crossing import crossing_sides
     from ditch_drake.world.environments import get_environment
     from ditch_drake.world.terrain import DitchTerrain
 
     terrain = DitchTerrain(get_environment("wide").terrain)
     goal = np.array([-8.0, 11.0])
-    side = CrossingSide(terrain, goal, chassis_body_index=0)
+    side = OracleCrossingSide(terrain, goal, chassis_body_index=0)
     simulator = Simulator(side)
     context = simulator.get_mutable_context()
     path = [[0.0, -11.0], [0.0, -8.0], [-12.0, -8.0]]  # As in tests/test_terrain.py.
@@ -181,7 +181,8 @@ def test_crossing_side_follows_the_goal_until_the_approach_zone_and_holds_its_si
     assert side.GetOutputPort("crossing_side").Eval(fresh)[0] == 1.0
 
 
-def test_a_canonical_side_clone_is_told_the_side_in_its_rollout_diagram(tmp_path):
+@pytest.mark.parametrize("source, side_at_start", [("perceived", 0.0), ("oracle", 1.0)])
+def test_a_canonical_side_clone_is_told_the_side_in_its_rollout_diagram(tmp_path, source, side_at_start):
     import torch
     from pydrake.systems.analysis import Simulator
 
@@ -193,12 +194,16 @@ def test_a_canonical_side_clone_is_told_the_side_in_its_rollout_diagram(tmp_path
 
     torch.manual_seed(0)
     path = save_checkpoint(make_checkpoint(FourInputClassifier(ModelConfig(canonical_side=True))), tmp_path / "c.pt")
-    diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="wide", task=0),
-                                                  controller=LearnedPolicyConfig(checkpoint=str(path))))
-    side = diagram.GetSubsystemByName("crossing_side")
+    diagram, _ = MakeRolloutDiagram(RolloutConfig(
+        scene=SceneConfig(environment="wide", task=0),
+        controller=LearnedPolicyConfig(checkpoint=str(path), crossing_side=source)))
+    side = diagram.GetSubsystemByName(f"{source}_crossing_side")
     simulator = Simulator(diagram)
     simulator.AdvanceTo(0.25)
-    # Task 0 runs square across: right, by the expert's convention.
+    # Task 0 runs square across: right, by the expert's convention, for the oracle; the edge is
+    # beyond the lidar's range at the start, so the perceived side is none yet.
     assert side.GetOutputPort("crossing_side").Eval(
-        side.GetMyContextFromRoot(simulator.get_context()))[0] == 1.0
+        side.GetMyContextFromRoot(simulator.get_context()))[0] == side_at_start
     assert diagram.GetSubsystemByName("learned_policy").HasInputPort("crossing_side")
+    # Only the perceived side is measured against the oracle's.
+    assert diagram.HasSubsystemNamed("crossing_side_agreement") == (source == "perceived")

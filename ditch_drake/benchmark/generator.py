@@ -119,7 +119,9 @@ def _draw_terrain(rng: np.random.Generator, ranges: BenchmarkRanges) -> TerrainP
         params.sine_amplitude_m = _uniform(rng, [low, max(low, min(high, highest))])
     elif kind == "arc":
         params.arc_radius_m = _uniform(rng, ranges.arc_radius_m)
-        params.length_m = min(params.length_m, math.pi * params.arc_radius_m)
+        # Rounded down to the mm, so that the shortened arc's sweep stays within the limit.
+        longest = math.floor(math.radians(ranges.arc_max_sweep_deg) * params.arc_radius_m * 1000.0) / 1000.0
+        params.length_m = min(params.length_m, longest)
     return params
 
 

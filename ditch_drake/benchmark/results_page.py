@@ -7,6 +7,10 @@ From benchmark results files (and the ditches file beside each, `splits.ditches_
   pooled over the generated splits);
 - failure regions (status @ where the robot ended) per controller;
 - every failed generated ditch, with the command that replays the rollout.
+
+A privileged controller's rows, and a clone's crossing side's source, are marked in the
+controller's name (`evaluation.model_labels.controller_labels`): "expert (privileged: analytic
+terrain)", "generalist (perceived side)"; records that differ in either are different rows.
 """
 
 import itertools
@@ -23,7 +27,7 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_write_text, prepare_output, remove_stale_temporaries, save_figure
 from ditch_drake.common.outputs import figures_beside, refuse_outputs_over_inputs
 from ditch_drake.evaluation.batch import load_results
-from ditch_drake.evaluation.model_labels import controller_labels
+from ditch_drake.evaluation.model_labels import MARKS_NOTE, any_marked, controller_labels
 from ditch_drake.evaluation.results import RolloutRecord, current_records
 from ditch_drake.evaluation.statistics import percent
 from ditch_drake.evaluation.summary import summarize
@@ -32,13 +36,16 @@ from ditch_drake.world.environments import Environment, get_environment, load_en
 from ditch_drake.world.terrain import DitchTerrain
 
 # The ditch parameters success is plotted against: (name, axis label, bin edges).
+# The edges span the test ranges (ranges.yaml) and the stress split's beyond them (stress_ranges.yaml).
 FEATURES = (
     ("slope_deg", "wall slope (deg)", np.array([45.0, 50.0, 55.0, 57.0, 60.0])),
-    ("bottom_width_m", "bottom width or crater diameter (m)", np.linspace(2.0, 12.0, 6)),
-    ("depth_m", "depth (m)", np.linspace(2.5, 5.0, 6)),
-    ("curvature_per_m", "course curvature (1/m; 0: straight or crater)", np.array([0.0, 1e-9, 0.04, 0.08, 0.2])),
+    ("bottom_width_m", "bottom width or crater diameter (m)", np.array([1.5, 2.0, 4.0, 6.0, 8.0, 10.0, 12.0])),
+    ("depth_m", "depth (m)", np.array([2.5, 3.0, 3.5, 4.0, 4.5, 5.0, 6.0])),
+    ("curvature_per_m", "course curvature (1/m; 0: straight or crater)",
+     np.array([0.0, 1e-9, 0.04, 0.08, 0.2])),
     # The expert turns right along the edge within 15 deg of square (EdgeAngleDriverConfig.straight_across_deg).
-    ("crossing_turn_deg", "crossing's turn from square (deg; + left)", np.array([-35.0, -15.0, -5.0, 5.0, 15.0, 35.0])),
+    ("crossing_turn_deg", "crossing's turn from square (deg; + left)",
+     np.array([-45.0, -35.0, -15.0, -5.0, 5.0, 15.0, 35.0, 45.0])),
 )
 
 
@@ -179,6 +186,61 @@ def _figure(records: list[RolloutRecord], features: dict[tuple, dict], name_of: 
     return save_figure(fig, path)
 
 
+def _side_agreement_lines(records: list[RolloutRecord], environments: dict[str, Environment],
+                          name_of: Callable[[RolloutRecord], str]) -> list[str]:
+    """The section on a perceived crossing side against the oracle's (`RolloutRecord`'s side_*
+    fields), if any record has one: the approach zone's steps that agree, per controller and
+    split and per course kind, and every rollout where they did not."""
+    measured = [r for r in records if r.crossing_side_source == "perceived" and r.status != "error"]
+    if not measured:
+        return []
+
+    def share(group: list[RolloutRecord]) -> str:
+        zone = sum(r.side_zone_steps for r in group)
+        agreeing = sum(r.side_agreeing_steps for r in group)
+        whole = sum(r.side_agreeing_steps == r.side_zone_steps for r in group)
+        rate = f"{100.0 * agreeing / zone:.2f} %" if zone else "-"  # 98 % is the target: whole percents hide it.
+        return f"{agreeing}/{zone} ({rate}); {whole}/{len(group)}"
+
+    def kind(record: RolloutRecord) -> str:
+        environment = environments.get(record.environment)
+        return environment.terrain.course if environment is not None else "?"
+
+    kinds = sorted({kind(r) for r in measured})
+    lines = ["## The perceived crossing side against the oracle's", "",
+             ("Control steps in the approach zone (the oracle's: from where the chassis first came within the "
+             "expert's approach margin of the hinge line) where the side the clone was told, perceived from the "
+             "lidar, equals the oracle's from the ditch's course; then rollouts whose every such step agrees; "
+             "in all and per course kind."), "",
+             "| controller | split | all | " + " | ".join(kinds) + " |",
+             "| --- | --- | --- |" + " --- |" * len(kinds)]
+    by_group: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
+    for record in measured:
+        by_group[(name_of(record), split_of_environment(record.environment))].append(record)
+    for (controller, split), group in sorted(by_group.items()):
+        cells = [share([r for r in group if kind(r) == name]) if any(kind(r) == name for r in group) else "-"
+                 for name in kinds]
+        lines.append(f"| {controller} | {split} | {share(group)} | " + " | ".join(cells) + " |")
+    differing = [r for r in measured if r.side_agreeing_steps < r.side_zone_steps]
+    lines.append("")
+    if differing:
+        lines += [("Rollouts where they differed (distance to the hinge line of the differing steps, m; negative: "
+                  "inside it):"), "",
+                  ("| controller | environment | task | seed | course | crossing turn (deg) | agreeing steps | "
+                  "told none | distance to the edge | outcome |"),
+                  "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for record in sorted(differing, key=lambda r: (name_of(r), r.environment, r.task, r.seed)):
+            environment = environments.get(record.environment)
+            turn = f"{crossing_turn_deg(environment, record.task):+.0f}" if environment is not None else "?"
+            edge = ("{:+.1f} to {:+.1f}".format(*record.side_disagreement_edge_m)
+                    if len(record.side_disagreement_edge_m) == 2 else "-")
+            lines.append(f"| {name_of(record)} | {record.environment} | {record.task} | {record.seed} | {kind(record)} "
+                         f"| {turn} | {record.side_agreeing_steps}/{record.side_zone_steps} | "
+                         f"{record.side_unseen_steps} | {edge} | {record.status} |")
+        lines.append("")
+    return lines
+
+
 def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathLike,
                            figures_dir: str | os.PathLike | None = None, title: str = "Procedural ditch benchmark",
                            command: str = "") -> Path:
@@ -211,7 +273,10 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
         lines += ["Made by", "", f"    {command}", ""]
     lines += ["## Success per split", "",
               "successes/trials (rate, 95 % Wilson interval); the test split is reported, never tuned on.", ""]
+    if any_marked(records):
+        lines += [MARKS_NOTE, ""]
     lines += _success_table(groups, controllers) + [""]
+    lines += _side_agreement_lines(records, environments, name_of)
     by_kind: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
     for record in generated:
         by_kind[(name_of(record), str(ditches[record.environment]["course"]))].append(record)

@@ -1,7 +1,8 @@
 """`ditch-drake benchmark`: a controller's seeded rollouts over the ditches of a split.
 
-The split's first `geometries` ditches are sampled (`sample_ditch`), written beside the
-results as an environments file (`splits.ditches_file`), and every task of each runs
+The split's first `geometries` ditches are sampled (`sample_ditch`, from the split's ranges:
+`splits.split_ranges`), written beside the results as an environments file
+(`splits.ditches_file`), and every task of each runs
 `rollouts` times (seeds seed .. seed + rollouts - 1) through the batch evaluation
 (`ditch_drake.evaluation.batch.evaluate`): resumable, in parallel, on the local pool or Ray.
 The paper split runs the four packaged environments instead.
@@ -14,8 +15,15 @@ from dataclasses import dataclass
 from tqdm import tqdm
 
 from ditch_drake.benchmark.generator import SampledDitch, sample_ditch
-from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges
-from ditch_drake.benchmark.splits import PAPER_SPLIT, check_split, ditches_file, split_seeds, write_ditches
+from ditch_drake.benchmark.ranges import BenchmarkRanges
+from ditch_drake.benchmark.splits import (
+    PAPER_SPLIT,
+    check_split,
+    ditches_file,
+    split_ranges,
+    split_seeds,
+    write_ditches,
+)
 from ditch_drake.common.checks import check_count, check_finite_positive
 from ditch_drake.common.config_yaml import safe_load_yaml
 from ditch_drake.common.errors import ConfigError
@@ -39,14 +47,17 @@ class BenchmarkConfig:
     """One benchmark run.
 
     Attributes:
-        split: "train", "val", "test" or "paper" (`splits.SPLITS`).
+        split: "train", "val", "test", "stress" or "paper" (`splits.SPLITS`).
         controller: a registered controller's name.
         checkpoint: the learned policy's ("": `GENERALIST`).
+        crossing_side: the learned policy's `LearnedPolicyConfig.crossing_side` ("perceived" or
+            "oracle"; "": the config's own, perceived).
         geometries: the split's first N ditches (None: all); ignored for "paper".
         rollouts: seeded rollouts per task.
         seed: rollout i of each task uses seed + i.
         out: the results file (JSON Lines); its ditches go to `<stem>.ditches.yaml` beside it.
-        ranges: a ranges YAML file ("": the packaged `ranges.yaml`).
+        ranges: a ranges YAML file ("": the split's packaged one, `splits.SPLIT_RANGES`:
+            `stress_ranges.yaml` for "stress", `ranges.yaml` for the others).
         time_limit_s: each episode's limit.
         workers, backend, address: as for `evaluate`.
     """
@@ -54,6 +65,7 @@ class BenchmarkConfig:
     split: str = "test"
     controller: str = "expert"
     checkpoint: str = ""
+    crossing_side: str = ""
     geometries: int | None = None
     rollouts: int = 1
     seed: int = 0
@@ -131,7 +143,7 @@ def benchmark_specs(config: BenchmarkConfig, progress: bool = True) -> list[Roll
     """
     check_benchmark_config(config)
     prepare_output(config.out, "results file")
-    ranges = load_ranges(config.ranges or None)
+    ranges = split_ranges(config.split, config.ranges or None)
     checkpoint = (config.checkpoint or GENERALIST) if config.controller == "learned" else config.checkpoint
     if config.split == PAPER_SPLIT:
         names, environments_file = environment_names(), ""
@@ -141,6 +153,10 @@ def benchmark_specs(config: BenchmarkConfig, progress: bool = True) -> list[Roll
         environments_file = str(write_ditches(ditches_file(config.out), ditches))
         names = [ditch.name for ditch in ditches]
     controller = benchmark_controller(config.controller)
+    if config.crossing_side:
+        from ditch_drake.diagrams.rollout import with_crossing_side
+
+        controller = with_crossing_side(controller_config(controller, checkpoint), config.crossing_side)
     specs = []
     for name in names:
         specs += make_specs(controller, checkpoint, name, None, config.rollouts, config.seed,

@@ -5,13 +5,16 @@
 | train | seeds 0-199 | demonstrations and DAgger rounds |
 | val | seeds 1000-1049 | every choice: checkpoints, recipes, ranges |
 | test | seeds 2000-2099 | the reported result only: never a choice |
+| stress | seeds 3000-3099, drawn from `stress_ranges.yaml` | reported beside test, never a choice: ditches beyond the train ranges, how far a controller extrapolates |
 | paper | the four packaged environments | the paper's ditches, beside the generated ones |
 
-The seed ranges are disjoint, so a seed names its split. A run's ditches are written, as an
-environments file in the packaged schema (`ditch_drake/world/environments.yaml`), beside its
-results: `<results>.ditches.yaml`. Its environments are the `sample_ditch` draws of their
-seeds, so `ditch-drake replay --environments <that file> --env ditch_2013 --task 1 --seed 0`
-replays any rollout.
+The seed ranges are disjoint, so a seed names its split. Each generated split draws from its
+ranges file (`SPLIT_RANGES`; `ranges.yaml` unless listed there), unless a run names another.
+A run's ditches are written, as an environments file in the packaged schema
+(`ditch_drake/world/environments.yaml`), beside its results: `<results>.ditches.yaml`. Its
+environments are the `sample_ditch` draws of their seeds, so
+`ditch-drake replay --environments <that file> --env ditch_2013 --task 1 --seed 0` replays any
+rollout.
 """
 
 from pathlib import Path
@@ -19,14 +22,17 @@ from pathlib import Path
 from pydrake.common.yaml import yaml_dump_typed
 
 from ditch_drake.benchmark.generator import SampledDitch, sample_ditch
-from ditch_drake.benchmark.ranges import BenchmarkRanges
+from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges, packaged_ranges_path
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_write_text
 from ditch_drake.world.environments import Environment, EnvironmentLibrary, environment_names, load_environments
 
-SEED_SPLITS = {"train": range(200), "val": range(1000, 1050), "test": range(2000, 2100)}
+SEED_SPLITS = {"train": range(200), "val": range(1000, 1050), "test": range(2000, 2100),
+               "stress": range(3000, 3100)}
 PAPER_SPLIT = "paper"
 SPLITS = (*SEED_SPLITS, PAPER_SPLIT)
+# The packaged ranges file of each generated split that does not draw from `ranges.yaml`.
+SPLIT_RANGES = {"stress": "stress_ranges.yaml"}
 
 
 def check_split(split: str) -> None:
@@ -50,6 +56,17 @@ def split_seeds(split: str, geometries: int | None = None) -> list[int]:
     return list(seeds[:geometries])
 
 
+def split_ranges(split: str, path: str | Path | None = None) -> BenchmarkRanges:
+    """The ranges a generated split draws from: the file at `path`, else the split's packaged
+    one (`SPLIT_RANGES`, else `ranges.yaml`), validated.
+
+    Raises:
+        ConfigError: an unknown split, or a ranges file that is unreadable or out of bounds.
+    """
+    check_split(split)
+    return load_ranges(path or packaged_ranges_path(SPLIT_RANGES.get(split, "ranges.yaml")))
+
+
 def split_of_seed(seed: int) -> str:
     """The split a generated ditch's seed belongs to ("" for none)."""
     return next((split for split, seeds in SEED_SPLITS.items() if seed in seeds), "")
@@ -65,8 +82,11 @@ def split_of_environment(name: str) -> str:
 
 def split_ditches(split: str, geometries: int | None = None,
                   ranges: BenchmarkRanges | None = None) -> list[SampledDitch]:
-    """The sampled ditches of the first `geometries` seeds of a generated split."""
-    return [sample_ditch(seed, ranges) for seed in split_seeds(split, geometries)]
+    """The sampled ditches of the first `geometries` seeds of a generated split, drawn from
+    `ranges` (None: the split's, `split_ranges`)."""
+    seeds = split_seeds(split, geometries)
+    ranges = ranges or split_ranges(split)
+    return [sample_ditch(seed, ranges) for seed in seeds]
 
 
 def ditches_file(results_path: str | Path) -> Path:

@@ -11,12 +11,14 @@ from ditch_drake.cli.options import (
     add_backend,
     add_checkpoint,
     add_controller,
+    add_crossing_side,
     add_env,
     add_out,
     add_scenario_file,
     add_time_limit,
     add_workers,
     checkpoint_for,
+    learned_with_crossing_side,
     print_table,
     scenario_from_options,
 )
@@ -46,6 +48,7 @@ def add_evaluate(commands: Commands) -> None:
     add_scenario_file(evaluation, "its controller with all its parameters, environment, environments file and "
                                   "time limit")
     add_checkpoint(evaluation, "each environment's shipped model")
+    add_crossing_side(evaluation)
     add_env(evaluation, many=True)
     evaluation.add_argument("--task", type=int, action="append", default=None,
                             help="task index (repeatable; default None: every task of the environment)")
@@ -63,6 +66,7 @@ def cmd_evaluate(args) -> int:
     """Seeded rollouts of one controller in one or more environments, appended to a results file."""
     check_workers(args.workers, "--workers")
     from ditch_drake.evaluation.batch import evaluate, load_results, make_specs
+    from ditch_drake.evaluation.model_labels import with_marks
     from ditch_drake.evaluation.results import current_records
     from ditch_drake.evaluation.summary import group_by, summarize
     from ditch_drake.systems.episode_monitor import EpisodeConfig
@@ -94,7 +98,8 @@ def cmd_evaluate(args) -> int:
             checkpoint = checkpoint_for(args, environment)
         else:  # make_specs refuses a checkpoint that the controller does not take; a config names its own.
             checkpoint = (args.checkpoint or "") if isinstance(controller, str) else ""
-        specs += make_specs(controller, checkpoint, environment, args.task, args.rollouts, args.seed, time_limit_s,
+        chosen = learned_with_crossing_side(controller, checkpoint, args.crossing_side)
+        specs += make_specs(chosen, checkpoint, environment, args.task, args.rollouts, args.seed, time_limit_s,
                             environments_file)
         tasks = len(args.task) if args.task else len(get_environment(environment, environments_file or None).tasks)
         plan.append(f"{environment}: {tasks} tasks x {args.rollouts} rollouts = {tasks * args.rollouts}")
@@ -109,7 +114,8 @@ def cmd_evaluate(args) -> int:
     for (controller, checkpoint, environment, task), group in group_by(
             records, "controller", "checkpoint", "environment", "task").items():
         summary = summarize(group)
-        rows.append({"controller": controller, "checkpoint": checkpoint or "-", "env": environment, "task": task,
+        rows.append({"controller": with_marks(controller, group[0]), "checkpoint": checkpoint or "-",
+                     "env": environment, "task": task,
                      "success": f"{summary.successes}/{summary.trials}", "around": summary.around,
                      "wilson95": f"{summary.low:.2f}-{summary.high:.2f}",
                      "failures": " ".join(f"{k}:{v}" for k, v in sorted(summary.failure_regions.items())) or "-",
@@ -126,14 +132,16 @@ def cmd_evaluate(args) -> int:
 
 
 def add_benchmark(commands: Commands) -> None:
-    benchmark = commands.add("benchmark", "a controller over the procedural ditches of a split (train, val, test) or "
-                                          "the paper's four, appended to a results file (rerun to resume; Ctrl-C "
+    benchmark = commands.add("benchmark", "a controller over the procedural ditches of a split (train, val, test, "
+                                          "stress) or the paper's four, appended to a results file (rerun to resume; Ctrl-C "
                                           "keeps what finished)")
     benchmark.add_argument("--split", default=ConfigDefault(BENCHMARK, "split"),
                            help="train (seeds 0-199), val (1000-1049), test (2000-2099; for reporting only, never a "
-                                "choice) or paper (the four packaged environments)")
+                                "choice), stress (3000-3099, beyond the train ranges: stress_ranges.yaml; reporting "
+                                "only) or paper (the four packaged environments)")
     add_controller(benchmark, default=ConfigDefault(BENCHMARK, "controller"))
     add_checkpoint(benchmark, "generalist")
+    add_crossing_side(benchmark)
     benchmark.add_argument("--geometries", type=int, default=ConfigDefault(BENCHMARK, "geometries"),
                            help="the split's first N ditches (default: all of them)")
     benchmark.add_argument("--rollouts", type=int, default=ConfigDefault(BENCHMARK, "rollouts"),
@@ -141,7 +149,8 @@ def add_benchmark(commands: Commands) -> None:
     benchmark.add_argument("--seed", type=int, default=ConfigDefault(BENCHMARK, "seed"),
                            help="first rollout seed; rollout i of each task uses seed + i")
     benchmark.add_argument("--ranges", default=ConfigDefault(BENCHMARK, "ranges"),
-                           help="a ranges YAML file (default: the packaged ditch_drake/benchmark/ranges.yaml)")
+                           help="a ranges YAML file (default: the split's packaged one, "
+                                "ditch_drake/benchmark/ranges.yaml or, for stress, stress_ranges.yaml)")
     add_time_limit(benchmark, default=ConfigDefault(BENCHMARK, "time_limit_s"))
     add_out(benchmark, "results file (JSON Lines), appended; the ditches go to <stem>.ditches.yaml beside it",
             default=ConfigDefault(BENCHMARK, "out"))
@@ -162,7 +171,7 @@ def cmd_benchmark(args) -> int:
     check_split(args.split)
     check_seed(args.seed, max(1, args.rollouts))
     config = BenchmarkConfig(split=args.split, controller=args.controller, checkpoint=args.checkpoint or "",
-                             geometries=args.geometries, rollouts=args.rollouts, seed=args.seed, out=args.out,
+                             crossing_side=args.crossing_side or "", geometries=args.geometries, rollouts=args.rollouts, seed=args.seed, out=args.out,
                              ranges=args.ranges or "", time_limit_s=args.time_limit, workers=args.workers,
                              backend=args.backend, address=args.address)
     if args.rollouts < 1:
@@ -178,7 +187,10 @@ def cmd_benchmark(args) -> int:
     records, _ = current_records([record for record in load_results([args.out]) if record.key in keys])
     summary = summarize(records) if records else None
     print(json.dumps({"out": str(args.out), "split": args.split, "controller": specs[0].controller,
-                      "checkpoint": specs[0].checkpoint, "geometries": len(environments),
+                      "checkpoint": specs[0].checkpoint,
+                      "privileged": records[0].privileged if records else [],
+                      "crossing_side_source": records[0].crossing_side_source if records else "",
+                      "geometries": len(environments),
                       "requested": report.requested, "skipped": report.skipped, "recorded": report.recorded,
                       "successes": summary.successes if summary else 0, "trials": summary.trials if summary else 0,
                       "wilson95": [round(summary.low, 3), round(summary.high, 3)] if summary else None,

@@ -20,6 +20,10 @@ from ditch_drake.diagrams.controllers import controller_descriptions, controller
 SCENARIO = "ditch_drake.diagrams.scenario:Scenario"
 # The Scenario's `episode`, read from its own module, lighter to import than the Scenario's.
 EPISODE = "ditch_drake.systems.episode_monitor:EpisodeConfig"
+LEARNED = "ditch_drake.diagrams.rollout:LearnedPolicyConfig"
+# `LearnedPolicyConfig.crossing_side`'s values (`ditch_drake.diagrams.rollout.CROSSING_SIDE_SOURCES`),
+# here so that `--help` need not import Drake.
+CROSSING_SIDE_SOURCES = ("perceived", "oracle")
 
 
 class ConfigDefault:
@@ -222,6 +226,30 @@ def add_checkpoint(sub: argparse.ArgumentParser, default_text: str) -> None:
     """`--checkpoint`: the learned policy's."""
     sub.add_argument("--checkpoint", default=None,
                      help=f"the learned policy, a shipped name or a .pt file (default: {default_text})")
+
+
+def add_crossing_side(sub: argparse.ArgumentParser) -> None:
+    """`--crossing-side`: where a side-conditioned clone is told its side (`LearnedPolicyConfig`)."""
+    sub.add_argument("--crossing-side", default=None, choices=CROSSING_SIDE_SOURCES,
+                     help="with the learned policy of a side-conditioned checkpoint (the generalist): perceived "
+                          "(found in the lidar's rays) or oracle (read from the analytic ditch: privileged, for the "
+                          f"ablation) (default: {ConfigDefault(LEARNED, 'crossing_side')})")
+
+
+def learned_with_crossing_side(controller, checkpoint: str, crossing_side: str | None):
+    """`controller` (a name or a config) with `--crossing-side` applied (`with_crossing_side`),
+    or itself when none is given.
+
+    Raises:
+        ConfigError: --crossing-side with a controller other than the learned policy.
+    """
+    if crossing_side is None:
+        return controller
+    from ditch_drake.diagrams.controllers import controller_config
+    from ditch_drake.diagrams.rollout import with_crossing_side
+
+    config = controller_config(controller, checkpoint) if isinstance(controller, str) else controller
+    return with_crossing_side(config, crossing_side)
 
 
 def add_time_limit(sub: argparse.ArgumentParser, default=None) -> None:

@@ -214,7 +214,8 @@ def add_train_generalist(commands: Commands) -> None:
                                  "clearly to one side (ditch_drake/pipelines/generalist.py)")
     generalist.add_argument("--canonical-side", action="store_true",
                             help="reflect every step that crosses turned left along the edge, and tell the clone "
-                                 "the side to cross on from a map of the ditch (systems/crossing_side.py)")
+                                 "the side to cross on (found in the lidar's rays when it drives: "
+                                 "systems/perceived_crossing_side.py)")
     generalist.add_argument("--seed", type=int, default=ConfigDefault(GENERALIST, "seed"),
                             help="seeds demonstrations, training and val rollouts")
     generalist.add_argument("--ranges", default=ConfigDefault(GENERALIST, "ranges"),

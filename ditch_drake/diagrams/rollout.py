@@ -1,6 +1,7 @@
 """A scene plus a controller, and running seeded episodes on it."""
 
 import contextlib
+import dataclasses
 import math
 import sys
 import typing
@@ -23,13 +24,15 @@ from ditch_drake.perception.lidar_model import LidarConfig
 from ditch_drake.planning.costmap import CostmapConfig
 from ditch_drake.planning.elevation_map import ElevationMapConfig
 from ditch_drake.planning.mppi import MppiPlannerConfig
-from ditch_drake.systems.crossing_side import CrossingSide
+from ditch_drake.systems.crossing_side_agreement import CrossingSideAgreement
 from ditch_drake.systems.dwa_controller import DwaConfig, DwaController
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
 from ditch_drake.systems.halt_counter import HaltCounter
 from ditch_drake.systems.mppi_controller import MppiController
+from ditch_drake.systems.oracle_crossing_side import OracleCrossingSide
+from ditch_drake.systems.perceived_crossing_side import PerceivedCrossingSide, PerceivedCrossingSideConfig
 from ditch_drake.systems.policy import LearnedPolicy
 from ditch_drake.systems.teleop import ActionQuantizer
 
@@ -59,6 +62,10 @@ class ExpertConfig:
     variation: ExpertVariation = field(default_factory=ExpertVariation)
 
 
+# Where a side-conditioned clone's crossing side comes from (`LearnedPolicyConfig.crossing_side`).
+CROSSING_SIDE_SOURCES = ("perceived", "oracle")
+
+
 @dataclass
 class LearnedPolicyConfig:
     """The behavioural clone of a checkpoint on the observation blocks.
@@ -68,10 +75,34 @@ class LearnedPolicyConfig:
             e.g. "wide"), the path of a checkpoint file, or "" for the shipped model of the
             environment it drives in.
         observation: the perception blocks feeding it (their defaults match the demonstrations').
+        crossing_side: where a clone trained in one side's frame (`ModelConfig.canonical_side`)
+            is told the side to cross on: "perceived" (`PerceivedCrossingSide`, from the lidar's
+            points and the pose) or "oracle" (`OracleCrossingSide`, from the analytic ditch: a
+            privileged input, for the ablation). Other checkpoints ignore it.
     """
 
     checkpoint: str = ""
     observation: ObservationConfig = field(default_factory=ObservationConfig)
+    crossing_side: str = "perceived"
+
+    def validate(self) -> None:
+        if self.crossing_side not in CROSSING_SIDE_SOURCES:
+            raise ConfigError(f"learned crossing_side={self.crossing_side!r}: expected one of "
+                              f"{list(CROSSING_SIDE_SOURCES)}")
+
+
+def with_crossing_side(config, crossing_side: str) -> LearnedPolicyConfig:
+    """The learned policy's `config` told its side by `crossing_side` ("perceived" or "oracle").
+
+    Raises:
+        ConfigError: a config of another controller, or an unknown source.
+    """
+    if not isinstance(config, LearnedPolicyConfig):
+        raise ConfigError(f"crossing_side {crossing_side!r} with a {type(config).__name__}: expected it only with "
+                          "the learned policy")
+    config = dataclasses.replace(config, crossing_side=crossing_side)
+    config.validate()
+    return config
 
 
 @dataclass
@@ -155,7 +186,25 @@ def AddController(builder: DiagramBuilder, scene: DitchScene, config) -> System:
     command = entry_for_config(config).add(builder, scene, config)
     builder.Connect(command, scene.drive.GetInputPort("command"))
     AddHaltCounter(builder, scene, command)
+    AddCrossingSideAgreement(builder, scene)
     return command.get_system()
+
+
+def AddCrossingSideAgreement(builder: DiagramBuilder, scene: DitchScene) -> CrossingSideAgreement | None:
+    """Adds a "crossing_side_agreement" (`CrossingSideAgreement`) on the builder's
+    "perceived_crossing_side", if it has one: the rollout's record then says how often the
+    perceived side equalled the oracle's. An instrument beside the controller, given the
+    analytic ditch as the halt counter is; it drives nothing."""
+    if not builder.HasSubsystemNamed("perceived_crossing_side"):
+        return None
+    side = builder.GetSubsystemByName("perceived_crossing_side")
+    schedule = scene.schedule
+    agreement = builder.AddNamedSystem("crossing_side_agreement", CrossingSideAgreement(
+        scene.terrain, scene.task.goal, scene.plant.GetBodyByName("chassis", scene.husky).index(),
+        period_s=schedule.control_period_s, offset_s=schedule.controller_offset_s))
+    builder.Connect(side.GetOutputPort("crossing_side"), agreement.GetInputPort("crossing_side"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), agreement.GetInputPort("body_poses"))
+    return agreement
 
 
 def AddHaltCounter(builder: DiagramBuilder, scene: DitchScene, command: OutputPort) -> HaltCounter:
@@ -203,9 +252,10 @@ def AddExpert(builder: DiagramBuilder, scene: DitchScene, config: ExpertConfig) 
 
 
 def AddLearnedController(builder: DiagramBuilder, scene: DitchScene, config: LearnedPolicyConfig) -> OutputPort:
+    config.validate()
     checkpoint = config.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
     observation = AddObservation(builder, scene, config.observation)
-    return AddLearnedPolicy(builder, scene, observation, checkpoint).GetOutputPort("command")
+    return AddLearnedPolicy(builder, scene, observation, checkpoint, config.crossing_side).GetOutputPort("command")
 
 
 def AddDwaController(builder: DiagramBuilder, scene: DitchScene, config: DwaBaselineConfig) -> OutputPort:
@@ -237,9 +287,10 @@ def AddMppiController(builder: DiagramBuilder, scene: DitchScene, config: MppiBa
 
 
 def AddLearnedPolicy(builder: DiagramBuilder, scene: DitchScene, observation: Observation,
-                     checkpoint: str) -> LearnedPolicy:
+                     checkpoint: str, crossing_side: str = "perceived") -> LearnedPolicy:
     """Adds the behavioural clone of `checkpoint` (a shipped name or a path) fed by `observation`,
-    and, for a clone trained in one side's frame, the `CrossingSide` of the scene's ditch and goal.
+    and, for a clone trained in one side's frame, the block that tells it the side to cross on
+    (`AddCrossingSide` of `crossing_side`: "perceived" or "oracle").
 
     Raises:
         CheckpointError: the checkpoint expects other input sizes than the blocks give.
@@ -256,18 +307,38 @@ def AddLearnedPolicy(builder: DiagramBuilder, scene: DitchScene, observation: Ob
                 f"blocks give {port.size()} (a model trained on another input shape)")
     ConnectObservation(builder, observation, policy)
     if policy.HasInputPort("crossing_side"):
-        side = AddCrossingSide(builder, scene)
+        side = AddCrossingSide(builder, scene, observation, crossing_side)
         builder.Connect(side.GetOutputPort("crossing_side"), policy.GetInputPort("crossing_side"))
     return policy
 
 
-def AddCrossingSide(builder: DiagramBuilder, scene: DitchScene) -> CrossingSide:
-    """Adds the `CrossingSide` of the scene's ditch and goal, reading the chassis pose and
-    holding its side at the controller's ticks."""
+def AddCrossingSide(builder: DiagramBuilder, scene: DitchScene, observation: Observation,
+                    source: str = "perceived",
+                    config: PerceivedCrossingSideConfig | None = None) -> PerceivedCrossingSide | OracleCrossingSide:
+    """Adds the block that tells a side-conditioned clone which side along the edge to cross on,
+    named after its source: "perceived_crossing_side" (`PerceivedCrossingSide`, on the
+    observation's lidar and the chassis pose) or "oracle_crossing_side" (`OracleCrossingSide`,
+    on the scene's analytic ditch: privileged). Either holds its side from the control step it
+    commits, and the controller reads it in the same step. `AddController` measures a perceived
+    side against the oracle's (`AddCrossingSideAgreement`).
+
+    Raises:
+        ConfigError: an unknown source.
+    """
     schedule = scene.schedule
-    side = builder.AddNamedSystem("crossing_side", CrossingSide(
-        scene.terrain, scene.task.goal, scene.plant.GetBodyByName("chassis", scene.husky).index(),
-        period_s=schedule.control_period_s, offset_s=schedule.controller_offset_s))
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky).index()
+    if source == "perceived":
+        lidar = observation.lidar
+        side = builder.AddNamedSystem("perceived_crossing_side", PerceivedCrossingSide(
+            scene.task.goal, chassis, lidar.X_BL, lidar.converter.ray_directions_L, lidar.converter.config.range_m, config,
+            period_s=schedule.control_period_s, offset_s=schedule.stacker_offset_s))
+        builder.Connect(lidar.converter.GetOutputPort("organized_points"), side.GetInputPort("point_cloud"))
+    elif source == "oracle":
+        side = builder.AddNamedSystem("oracle_crossing_side", OracleCrossingSide(
+            scene.terrain, scene.task.goal, chassis, period_s=schedule.control_period_s,
+            offset_s=schedule.controller_offset_s))
+    else:
+        raise ConfigError(f"crossing side source {source!r}: expected one of {list(CROSSING_SIDE_SOURCES)}")
     builder.Connect(scene.plant.get_body_poses_output_port(), side.GetInputPort("body_poses"))
     return side
 

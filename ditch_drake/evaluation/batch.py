@@ -47,6 +47,7 @@ from ditch_drake.common.parallel import (
 )
 from ditch_drake.common.seeds import check_seed
 from ditch_drake.diagrams.controllers import (
+    UndeclaredInputError,
     check_controller_config,
     config_checkpoint,
     controller_config,
@@ -232,6 +233,10 @@ def _evaluate_locked(specs: list[RolloutSpec], results_path: str | os.PathLike, 
             report.errors += record.status == "error"
         bar.update(1)
         bar.set_postfix(success=f"{report.successes}/{report.recorded}", errors=report.errors)
+        # Every other rollout of the controller would read it too: the run stops, naming it.
+        undeclared = f"{UndeclaredInputError.__name__}: "
+        if record.status == "error" and record.error.startswith(undeclared):
+            raise ConfigError(record.error.removeprefix(undeclared))
 
     try:
         with terminate_as_interrupt(), RecordWriter(results_path) as writer:

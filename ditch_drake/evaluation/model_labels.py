@@ -1,11 +1,25 @@
 """How the results pages name the controllers of records: a checkpoint by its file stem (its
-folder too where stems clash), and the experiment's `<environments>_<N>` models parsed back."""
+folder too where stems clash), and the experiment's `<environments>_<N>` models parsed back.
+
+Every results table names its rows by `controller_labels`, which marks a row in one way: the
+label, then in brackets where a side-conditioned clone was told its crossing side ("perceived
+side", "oracle side": `RolloutRecord.crossing_side_source`) and what the controller declared it
+reads beyond its sensors, pose and goal ("privileged: analytic terrain":
+`RolloutRecord.privileged`), e.g. "expert (privileged: analytic terrain)" or "generalist (oracle
+side; privileged: analytic terrain)". Records that differ in either are different rows.
+"""
 
 from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
 
+from ditch_drake.diagrams.controllers import privileged_words
 from ditch_drake.evaluation.results import RolloutRecord
+
+# What a page says beside a table with a marked row.
+MARKS_NOTE = ("A row marked \"privileged: ...\" is a controller that reads what the robot cannot sense (it declares "
+              "it, and is given only that): a reference, not a competitor. \"perceived side\" / \"oracle side\": a "
+              "side-conditioned clone told its crossing side from the lidar's points, or from the analytic ditch.")
 
 
 def model_label(record: RolloutRecord) -> str:
@@ -13,9 +27,29 @@ def model_label(record: RolloutRecord) -> str:
     return Path(record.checkpoint).stem if record.checkpoint else record.controller
 
 
-def controller_labels(records: list[RolloutRecord]) -> Callable[[RolloutRecord], str]:
+def record_marks(record: RolloutRecord) -> list[str]:
+    """What a record's row is marked with: its crossing side's source, its privileged inputs."""
+    marks = [f"{record.crossing_side_source} side"] if record.crossing_side_source else []
+    if record.privileged:
+        marks.append(f"privileged: {privileged_words(record.privileged)}")
+    return marks
+
+
+def with_marks(name: str, record: RolloutRecord) -> str:
+    """`name` followed by `record`'s marks in brackets, if it has any."""
+    marks = record_marks(record)
+    return f"{name} ({'; '.join(marks)})" if marks else name
+
+
+def unmarked(label: str) -> str:
+    """A `controller_labels` label without its marks ("generalist (oracle side)" -> "generalist")."""
+    return label.split(" (", 1)[0]
+
+
+def controller_labels(records: list[RolloutRecord], marks: bool = True) -> Callable[[RolloutRecord], str]:
     """Each record's controller as the page names it: `model_label` (the checkpoint's file
-    stem), preceded by its folder where checkpoints of one stem lie in several."""
+    stem), preceded by its folder where checkpoints of one stem lie in several, followed by its
+    `record_marks` in brackets (`with_marks`; unless not `marks`: a table of checkpoints, not of rows)."""
     paths = defaultdict(set)
     for record in records:
         if record.checkpoint:
@@ -25,17 +59,24 @@ def controller_labels(records: list[RolloutRecord]) -> Callable[[RolloutRecord],
     def label(record: RolloutRecord) -> str:
         stem = model_label(record)
         folder = Path(record.checkpoint).parent.name if stem in shared else ""
-        return f"{folder}/{stem}" if folder else stem
+        name = f"{folder}/{stem}" if folder else stem
+        return with_marks(name, record) if marks else name
 
     return label
 
 
+def any_marked(records: list[RolloutRecord]) -> bool:
+    """Whether a table of `records` has a marked row (then `MARKS_NOTE` goes with it)."""
+    return any(record_marks(record) for record in records)
+
+
 def model_demos(label: str) -> int | None:
     """N of a model named `<envs>_<N>` (as the experiment names them), else None."""
-    tail = label.rsplit("_", 1)[-1]
+    tail = unmarked(label).rsplit("_", 1)[-1]
     return int(tail) if tail.isdigit() else None
 
 
 def model_environments(label: str) -> list[str]:
     """The environments a model named `<env>+<env>_<N>` was trained in; any other name: itself."""
+    label = unmarked(label)
     return label.rsplit("_", 1)[0].split("+") if model_demos(label) is not None else [label]

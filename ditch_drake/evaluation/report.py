@@ -8,7 +8,9 @@ groups them by study, and writes a Markdown page with
 - the wall time of each `ditch-drake experiment` run that made the results;
 - what was set aside (records not counted);
 - one table per study: model, environment, successes / trials, rate and 95 % Wilson
-  interval, failures by status and region, halts by region (`report_data.study_table`);
+  interval, failures by status and region, halts by region (`report_data.study_table`); a
+  privileged controller's rows, and a clone's crossing side's source, marked in the model's
+  name (`model_labels.controller_labels`);
 - where each evaluated checkpoint came from;
 - the figures (`report_figures`), each with a caption under it;
 - the paper's stated findings beside ours, each marked as agreeing or not by a rule computed
@@ -24,7 +26,7 @@ from pathlib import Path
 
 from ditch_drake.common.files import atomic_write_text, remove_stale_temporaries
 from ditch_drake.common.outputs import refuse_outputs_over_inputs
-from ditch_drake.evaluation.model_labels import controller_labels
+from ditch_drake.evaluation.model_labels import MARKS_NOTE, any_marked, controller_labels
 from ditch_drake.evaluation.paper_findings import findings_section, must_cross_groups
 from ditch_drake.evaluation.report_data import STUDIES, ReportData, load_report_data
 from ditch_drake.evaluation.report_figures import draw_figures
@@ -63,6 +65,8 @@ def write_report(results: list[str | os.PathLike], out: str | os.PathLike, figur
                   ("Each rollout counts once, by its latest real outcome, and each checkpoint name by one version "
                    "of its file (the file as it is now, where it still resolves):"), "",
                   *(f"- {note}" for note in data.notes), ""]
+    if any_marked([record for records in data.records.values() for record in records]):
+        lines += [MARKS_NOTE, ""]
     for study in data.studies:
         lines += [f"## {study}", "", *data.tables[study], ""]
     must_cross = must_cross_groups(data)
@@ -117,7 +121,7 @@ def _models_table(records: list[RolloutRecord]) -> list[str]:
 
     lines = ["| model | checkpoint | sha256 | demonstrations (train/val) | epochs (best) | device | training_s |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
-    name_of = controller_labels(records)
+    name_of = controller_labels(records, marks=False)
     used = sorted({(name_of(r), r.checkpoint, r.checkpoint_sha256) for r in records if r.checkpoint})
     for label, path, digest in used:
         row = ["(file gone or changed since)"] + [""] * 3

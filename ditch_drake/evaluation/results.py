@@ -17,7 +17,10 @@ Files of schema versions 2 and 3 (whose records named only the controller, with 
 parameters) still read: their controller configs and keys are rebuilt from their fields as
 they load, the same as a new spec of the same controller, so a rerun skips what they hold.
 Schema 5 added `halts_by_region`; records of older versions read with it empty (not counted),
-and their keys are unchanged, so a rerun skips them too.
+and their keys are unchanged, so a rerun skips them too. Schema 6 added `privileged`,
+`crossing_side_source` and the perceived side's agreement with the oracle (`side_*`); older
+records read with them empty (nothing declared, no side block recorded, nothing counted), keys
+unchanged.
 """
 
 import json
@@ -29,9 +32,9 @@ from pathlib import Path
 from ditch_drake.common.errors import ResultsError
 
 SCHEMA = "ditch_drake.rollout_record"
-SCHEMA_VERSION = 5
+SCHEMA_VERSION = 6
 # Older versions that still read (see the module docstring).
-READABLE_VERSIONS = (2, 3, 4, 5)
+READABLE_VERSIONS = (2, 3, 4, 5, 6)
 
 
 @dataclass(frozen=True)
@@ -105,6 +108,20 @@ class RolloutRecord:
             more, `ditch_drake.systems.halt_counter`) per region, every region of
             `ditch_drake.world.regions.REGIONS` a key; empty for an error record and for
             records of schema versions before 5 (not counted).
+        privileged: what the controller declared it reads beyond its sensors, its pose and
+            the goal, for its config (`ControllerEntry.privileged_inputs`: e.g. ["terrain"]);
+            empty for none and for records of schema versions before 6.
+        crossing_side_source: where a side-conditioned clone was told its crossing side:
+            "perceived" (the diagram has a "perceived_crossing_side" block), "oracle" (an
+            "oracle_crossing_side" block), else "" (no such block, a rollout whose diagram was
+            never built, or a record of a schema version before 6).
+        side_zone_steps, side_agreeing_steps, side_unseen_steps, side_disagreement_edge_m: for a
+            perceived side, the control steps in the approach zone (the oracle's: from where the
+            chassis first came within the expert's approach margin of the hinge line), those
+            where the perceived side equalled the oracle's, those told no side yet, and the
+            nearest and farthest distance to the hinge line (m, negative inside it) of a step
+            where they differed ([] if none did); 0 and [] otherwise
+            (`ditch_drake.systems.crossing_side_agreement`).
     """
 
     key: str
@@ -134,6 +151,12 @@ class RolloutRecord:
     controller_sha256: str = ""
     environments_file: str = ""
     halts_by_region: dict[str, int] = field(default_factory=dict)
+    privileged: list[str] = field(default_factory=list)
+    crossing_side_source: str = ""
+    side_zone_steps: int = 0
+    side_agreeing_steps: int = 0
+    side_unseen_steps: int = 0
+    side_disagreement_edge_m: list[float] = field(default_factory=list)
 
     def to_json(self) -> str:
         """One line: the fields plus the schema and its version (non-finite numbers as null)."""

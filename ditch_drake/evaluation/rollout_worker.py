@@ -9,6 +9,7 @@ and a network (about 100 MB). Every rollout starts from a fresh random Context
 
 import collections
 import importlib
+import math
 import time
 from dataclasses import asdict, replace
 
@@ -73,17 +74,39 @@ def run_rollout(spec: RolloutSpec) -> RolloutRecord:
     """Runs one rollout; an exception becomes a record with status "error"."""
     common = spec_fields(spec)
     start = time.perf_counter()
+    side_source = ""
     try:
         digest = checkpoint_digest(spec.checkpoint)
         if digest != spec.checkpoint_sha256:
             raise ConfigError(f"checkpoint {spec.checkpoint!r} has digest {digest}, not {spec.checkpoint_sha256} as "
                               "when the evaluation started: the file changed during the run")
         diagram, scene, simulator = _rig(spec)
+        side_source = crossing_side_source(diagram)
         RunEpisode(simulator, diagram, scene, spec.seed)
         fields = outcome_fields(diagram, scene, simulator.get_context())
     except Exception as error:
-        return error_record(spec, f"{type(error).__name__}: {error}", time.perf_counter() - start)
-    return RolloutRecord(**common, **fields, wall_s=time.perf_counter() - start)
+        return error_record(spec, f"{type(error).__name__}: {error}", time.perf_counter() - start, side_source)
+    return RolloutRecord(**common, **fields, wall_s=time.perf_counter() - start, crossing_side_source=side_source)
+
+
+def crossing_side_source(diagram) -> str:
+    """Where a rollout diagram's clone is told its crossing side: "perceived" or "oracle" by
+    the block it holds ("perceived_crossing_side", "oracle_crossing_side"), else ""."""
+    for source in ("perceived", "oracle"):
+        if diagram.HasSubsystemNamed(f"{source}_crossing_side"):
+            return source
+    return ""
+
+
+def spec_privileged(spec: RolloutSpec) -> list[str]:
+    """What the controller of `spec` declares it reads beyond its sensors, its pose and the goal
+    (`ControllerEntry.privileged_inputs`); [] for a config that does not load (its rollout's
+    error record says why)."""
+    try:
+        config = spec_controller_config(spec)
+        return list(entry_for_config(config).privileged_inputs(config))
+    except (ConfigError, ImportError, AttributeError):
+        return []
 
 
 def outcome_fields(diagram, scene, root_context) -> dict:
@@ -98,7 +121,19 @@ def outcome_fields(diagram, scene, root_context) -> dict:
         peak_abs_roll_deg=outcome.peak_abs_roll_deg, peak_abs_pitch_deg=outcome.peak_abs_pitch_deg,
         peak_tilt_deg=outcome.peak_tilt_deg, min_stability_margin_deg=outcome.min_stability_margin_deg,
         final_x_m=float(outcome.final_xy[0]), final_y_m=float(outcome.final_xy[1]), failure_region=region,
-        halts_by_region=counter.halts_by_region(counter.GetMyContextFromRoot(root_context)))
+        halts_by_region=counter.halts_by_region(counter.GetMyContextFromRoot(root_context)),
+        **side_agreement_fields(diagram, root_context))
+
+
+def side_agreement_fields(diagram, root_context) -> dict:
+    """The "crossing_side_agreement"'s counts (`RolloutRecord`'s side_* fields), where the
+    diagram has one (a perceived crossing side), else none."""
+    if not diagram.HasSubsystemNamed("crossing_side_agreement"):
+        return {}
+    agreement = diagram.GetSubsystemByName("crossing_side_agreement")
+    summary = agreement.summary(agreement.GetMyContextFromRoot(root_context))
+    edge_m = summary["side_disagreement_edge_m"]
+    return {**summary, "side_disagreement_edge_m": [] if math.isnan(edge_m[0]) else edge_m}
 
 
 def initialize_worker() -> None:
@@ -109,13 +144,15 @@ def initialize_worker() -> None:
 
 
 def spec_fields(spec: RolloutSpec) -> dict:
-    """The record fields that repeat the spec."""
-    return {"key": spec.key, **asdict(spec)}
+    """The record fields that repeat the spec, and what its controller declares privileged."""
+    return {"key": spec.key, **asdict(spec), "privileged": spec_privileged(spec)}
 
 
-def error_record(spec: RolloutSpec, message: str, wall_s: float = float("nan")) -> RolloutRecord:
+def error_record(spec: RolloutSpec, message: str, wall_s: float = float("nan"),
+                 crossing_side_source: str = "") -> RolloutRecord:
+    """The record of a rollout that raised; `crossing_side_source` where its diagram was built."""
     nan = float("nan")
     return RolloutRecord(**spec_fields(spec), status="error", success=False, time_s=nan,
                          path_length_m=nan, peak_abs_roll_deg=nan, peak_abs_pitch_deg=nan, peak_tilt_deg=nan,
                          min_stability_margin_deg=nan, final_x_m=nan, final_y_m=nan, failure_region="",
-                         wall_s=wall_s, error=message)
+                         wall_s=wall_s, error=message, crossing_side_source=crossing_side_source)

@@ -143,9 +143,10 @@ class DitchDrakeEnv(DrakeGymEnv):
     the simulator fails). The last step's `info` holds the outcome record's fields
     (`RolloutRecord`'s status .. halts_by_region) with the seed; every `info` has "seed",
     "time_s" and "crossing_side": +1 or -1, the side along the edge to cross on that a clone
-    trained in one side's frame is told (`CrossingSide`; `LearnedPolicy.infer`'s
-    `crossing_side`), from the ditch's course, the goal and the pose: a map's answer, not
-    something the robot senses. Reward: `RewardConfig`.
+    trained in one side's frame is told (`LearnedPolicy.infer`'s `crossing_side`), or 0 before
+    the edge is seen: `PerceivedCrossingSide`, from the lidar's rays and the pose, unless the
+    scenario's learned controller asks for the oracle (`crossing_side: oracle`, from the
+    ditch's analytic course: privileged). Reward: `RewardConfig`.
 
     The diagram is built once (the packaged sine takes seconds) and every reset reuses it.
     """

@@ -44,3 +44,16 @@ def within_chassis_in_plan(margin_m: float) -> Callable[[np.ndarray], np.ndarray
         return (np.abs(p_BP[0]) <= half[0]) & (np.abs(p_BP[1]) <= half[1])
 
     return within
+
+
+def open_rays_B(rays_L: np.ndarray, X_BL: RigidTransform, margin_m: float = 0.01) -> np.ndarray:
+    """Unit rays (N, 3) in B; NaN rows for those given as NaN or passing through the chassis box."""
+    rays_B = rays_L.reshape(-1, 3) @ X_BL.rotation().matrix().T
+    half = robot.CHASSIS_SIZE_M / 2 + margin_m
+    with np.errstate(divide="ignore", invalid="ignore"):
+        low = (robot.chassis_center_in_body_frame() - half - X_BL.translation()) / rays_B
+        high = (robot.chassis_center_in_body_frame() + half - X_BL.translation()) / rays_B
+    enter = np.fmax.reduce(np.minimum(low, high), axis=1)  # The slab test; NaN components drop out.
+    leave = np.fmin.reduce(np.maximum(low, high), axis=1)
+    blocked = (leave >= np.maximum(enter, 0.0)) & (leave > 0.0)
+    return np.where(blocked[:, None], np.nan, rays_B)

@@ -134,6 +134,11 @@ def measure_blocks() -> dict:
     # The rollover-aware MPPI on its own replayed drive (map fusion + attitude-predicting plan).
     mppi = measure_mppi_ms()
     figures.update({key: mppi[key] for key in ("mppi_update_ms", "mppi_update_cpu_ms", "mppi_update_p90_ms")})
+    # The generalist's perceived crossing side on a replayed approach to the wide ditch.
+    from ditch_drake.perf.bench_crossing_side import measure_crossing_side_ms
+
+    side = measure_crossing_side_ms()
+    figures.update({key: side[key] for key in ("crossing_side_ms", "crossing_side_cpu_ms", "crossing_side_p90_ms")})
     return figures
 
 

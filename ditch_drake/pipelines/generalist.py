@@ -92,10 +92,10 @@ class GeneralistConfig:
             (`ditch_drake.world.crossing.crossing_sides` along the recorded path, with the
             driver's own approach margin and convention) is left is reflected, so the clone
             learns only crossings turned right, and it is told the side when it drives
-            (`ModelConfig.canonical_side`, `ditch_drake.systems.crossing_side`). Which side
-            is then not the clone's choice but a command from a map of the ditch, as a route
-            planner's turn command conditions a driving policy; the paper's clone has no such
-            input. Not with `mirror`.
+            (`ModelConfig.canonical_side`; `PerceivedCrossingSide` finds it in the lidar's rays,
+            `OracleCrossingSide` reads it off the ditch's course). Which side is then not the
+            clone's choice but a command, as a route planner's turn command conditions a
+            driving policy; the paper's clone has no such input. Not with `mirror`.
         seed: seeds the demonstrations, training and the val rollouts.
         workers: processes for collection and evaluation (None: one per core).
         ranges: the val split's ranges YAML file ("": the benchmark's, `ranges.yaml`).
@@ -165,7 +165,7 @@ def _training_samples(config: GeneralistConfig, data: list[Path], ditches: str, 
 
 def _crossing_sides(demonstration, environments: dict) -> np.ndarray:
     """The side along the edge (+1 right, -1 left) at each step of a recorded rollout, by the
-    rule of `CrossingSide` with its driver's approach margin and convention."""
+    rule of `OracleCrossingSide` with its driver's approach margin and convention."""
     metadata = demonstration.metadata
     driver = metadata["expert_style"]["driver"]
     environment = environments[metadata["environment"]]

@@ -10,7 +10,7 @@ from pydrake.math import RigidTransform
 from pydrake.perception import PointCloud
 from pydrake.systems.framework import BasicVector, LeafSystem
 
-from ditch_drake.perception.lidar_points import returns_in_world
+from ditch_drake.perception.lidar_points import open_rays_B, returns_in_world
 from ditch_drake.planning.costmap import CostmapConfig, SlopeCostmap
 from ditch_drake.planning.dwa import (
     DwaPlannerConfig,
@@ -79,19 +79,6 @@ _COUNTERS = {"halts": _HALTS, "plans": _PLANS, "plan_failures": _PLAN_FAILURES, 
              "goal_reached": _GOAL_REACHED, "no_data": _NO_DATA, "mode": _MODE}
 # The `status` output: the mode, then the counters.
 _STATUS_OUTPUT = (_MODE, _HALTS, _PLANS, _PLAN_FAILURES, _RECOVERIES, _NO_DATA)
-
-
-def _open_rays_B(rays_L: np.ndarray, X_BL: RigidTransform, margin_m: float = 0.01) -> np.ndarray:
-    """Unit rays (N, 3) in B; NaN rows for those given as NaN or passing through the chassis box."""
-    rays_B = rays_L.reshape(-1, 3) @ X_BL.rotation().matrix().T
-    half = robot.CHASSIS_SIZE_M / 2 + margin_m
-    with np.errstate(divide="ignore", invalid="ignore"):
-        low = (robot.chassis_center_in_body_frame() - half - X_BL.translation()) / rays_B
-        high = (robot.chassis_center_in_body_frame() + half - X_BL.translation()) / rays_B
-    enter = np.fmax.reduce(np.minimum(low, high), axis=1)  # The slab test; NaN components drop out.
-    leave = np.fmin.reduce(np.maximum(low, high), axis=1)
-    blocked = (leave >= np.maximum(enter, 0.0)) & (leave > 0.0)
-    return np.where(blocked[:, None], np.nan, rays_B)
 
 
 class DwaController(LeafSystem):
@@ -165,7 +152,7 @@ class DwaController(LeafSystem):
         self._period_s = float(period_s)
         self._costmap = SlopeCostmap(self._config.costmap)
         self._outline_B = footprint_outline(self._costmap.footprint, self._costmap.resolution)
-        self._rays_B = None if ray_directions_L is None else _open_rays_B(np.asarray(ray_directions_L, float), X_BL)
+        self._rays_B = None if ray_directions_L is None else open_rays_B(np.asarray(ray_directions_L, float), X_BL)
         self._cloud_port = self.DeclareAbstractInputPort("point_cloud", Value(PointCloud()))
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         self._command_index = self.DeclareDiscreteState(2)

@@ -26,7 +26,8 @@ class LearnedPolicy(LeafSystem):
     makes it see those pushed at t_k, one period fresher.
 
     A checkpoint trained in one side's frame (`ModelConfig.canonical_side`) adds the input
-    `crossing_side` (`CrossingSide`): where it is -1 (cross turned left along the edge) the
+    `crossing_side` (`PerceivedCrossingSide` or `OracleCrossingSide`; 0 before the edge is seen
+    reflects nothing): where it is -1 (cross turned left along the edge) the
     policy runs the network on the left-right reflection of the stacks
     (`ditch_drake.learning.mirror`) and reflects the chosen label and the probabilities back.
 

@@ -8,7 +8,8 @@ the benchmark's report bins success by it).
 
 `approach_side` is that rule, and `crossing_sides` the side it gives along a path, held from
 where the path enters the approach zone on: the side a clone trained in one side's frame is
-told to cross on (`ditch_drake.systems.crossing_side`).
+told to cross on (`ditch_drake.systems.oracle_crossing_side`; `perceived_crossing_side` applies
+the same rule to the edge it finds in the lidar's rays).
 """
 
 import math

@@ -1,4 +1,5 @@
-"""Which side along the edge to cross on: a route-level command for a side-conditioned clone."""
+"""Which side along the edge to cross on, read from the analytic ditch: the oracle a side-conditioned
+clone can be told instead of `PerceivedCrossingSide` (privileged: no sensor gives it)."""
 
 import numpy as np
 from pydrake.common.value import Value
@@ -14,20 +15,21 @@ from ditch_drake.world.terrain import DitchTerrain
 _EXPERT = EdgeAngleDriverConfig()
 
 
-class CrossingSide(LeafSystem):
-    """The side along the edge the expert's rule would cross on, from a map of the ditch.
+class OracleCrossingSide(LeafSystem):
+    """The side along the edge the expert's rule would cross on, from the ditch's analytic course.
 
     Until the robot first enters the approach zone (within `approach_margin_m` of the hinge
     line) the output is the expert's rule at the current pose; from then on, the side it had
     there, as the expert commits to its side (`ditch_drake.world.crossing.crossing_side_step`). A clone trained
     with every crossing reflected to one side (`ModelConfig.canonical_side`) is told this
-    side, as a route planner tells a driving policy which way to turn at a junction: it
-    needs the ditch's course, which the lidar alone does not give. Offline,
+    side, as a route planner tells a driving policy which way to turn at a junction. It reads
+    the ditch's course and the true pose, which no sensor gives: an oracle, for the ablation
+    against `PerceivedCrossingSide`, which finds the edge in the lidar's rays. Offline,
     `ditch_drake.world.crossing.crossing_sides` gives the same sides along a recorded path.
 
     .. pydrake_system::
 
-        name: CrossingSide
+        name: OracleCrossingSide
         input_ports:
         - body_poses
         output_ports:
