@@ -38,7 +38,8 @@ class PerceivedCrossingSideConfig:
         resolution_m: cell side of the rolling window that accumulates drops in the world.
         window_m: the window's side, centred on the robot.
         min_marks: a cell is a drop once this many rays (over all steps) marked it: a single
-            ray that returns nothing through a seam of the rendered ground is not a ditch.
+            ray that returned nothing on open ground (one did, 2 m short of a crater's edge, and
+            set the side there 37 deg off) is not a ditch.
         band_m: drop cells within this of the nearest one are the edge the side is read from.
         min_cells: fewer drop cells than this: the edge is not seen yet.
         approach_margin_m: the side is held from where the nearest drop lies this close to
