@@ -9,7 +9,6 @@ and a network (about 100 MB). Every rollout starts from a fresh random Context
 
 import collections
 import importlib
-import math
 import time
 from dataclasses import asdict, replace
 
@@ -19,7 +18,7 @@ from ditch_drake.common.config_yaml import config_from_yaml
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.controllers import entry_for_config
 from ditch_drake.diagrams.ditch_scene import SceneConfig
-from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+from ditch_drake.diagrams.rollout import CROSSING_SIDE_SOURCES, MakeRolloutDiagram, RolloutConfig, RunEpisode
 from ditch_drake.evaluation.results import RolloutRecord, RolloutSpec
 from ditch_drake.learning.checkpoint import checkpoint_digest
 from ditch_drake.systems.episode_monitor import EpisodeConfig
@@ -92,7 +91,7 @@ def run_rollout(spec: RolloutSpec) -> RolloutRecord:
 def crossing_side_source(diagram) -> str:
     """Where a rollout diagram's clone is told its crossing side: "perceived" or "oracle" by
     the block it holds ("perceived_crossing_side", "oracle_crossing_side"), else ""."""
-    for source in ("perceived", "oracle"):
+    for source in CROSSING_SIDE_SOURCES:
         if diagram.HasSubsystemNamed(f"{source}_crossing_side"):
             return source
     return ""
@@ -131,9 +130,7 @@ def side_agreement_fields(diagram, root_context) -> dict:
     if not diagram.HasSubsystemNamed("crossing_side_agreement"):
         return {}
     agreement = diagram.GetSubsystemByName("crossing_side_agreement")
-    summary = agreement.summary(agreement.GetMyContextFromRoot(root_context))
-    edge_m = summary["side_disagreement_edge_m"]
-    return {**summary, "side_disagreement_edge_m": [] if math.isnan(edge_m[0]) else edge_m}
+    return agreement.summary(agreement.GetMyContextFromRoot(root_context))
 
 
 def initialize_worker() -> None:

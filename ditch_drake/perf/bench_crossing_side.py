@@ -3,7 +3,7 @@
 Run: `python -m ditch_drake.perf.bench_crossing_side`. A closed-loop drive of the DWA baseline
 toward the wide ditch (`recorded_drive.record_lidar_drive`: the same lidar the learned policy
 has, and the same clouds) records the organized cloud and the chassis pose at each control
-step; a fresh block then replays them, timing each periodic update. The block stops marking rays
+step; a fresh block then replays them, timing each periodic update. The block does nothing more
 once it holds its side, so it is timed with the hold switched off: every step pays for marking
 the rays, rolling the window and estimating the edge, the cost of a step before the approach
 zone, which bounds what the block adds to any control step.

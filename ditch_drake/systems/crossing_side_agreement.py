@@ -55,15 +55,15 @@ class CrossingSideAgreement(LeafSystem):
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._count)
 
     def summary(self, context) -> dict:
-        """This system's counts in `context`: `side_zone_steps`, `side_agreeing_steps`,
-        `side_unseen_steps` (zone steps told no side), and the nearest and farthest distance
-        to the hinge line (m, negative inside it) of a disagreeing step (NaN if none)."""
+        """This system's counts in `context`, as `RolloutRecord`'s side_* fields:
+        `side_zone_steps`, `side_agreeing_steps`, `side_unseen_steps` (zone steps told no side),
+        and `side_disagreement_edge_m`, the nearest and farthest distance to the hinge line (m,
+        negative inside it) of a disagreeing step ([] if none)."""
         state = context.get_discrete_state(self._state_index).get_value()
         disagreed = state[_ZONE_STEPS] > state[_AGREEING]
         return {"side_zone_steps": int(state[_ZONE_STEPS]), "side_agreeing_steps": int(state[_AGREEING]),
                 "side_unseen_steps": int(state[_UNSEEN]),
-                "side_disagreement_edge_m": [float(state[_NEAREST_M]) if disagreed else math.nan,
-                                             float(state[_FARTHEST_M]) if disagreed else math.nan]}
+                "side_disagreement_edge_m": [float(state[_NEAREST_M]), float(state[_FARTHEST_M])] if disagreed else []}
 
     def _count(self, context, discrete_state) -> None:
         state = context.get_discrete_state(self._state_index).get_value().copy()

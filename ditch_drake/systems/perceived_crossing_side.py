@@ -161,6 +161,8 @@ class PerceivedCrossingSide(LeafSystem):
     def _update(self, context, discrete_state) -> None:
         config, window = self._config, self._window
         state = context.get_discrete_state(self._state_index).get_value().copy()
+        if state[_HELD] != 0.0:
+            return  # Held for good: the state stays as it is (Drake hands the update the current one).
         drops = context.get_discrete_state(self._drops_index).get_value().reshape(window.shape)
         X_WB = self._poses_port.Eval(context)[self._chassis_index]
         xy = X_WB.translation()[:2]
@@ -168,20 +170,19 @@ class PerceivedCrossingSide(LeafSystem):
         if state[_WINDOW_VALID]:
             drops = window.roll(drops, state[_WX:_WY + 1].astype(int), origin)
         state[_WX:_WINDOW_VALID + 1] = [*origin, 1.0]
-        if state[_HELD] == 0.0:
-            cloud = self._cloud_port.Eval(context)
-            if cloud.size() == len(self._rays.plane_hit_B):
-                dropped, ground = self._rays.classify(cloud.xyzs())
-                drops = _mark(window, drops, origin, X_WB, self._rays.plane_hit_B, dropped, ground)
-            edge = _edge(window, drops, origin, xy, config)
-            if edge is not None:
-                distance, away = edge
-                side = approach_side(self._goal_xy - xy, -away, np.array([-away[1], away[0]]),
-                                     config.straight_across_deg)
-                tilt = math.degrees(math.acos(np.clip(X_WB.rotation().matrix()[2, 2], -1.0, 1.0)))
-                state[[_SIDE, _SEEN, _DISTANCE, _AWAY_X, _AWAY_Y]] = [side, 1.0, distance, *away]
-                if distance <= config.approach_margin_m or tilt >= config.hold_tilt_deg:
-                    state[_HELD] = side
+        cloud = self._cloud_port.Eval(context)
+        if cloud.size() == len(self._rays.plane_hit_B):
+            dropped, ground = self._rays.classify(cloud.xyzs())
+            drops = _mark(window, drops, origin, X_WB, self._rays.plane_hit_B, dropped, ground)
+        edge = _edge(window, drops, origin, xy, config)
+        if edge is not None:
+            distance, away = edge
+            side = approach_side(self._goal_xy - xy, -away, np.array([-away[1], away[0]]),
+                                 config.straight_across_deg)
+            tilt = math.degrees(math.acos(np.clip(X_WB.rotation().matrix()[2, 2], -1.0, 1.0)))
+            state[[_SIDE, _SEEN, _DISTANCE, _AWAY_X, _AWAY_Y]] = [side, 1.0, distance, *away]
+            if distance <= config.approach_margin_m or tilt >= config.hold_tilt_deg:
+                state[_HELD] = side
         discrete_state.set_value(self._drops_index, drops.reshape(-1))
         discrete_state.set_value(self._state_index, state)
 
