@@ -9,7 +9,7 @@ import pytest
 from pydrake.common import RandomGenerator
 from pydrake.systems.analysis import Simulator
 
-from ditch_drake.demos.collect import CollectConfig, MakeDemonstrationDiagram, collect, demo_path
+from ditch_drake.demos.collect import CollectConfig, MakeDemonstrationDiagram, collect
 from ditch_drake.demos.dataset import (
     DatasetError,
     Demonstration,
@@ -22,6 +22,7 @@ from ditch_drake.demos.dataset import (
     standard_metadata,
     to_array_set,
 )
+from ditch_drake.demos.store import EPISODE_FILE, DatasetStore
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.learning.checkpoint import resolve_checkpoint_path
 from ditch_drake.spec import actions
@@ -222,18 +223,26 @@ def _with_convention(path, straight_across_deg):
 def test_collect_resumes_keeping_what_is_written(tmp_path):
     config = CollectConfig(environment="narrow", demos=1, seed=0, out=str(tmp_path), workers=1)
     first = collect(config, progress=False)
-    assert first["recorded"] == 1 and demo_path(tmp_path, 0).exists()
-    written = os.path.getmtime(demo_path(tmp_path, 0))
-    # A damaged second file is set aside and its slot recorded again; the good first one is kept.
-    demo_path(tmp_path, 1).write_bytes(b"not a demonstration")
+    store = DatasetStore.open(tmp_path)
+    assert first["recorded"] == 1 and store.has_episode(0)
+    written = os.path.getmtime(store.episode_path(0) / EPISODE_FILE)
+    # A torn second episode (its folder without episode.json) is set aside and its slot recorded
+    # again; the whole first one is kept; a killed writer's temporary folder is removed.
+    store.episode_path(1).mkdir()
+    (store.episode_path(1) / "label.npy").write_bytes(b"half")
+    (store.episodes_dir / ".episode_000002.999999999.0123456789ab.tmp").mkdir()
     config.demos = 2
     second = collect(config, progress=False)
     assert second["kept_before"] == 1 and second["recorded"] == 1
-    assert (tmp_path / "demo_001.npz.corrupt").read_bytes() == b"not a demonstration"
-    assert os.path.getmtime(demo_path(tmp_path, 0)) == written
+    assert (store.episodes_dir / "episode_000001.torn" / "label.npy").read_bytes() == b"half"
+    assert second["torn_episodes_set_aside"] == [str(store.episodes_dir / "episode_000001.torn")]
+    assert not store.temporary_episodes()
+    assert os.path.getmtime(store.episode_path(0) / EPISODE_FILE) == written
     demonstrations = load_dataset(tmp_path)
     assert [demo.metadata["task"]["index"] for demo in demonstrations] == [0, 1]
     assert all(demo.metadata["outcome"]["status"] == "reached_goal" for demo in demonstrations)
+    assert [episode.metadata["ditch"] for episode in store.episodes()] == [
+        {"name": "narrow", "seed": None, "split": "paper"}] * 2
 
 
 def test_collect_refuses_bad_arguments(tmp_path):

@@ -30,6 +30,7 @@ from ditch_drake.demos.dataset import (
     save_demonstration,
     standard_metadata,
 )
+from ditch_drake.demos.store import DatasetStore
 from ditch_drake.evaluation.batch import evaluate, make_specs
 from ditch_drake.evaluation.report import write_report
 from ditch_drake.evaluation.report_data import load_report_data
@@ -132,14 +133,15 @@ def test_ctrl_c_stops_collect_promptly_and_a_rerun_completes_the_set(tmp_path):
     out = tmp_path / "demos"
     # Three demonstrations: the stop lands mid-set even when this test looks late on a loaded host.
     process = _start(["collect", "--env", "wide", "--demos", "3", "--workers", "1", "--out", str(out)])
-    _wait_for(lambda: (out / "demo_000.npz").exists())
+    _wait_for(lambda: (out / "episodes" / "episode_000000" / "episode.json").exists())
     elapsed, _, err = _stop(process, signal.SIGINT, to_group=True)
     assert process.returncode == 130, err
     assert elapsed < STOP_WITHIN_S
     assert _group_is_gone(process.pid)
     assert "Traceback" not in err and "run the same command again" in err
     assert main(["collect", "--env", "wide", "--demos", "3", "--workers", "0", "--out", str(out)]) == 0
-    assert sorted(path.name for path in out.glob("demo_*.npz")) == ["demo_000.npz", "demo_001.npz", "demo_002.npz"]
+    assert [episode.name for episode in DatasetStore.open(out).episodes()] == [
+        "episode_000000", "episode_000001", "episode_000002"]
 
 
 def test_workers_die_with_a_killed_main_process(tmp_path):

@@ -25,12 +25,15 @@ from ditch_drake.benchmark.generator import SampledDitch, sample_ditch
 from ditch_drake.benchmark.ranges import BenchmarkRanges, load_ranges, packaged_ranges_path
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_write_text
+from ditch_drake.world.ditch_splits import (  # noqa: F401 (the benchmark's names for them)
+    PAPER_SPLIT,
+    SEED_SPLITS,
+    SPLITS,
+    split_of_environment,
+    split_of_seed,
+)
 from ditch_drake.world.environments import Environment, EnvironmentLibrary, environment_names, load_environments
 
-SEED_SPLITS = {"train": range(200), "val": range(1000, 1050), "test": range(2000, 2100),
-               "stress": range(3000, 3100)}
-PAPER_SPLIT = "paper"
-SPLITS = (*SEED_SPLITS, PAPER_SPLIT)
 # The packaged ranges file of each generated split that does not draw from `ranges.yaml`.
 SPLIT_RANGES = {"stress": "stress_ranges.yaml"}
 
@@ -65,19 +68,6 @@ def split_ranges(split: str, path: str | Path | None = None) -> BenchmarkRanges:
     """
     check_split(split)
     return load_ranges(path or packaged_ranges_path(SPLIT_RANGES.get(split, "ranges.yaml")))
-
-
-def split_of_seed(seed: int) -> str:
-    """The split a generated ditch's seed belongs to ("" for none)."""
-    return next((split for split, seeds in SEED_SPLITS.items() if seed in seeds), "")
-
-
-def split_of_environment(name: str) -> str:
-    """The split of an environment name: a packaged one is "paper", `ditch_<seed>` its seed's."""
-    if name in environment_names(variants=True):
-        return PAPER_SPLIT
-    prefix, _, number = name.partition("_")
-    return split_of_seed(int(number)) if prefix == "ditch" and number.isdigit() else ""
 
 
 def split_ditches(split: str, geometries: int | None = None,

@@ -133,7 +133,7 @@ def add_teleop(commands: Commands) -> None:
     teleop = commands.add("teleop", "record your own demonstration: steer in meshcat", with_environments=True)
     add_episode(teleop)
     add_environments_file(teleop)
-    add_out(teleop, "directory of demo_NNN.npz files")
+    add_out(teleop, "dataset folder (made if missing); the demonstration is appended as its next episode")
     teleop.add_argument("--realtime-rate", type=float, default=1.0, help="simulated seconds per wall-clock second")
     teleop.set_defaults(run=cmd_teleop)
 
@@ -145,9 +145,10 @@ def cmd_teleop(args) -> int:
     check_realtime_rate(args.realtime_rate)
     from pydrake.geometry import StartMeshcat
 
-    from ditch_drake.demos.collect import next_free_demo_path, record_person_demonstration
-    from ditch_drake.demos.dataset import save_demonstration
+    from ditch_drake.demos.collect import record_person_demonstration
+    from ditch_drake.demos.store import DatasetStore
 
+    store = DatasetStore.create(args.out)  # A bad --out fails before a person drives.
     meshcat = StartMeshcat()
     print(f"meshcat: open {meshcat.web_url()} and steer with the arrow keys (or a gamepad) in that tab", flush=True)
     demonstration = record_person_demonstration(args.env, args.task, meshcat, args.seed, args.realtime_rate,
@@ -156,7 +157,7 @@ def cmd_teleop(args) -> int:
     if status != "reached_goal":
         print(f"outcome: {status}; not kept")
         return 1
-    print(f"outcome: reached_goal; saved {save_demonstration(next_free_demo_path(args.out), demonstration)}")
+    print(f"outcome: reached_goal; saved {store.append(demonstration).path}")
     return 0
 
 

@@ -10,7 +10,7 @@ import argparse
 import os
 import sys
 
-from ditch_drake.cli import episode_commands, evaluation_commands, tool_commands, training_commands
+from ditch_drake.cli import dataset_commands, episode_commands, evaluation_commands, tool_commands, training_commands
 from ditch_drake.cli.options import Commands, Parser, environments_epilog
 from ditch_drake.common.errors import ConfigError, ResultsError, TerrainError
 from ditch_drake.common.parallel import interrupt_exit_code, terminate_as_interrupt
@@ -23,7 +23,7 @@ COMMANDS = (
     tool_commands.add_calibrate,
     training_commands.add_collect,
     episode_commands.add_teleop,
-    training_commands.add_dataset_info,
+    dataset_commands.add_dataset,
     episode_commands.add_replay,
     training_commands.add_checkpoint_info,
     evaluation_commands.add_evaluate,

@@ -1,4 +1,4 @@
-"""Commands of data and training: collect, dataset-info, train, checkpoint-info, train-generalist."""
+"""Commands of data and training: collect, train, checkpoint-info, train-generalist."""
 
 import json
 import sys
@@ -8,7 +8,6 @@ from ditch_drake.cli.options import (
     ConfigDefault,
     add_env,
     add_environments_file,
-    add_json,
     add_out,
     add_workers,
     print_table,
@@ -30,7 +29,7 @@ def add_collect(commands: Commands) -> None:
                          help="successful demonstrations, spread over the tasks")
     collect.add_argument("--seed", type=int, default=ConfigDefault(COLLECT, "seed"),
                          help="demonstration i's first attempt uses seed + i")
-    add_out(collect, "directory of demo_NNN.npz files")
+    add_out(collect, "dataset folder (made if missing); demonstration i is its episode i")
     add_workers(collect, "demonstrations", default=ConfigDefault(COLLECT, "workers"))
     collect.add_argument("--learner", default=ConfigDefault(COLLECT, "learner"), metavar="CHECKPOINT",
                          help="DAgger: this policy drives, the expert labels; every rollout is kept "
@@ -67,34 +66,6 @@ def cmd_collect(args) -> int:
               "run the same command again to continue", file=sys.stderr)
         return report["exit_code"]
     return 0 if not report["unfilled_slots"] else 1
-
-
-def add_dataset_info(commands: Commands) -> None:
-    info = commands.add("dataset-info", "counts per label and task, class imbalance")
-    info.add_argument("path", help="a directory of demonstrations")
-    add_json(info)
-    info.set_defaults(run=cmd_dataset_info)
-
-
-def cmd_dataset_info(args) -> int:
-    from ditch_drake.demos.dataset import dataset_summary, load_dataset
-    from ditch_drake.spec.actions import ANGULAR_RATES_RADPS
-
-    summary = dataset_summary(load_dataset(args.path))
-    if args.json:
-        print(json.dumps(summary))
-        return 0
-    print(f"{args.path}: {summary['demonstrations']} demonstrations, {summary['steps']} steps")
-    print("per task: " + ", ".join(f"{name} {count}" for name, count in summary["per_task"].items()))
-    print("outcomes: " + ", ".join(f"{name} {count}" for name, count in sorted(summary["per_outcome"].items())))
-    print("driven by: " + ", ".join(f"{name} {count}" for name, count in summary["per_driver"].items()))
-    rows = [{"label": label, "w_radps": f"{rate:+.2f}", "steps": count,
-             "share": f"{count / max(1, summary['steps']):.1%}"}
-            for label, (rate, count) in enumerate(zip(ANGULAR_RATES_RADPS, summary["per_label"]))]
-    print_table(rows, ["label", "w_radps", "steps", "share"])
-    print(f"straight (label 8) share {summary['straight_fraction']:.1%}; "
-          f"majority/minority ratio {summary['majority_to_minority_ratio']:.1f}")
-    return 0
 
 
 def add_checkpoint_info(commands: Commands) -> None:

@@ -1,8 +1,9 @@
 """Collecting demonstrations with the scripted expert, resumably and in parallel.
 
-Each demonstration is written by its worker, atomically, the moment it ends; Ctrl-C or
-SIGTERM kills the workers at once (`ditch_drake.common.parallel`) and the report says how many were
-kept, so the same command run again records only the missing ones.
+Demonstration i is episode i of a dataset store (`ditch_drake.demos.store`), written by its
+worker, atomically, the moment it ends; Ctrl-C or SIGTERM kills the workers at once
+(`ditch_drake.common.parallel`) and the report says how many were kept, so the same command run
+again records only the missing ones.
 """
 
 import collections
@@ -17,7 +18,6 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, System
 from tqdm import tqdm
 
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.common.files import remove_stale_temporaries
 from ditch_drake.common.parallel import (
     WorkerPool,
     check_workers,
@@ -26,14 +26,8 @@ from ditch_drake.common.parallel import (
     worker_count,
 )
 from ditch_drake.common.seeds import check_seed
-from ditch_drake.demos.dataset import (
-    DatasetError,
-    Demonstration,
-    load_demonstration,
-    log_to_arrays,
-    save_demonstration,
-    standard_metadata,
-)
+from ditch_drake.demos.dataset import Demonstration, demonstration_paths, log_to_arrays, standard_metadata
+from ditch_drake.demos.store import EPISODE_FILE, DatasetError, DatasetStore, is_store
 from ditch_drake.diagrams.controllers import get_controller
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
@@ -68,7 +62,7 @@ class CollectConfig:
             drives task i mod the number of tasks).
         seed: demo i's first attempt uses seed + i; a failed attempt k uses
             seed + i + 1000 k (failed demonstrations are not kept).
-        out: directory of `demo_NNN.npz` files.
+        out: the dataset folder (`ditch_drake.demos.store`); demonstration i is its episode i.
         workers: processes (None: one per core; 0: in this process).
         observation: perception settings.
         variation: the expert's per-demonstration variation.
@@ -200,18 +194,6 @@ def record_person_demonstration(environment: str, task: int, meshcat: Meshcat, s
     return _run_and_record(rig, environment, task, seed, realtime_rate, driver="person (meshcat teleop)")
 
 
-def next_free_demo_path(out: str | Path) -> Path:
-    """The first `demo_NNN.npz` in `out` that does not exist yet."""
-    index = 0
-    while demo_path(out, index).exists():
-        index += 1
-    return demo_path(out, index)
-
-
-def demo_path(out: str | Path, index: int) -> Path:
-    return Path(out) / f"demo_{index:03d}.npz"
-
-
 # A collection worker's built rigs, most recently used last, reused across its
 # demonstrations: building a scene costs up to a second or more, about a demonstration's
 # simulation. Keyed by everything the diagram is built from; a rig holds no episode state
@@ -266,7 +248,7 @@ def _collect_slot(config: CollectConfig, index: int) -> dict:
         rig = _worker_rig(config, environment, task, draw_expert_style(seed, config.variation).reaction_delay_steps)
         demonstration = trim_rollover(record_demonstration(environment, task, seed, config.observation,
                                                            config.variation, rig, config.learner))
-        save_demonstration(demo_path(config.out, index), demonstration)
+        DatasetStore.open(config.out).append(demonstration, index)
         return {"index": index, "seed": seed, "steps": len(demonstration), "failures": [],
                 "status": demonstration.metadata["outcome"]["status"]}
     failures = []
@@ -276,40 +258,40 @@ def _collect_slot(config: CollectConfig, index: int) -> dict:
         demonstration = record_demonstration(environment, task, seed, config.observation, config.variation, rig)
         status = demonstration.metadata["outcome"]["status"]
         if status == "reached_goal":
-            save_demonstration(demo_path(config.out, index), demonstration)
+            DatasetStore.open(config.out).append(demonstration, index)
             return {"index": index, "seed": seed, "steps": len(demonstration), "failures": failures,
                     "status": status}
         failures.append({"seed": seed, "status": status})
     return {"index": index, "seed": None, "steps": 0, "failures": failures, "status": None}
 
 
-def _existing_demo(path: Path, set_aside: list[str]) -> bool:
-    """Whether a valid demonstration is already at `path`.
+def _existing_episode(store: DatasetStore, index: int, set_aside: list[str]) -> bool:
+    """Whether episode `index` is stored whole.
 
-    A damaged file is renamed to `<name>.corrupt[.N]` (kept for inspection, never
-    overwritten) and its slot is recorded again.
+    An episode folder without its `episode.json` (torn: not written by this store's writer,
+    which renames whole episodes into place) is renamed to `<name>.torn[.N]` (kept for
+    inspection, never overwritten) and its slot is recorded again.
     """
+    path = store.episode_path(index)
     if not path.exists():
         return False
-    try:
-        load_demonstration(path)
+    if (path / EPISODE_FILE).is_file():
         return True
-    except DatasetError:
-        target = path.with_name(path.name + ".corrupt")
-        suffix = 1
-        while target.exists():
-            target = path.with_name(f"{path.name}.corrupt.{suffix}")
-            suffix += 1
-        path.rename(target)
-        set_aside.append(str(target))
-        return False
+    target = path.with_name(path.name + ".torn")
+    suffix = 1
+    while target.exists():
+        target = path.with_name(f"{path.name}.torn.{suffix}")
+        suffix += 1
+    path.rename(target)
+    set_aside.append(str(target))
+    return False
 
 
 def collect(config: CollectConfig, progress: bool = True) -> dict:
-    """Collects the missing demonstrations of `config.out`; returns a report.
+    """Collects the missing episodes of the dataset folder `config.out`; returns a report.
 
-    Interrupted and rerun, it keeps the valid files already written and records
-    only the missing ones; a damaged file is renamed aside, not overwritten. Ctrl-C
+    Interrupted and rerun, it keeps the episodes already written and records only the
+    missing ones; a torn episode folder is renamed aside, not overwritten. Ctrl-C
     (KeyboardInterrupt) or SIGTERM stops it within a second or two: the report then has
     `interrupted` True and the shell's `exit_code` (130 or 143), and is not re-raised.
     """
@@ -320,14 +302,21 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     check_seed(config.seed, config.demos)
     out = Path(config.out)
     if out.exists() and not out.is_dir():
-        raise ConfigError(f"output path {out} is a file; expected a directory of demonstrations")
+        raise ConfigError(f"output path {out} is a file; expected a dataset folder")
+    if out.is_dir() and not is_store(out) and demonstration_paths(out):
+        raise ConfigError(f"output path {out} holds demo_NNN.npz files of the older format; expected a dataset "
+                          f"folder: convert it with `ditch-drake dataset convert {out} NEW_FOLDER`, then collect "
+                          "into NEW_FOLDER")
     if config.learner is not None:
         load_checkpoint(resolve_checkpoint_path(config.learner))  # A bad checkpoint fails here, not in a worker.
-    out.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(out)
+    try:
+        store = DatasetStore.create(out)
+    except DatasetError as error:
+        raise ConfigError(str(error)) from error
+    store.remove_stale_episodes()
     start = time.perf_counter()
     set_aside: list[str] = []
-    missing = [index for index in range(config.demos) if not _existing_demo(demo_path(config.out, index), set_aside)]
+    missing = [index for index in range(config.demos) if not _existing_episode(store, index, set_aside)]
     workers = worker_count(config.workers)
     results = []
     label = config.environment if not config.environments else f"{len(config.environments)} environments"
@@ -365,7 +354,7 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
         "environment": config.environment if not config.environments else config.environments,
         "out": str(config.out),
         "kept_before": config.demos - len(missing),
-        "corrupt_files_set_aside": set_aside,
+        "torn_episodes_set_aside": set_aside,
         "recorded": recorded,
         "unfilled_slots": [result["index"] for result in results if result["seed"] is None],
         "discarded": len(failures),

@@ -45,7 +45,7 @@ if TYPE_CHECKING:  # Reading and training need no Drake: a GPU box without pydra
 
 SCHEMA_VERSION = 1
 FILE_PATTERN = "demo_*.npz"
-_ARRAYS = {
+ARRAY_FIELDS = {
     "image": ((*IMAGE_SHAPE,), np.uint8),
     "imu_stack": ((2 * STACK_DEPTH,), np.float32),
     "distance_stack": ((STACK_DEPTH,), np.float32),
@@ -84,7 +84,7 @@ _JSON_TYPE_NAMES = {
     type(None): "null",
 }
 _EXPECTED_FILE = (
-    f"a .npz of the arrays {list(_ARRAYS)} and a JSON metadata string (schema_version "
+    f"a .npz of the arrays {list(ARRAY_FIELDS)} and a JSON metadata string (schema_version "
     f"{SCHEMA_VERSION}), as `ditch-drake collect` writes"
 )
 
@@ -136,7 +136,7 @@ def save_demonstration(path: str | Path, demonstration: Demonstration) -> Path:
     `ditch_drake.common.files.atomic_output`).
     """
     path = Path(path)
-    _validate(demonstration.arrays, demonstration.metadata, path)
+    validate_demonstration(demonstration.arrays, demonstration.metadata, path)
     with atomic_output(path) as file:
         np.savez_compressed(file, metadata=np.array(json.dumps(demonstration.metadata)), **demonstration.arrays)
     return path
@@ -187,7 +187,7 @@ def load_demonstration(path: str | Path) -> Demonstration:
         metadata = json.loads(str(text))
     except json.JSONDecodeError as error:
         raise DatasetError(f"demonstration file {path}: 'metadata' is not JSON ({error})") from error
-    _validate(arrays, metadata, path)
+    validate_demonstration(arrays, metadata, path)
     return Demonstration(arrays, metadata, path)
 
 
@@ -233,18 +233,23 @@ def _validate_metadata(metadata, path: Path) -> None:
             )
 
 
-def _validate(arrays: dict, metadata: dict, path: Path) -> None:
+def validate_demonstration(arrays: dict, metadata: dict, path: Path) -> None:
+    """Checks the metadata's types and version and every array's shape, dtype and values.
+
+    Raises:
+        DatasetError: naming `path` and what is wrong.
+    """
     _validate_metadata(metadata, path)
     version = metadata.get("schema_version")
     if version != SCHEMA_VERSION:
         raise DatasetError(f"{path}: schema_version {version!r}, expected {SCHEMA_VERSION}")
-    missing = sorted(set(_ARRAYS) - set(arrays))
+    missing = sorted(set(ARRAY_FIELDS) - set(arrays))
     if missing:
         raise DatasetError(f"{path}: missing arrays {missing}")
     steps = len(arrays["label"])
     if steps == 0:
         raise DatasetError(f"{path}: the demonstration has no steps")
-    for key, (shape, dtype) in _ARRAYS.items():
+    for key, (shape, dtype) in ARRAY_FIELDS.items():
         array = arrays[key]
         if array.shape != (steps, *shape) or array.dtype != dtype:
             raise DatasetError(f"{path}: array {key!r} has shape {array.shape} and dtype {array.dtype}; "
@@ -278,14 +283,23 @@ def demonstration_paths(directory: str | Path) -> list[Path]:
 
 
 def load_dataset(directory: str | Path, max_demos: int | None = None) -> list[Demonstration]:
-    """All (or the first `max_demos`) demonstrations of a directory, validated.
+    """All (or the first `max_demos`) demonstrations of a dataset folder (`ditch_drake.demos.store`)
+    or of a folder of `.npz` files, validated, in memory.
 
     Raises:
         ConfigError: `max_demos` < 1 (a negative one would silently drop the last files).
-        DatasetError: no such directory, no demonstration files, or a bad file.
+        DatasetError: no such directory, no demonstrations, or a bad file.
     """
     if max_demos is not None and max_demos < 1:
         raise ConfigError(f"max_demos={max_demos}: expected an integer >= 1, or none for all (--max-demos)")
+    from ditch_drake.demos.store import DatasetStore, is_store
+
+    if is_store(directory):
+        store = DatasetStore.open(directory)
+        episodes = store.episodes()
+        if not episodes:
+            raise DatasetError(f"dataset folder {directory} holds no complete episodes")
+        return [store.load(episode) for episode in episodes[:max_demos]]
     paths = demonstration_paths(directory)
     if not paths:
         raise DatasetError(f"dataset directory {directory} holds no {FILE_PATTERN} files")
