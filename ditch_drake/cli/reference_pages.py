@@ -112,11 +112,20 @@ def cli_page(parser: argparse.ArgumentParser) -> str:
               for name, command in commands.items()]
     lines += ["", "```", parser.epilog or "", "```", ""]
     for name, command in commands.items():
-        lines += [f"## ditch-drake {name}", "", _text(command.description or ""), "", "```", _usage(command), "```",
-                  ""]
-        if len(command._actions) > 1:
-            lines += [*_options_table(command), ""]
+        lines += _command_section(f"ditch-drake {name}", command)
     return "\n".join(lines)
+
+
+def _command_section(title: str, command: argparse.ArgumentParser) -> list[str]:
+    """A command's section, followed by one per action of a command that has actions (`dataset info`)."""
+    lines = [f"## {title}", "", _text(command.description or ""), "", "```", _usage(command), "```", ""]
+    options = _options_table(command)
+    if len(options) > 2:
+        lines += [*options, ""]
+    if any(isinstance(action, argparse._SubParsersAction) for action in command._actions):
+        for name, action in _subcommands(command).items():
+            lines += _command_section(f"{title} {name}", action)
+    return lines
 
 
 # The config schemas.
