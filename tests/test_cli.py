@@ -28,6 +28,7 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
     from ditch_drake.perf import bench_training
 
     monkeypatch.setattr(bench_training, "measure_training_throughput", lambda: {"train_samples_per_s": 1.0})
+    monkeypatch.setattr(bench_training, "measure_streaming_memory", lambda: {"train_peak_rss_mib": 1.0})
     from ditch_drake.perf import bench_gym
 
     monkeypatch.setattr(bench_gym.measure_gym_env, "__defaults__", ("wide", 0, 0, 1))
@@ -44,7 +45,7 @@ def test_bench_json_has_unit_suffixed_keys(capsys, monkeypatch):
                             "closed_loop_narrow_rtf", "observation_update_narrow_ms", "observation_first_step_narrow_ms",
                             "closed_loop_min_rtf", "host_reference_start_ms", "host_reference_end_ms"}
     assert all(key.rsplit("_", 1)[-1] in {"rtf", "s", "mib", "ms", "min", "ratio"} for key in figures)
-    assert {"train_samples_per_s", "evaluate_rollouts_per_min", "train_wide_40_demos_s"} <= set(figures)
+    assert {"train_samples_per_s", "evaluate_rollouts_per_min", "train_wide_40_demos_s", "train_peak_rss_mib"} <= set(figures)
     assert figures["gym_env_steps_per_s"] > 0 and figures["gym_env_step_time_ratio"] > 0
     assert figures["plant_narrow_rtf"] > 0
     assert figures["scene_build_max_s"] > 0 and figures["diagram_rss_mib"] > 0

@@ -22,7 +22,7 @@ from ditch_drake.demos.dataset import (
     standard_metadata,
     to_array_set,
 )
-from ditch_drake.demos.store import EPISODE_FILE, DatasetStore
+from ditch_drake.demos.store import EPISODE_FILE, DatasetStore, load_demonstrations
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.learning.checkpoint import resolve_checkpoint_path
 from ditch_drake.spec import actions
@@ -238,7 +238,7 @@ def test_collect_resumes_keeping_what_is_written(tmp_path):
     assert second["torn_episodes_set_aside"] == [str(store.episodes_dir / "episode_000001.torn")]
     assert not store.temporary_episodes()
     assert os.path.getmtime(store.episode_path(0) / EPISODE_FILE) == written
-    demonstrations = load_dataset(tmp_path)
+    demonstrations = load_demonstrations(tmp_path)
     assert [demo.metadata["task"]["index"] for demo in demonstrations] == [0, 1]
     assert all(demo.metadata["outcome"]["status"] == "reached_goal" for demo in demonstrations)
     assert [episode.metadata["ditch"] for episode in store.episodes()] == [
@@ -330,7 +330,7 @@ def test_a_dagger_collection_keeps_every_rollout_with_expert_labels(tmp_path):
                            variation=LABELLER_VARIATION)
     report = collect(config, progress=False)
     assert report["recorded"] == 1 and sum(report["recorded_by_status"].values()) == 1
-    (demonstration,) = load_dataset(tmp_path)
+    (demonstration,) = load_demonstrations(tmp_path)
     assert demonstration.metadata["learner"] == "narrow" and demonstration.metadata["seed"] == 3
     shipped = resolve_checkpoint_path("narrow").read_bytes()
     assert demonstration.metadata["learner_sha256"] == hashlib.sha256(shipped).hexdigest()[:16]

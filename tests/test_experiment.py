@@ -69,7 +69,7 @@ def test_a_tiny_experiment_runs_end_to_end_and_a_rerun_redoes_nothing(tmp_path, 
     (run,) = read_runs(tmp_path / "results")
     assert {key: run[key] for key in timings} == timings and run["command"] == "ditch-drake experiment tiny.yaml"
     assert run["code"] == code_revision() and run["code"] in page_row(tmp_path)
-    assert len(list((tmp_path / "demos" / "wide").glob("demo_*.npz"))) == 2
+    assert len(list((tmp_path / "demos" / "wide").glob("episodes/episode_*"))) == 2
     assert (tmp_path / "models" / "wide_2.pt").exists()
     records = {study: read_records(tmp_path / "results" / f"{study}.jsonl")[0] for study in ("scalability", "baseline")}
     assert [r.controller for r in records["scalability"]] == ["learned"]

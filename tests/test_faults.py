@@ -1266,7 +1266,7 @@ def test_sigterm_stops_train_generalist_with_143(tmp_path):
     process = _start(["train-generalist", "--work-dir", str(work), "--train-geometries", "2", "--dagger-rounds", "0",
                       "--val-geometries", "1", "--epochs", "1", "--workers", "1"])
     # Inside the first stage: its first demonstration is written, five are still to come.
-    _wait_for(lambda: any((work / "demos").glob("*.npz")) or process.poll() is not None)
+    _wait_for(lambda: any((work / "demos").glob("episodes/episode_*/episode.json")) or process.poll() is not None)
     assert process.poll() is None, process.communicate()[1]
     elapsed, _, err = _stop(process, signal.SIGTERM, to_group=False)
     assert process.returncode == 143, err

@@ -114,7 +114,8 @@ def add_bench(commands: Commands) -> None:
     add_environments_file(bench)
     add_json(bench)
     bench.add_argument("--training", action="store_true",
-                       help="also the training pipeline's peak memory on a synthetic 40-demo set (minutes)")
+                       help="also the training pipeline's peak memory and time with SMOTE on a synthetic 40-demo "
+                            "set (minutes; without it, the streaming pipeline's with oversampling)")
     bench.set_defaults(run=cmd_bench)
 
 

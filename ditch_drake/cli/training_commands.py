@@ -6,6 +6,7 @@ import sys
 from ditch_drake.cli.options import (
     Commands,
     ConfigDefault,
+    add_backend,
     add_env,
     add_environments_file,
     add_out,
@@ -40,6 +41,7 @@ def add_collect(commands: Commands) -> None:
     collect.add_argument("--lead-in", action="store_true",
                          help="the expert first makes room along the ditch when the crossing would not fit "
                               "before the ditch's end (EdgeAngleDriverConfig.lead_in)")
+    add_backend(collect, COLLECT)
     collect.set_defaults(run=cmd_collect)
 
 
@@ -53,7 +55,7 @@ def cmd_collect(args) -> int:
     from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect
 
     config = CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out, workers=args.workers,
-                           environments_file=args.environments or "")
+                           environments_file=args.environments or "", backend=args.backend, address=args.address)
     config = replace(config, variation=replace(config.variation, lead_in=args.lead_in))
     if args.learner is not None:
         config = replace(config, learner=args.learner, variation=replace(
@@ -120,6 +122,12 @@ def add_train(commands: Commands) -> None:
     training.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto",
                           help="bf16: training steps under bfloat16 autocast; auto: bf16 on a CPU with native "
                                "bf16 (AVX512-BF16 or AMX), else fp32")
+    from ditch_drake.learning.config import BALANCING_METHODS  # No torch: `--help` stays fast.
+
+    training.add_argument("--balancing", choices=BALANCING_METHODS, default=ConfigDefault(TRAIN, "balancing"),
+                          help="class balancing of the training split (ditch_drake/learning/balance.py)")
+    training.add_argument("--loader-workers", type=int, default=ConfigDefault(TRAIN, "num_workers"),
+                          help="processes reading the batches (default %(default)s: 0 on a CPU, up to 4 on CUDA)")
     training.add_argument("--resume", action="store_true",
                           help="continue an interrupted run from its .resume file beside --out")
     training.set_defaults(run=cmd_train)
@@ -134,20 +142,19 @@ def cmd_train(args) -> int:
     config = TrainConfig.from_options(
         epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
         max_batches_per_epoch=args.batches_per_epoch, synthetic_fraction=args.synthetic_fraction,
-        num_threads=args.threads)
+        num_threads=args.threads, balancing=args.balancing, num_workers=args.loader_workers)
     if args.max_demos is not None and args.max_demos < 1:
         raise ConfigError(f"--max-demos {args.max_demos}: expected >= 1 demonstrations per directory")
-    from ditch_drake.demos.dataset import load_dataset, to_array_set
+    from ditch_drake.demos.training_set import load_training_set
     from ditch_drake.learning.train import train
     from ditch_drake.pipelines.stages import training_device, training_precision
 
     device = training_device(args.device)
     precision = training_precision(device, args.precision)
     config = replace(config, device=device, precision=precision)
-    demonstrations = []
-    for directory in args.data:  # Several directories train the amalgam model.
-        demonstrations += load_dataset(directory, max_demos=args.max_demos)
-    result = train(to_array_set(demonstrations), config, output_path=args.out, resume=args.resume)
+    # Several directories train the amalgam model; a dataset folder's images stay on disk.
+    arrays = load_training_set(args.data, max_demos=args.max_demos)
+    result = train(arrays, config, output_path=args.out, resume=args.resume)
     best = next((record for record in result.history if record["epoch"] == result.best_epoch), {})
     print(json.dumps({"out": str(result.output_path) if result.output_path else None,
                       "resume_file": str(result.resume_file) if result.resume_file else None,
@@ -195,6 +202,7 @@ def add_train_generalist(commands: Commands) -> None:
                             help="the train ditches' ranges YAML file (default: the packaged "
                                  "generalist_train_ranges.yaml)")
     add_workers(generalist, "demonstrations and val rollouts", default=ConfigDefault(GENERALIST, "workers"))
+    add_backend(generalist, GENERALIST)
     generalist.set_defaults(run=cmd_train_generalist)
 
 
@@ -212,7 +220,8 @@ def cmd_train_generalist(args) -> int:
                               val_geometries=args.val_geometries, dagger_stride=args.dagger_stride,
                               epochs=args.epochs, seed=args.seed, mirror=args.mirror,
                               canonical_side=args.canonical_side, workers=args.workers,
-                              ranges=args.ranges or "", train_ranges=args.train_ranges or "")
+                              ranges=args.ranges or "", train_ranges=args.train_ranges or "",
+                              backend=args.backend, address=args.address)
     try:
         summary = train_generalist(config)
     except KeyboardInterrupt as error:

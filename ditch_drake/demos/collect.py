@@ -1,15 +1,17 @@
 """Collecting demonstrations with the scripted expert, resumably and in parallel.
 
-Demonstration i is episode i of a dataset store (`ditch_drake.demos.store`), written by its
-worker, atomically, the moment it ends; Ctrl-C or SIGTERM kills the workers at once
-(`ditch_drake.common.parallel`) and the report says how many were kept, so the same command run
-again records only the missing ones.
+Demonstration i is episode i of a dataset store (`ditch_drake.demos.store`), written
+atomically the moment it ends: by its worker in the local pool, or, on Ray
+(`CollectConfig.backend`), by this process, to which each task returns its demonstration (a
+worker on another node cannot write into this machine's folder). Ctrl-C or SIGTERM stops the
+workers at once (`ditch_drake.common.parallel`, `ditch_drake.common.ray_tasks`) and the report
+says how many were kept, so the same command run again records only the missing ones.
 """
 
 import collections
 import time
 from concurrent.futures import as_completed
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from pydrake.geometry import Meshcat
@@ -21,10 +23,12 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.parallel import (
     WorkerPool,
     check_workers,
+    deferred_interrupts,
     interrupt_exit_code,
     terminate_as_interrupt,
     worker_count,
 )
+from ditch_drake.common.ray_tasks import check_backend, failure_message, raised_by_task, run_ray_tasks
 from ditch_drake.common.seeds import check_seed
 from ditch_drake.demos.dataset import Demonstration, demonstration_paths, log_to_arrays, standard_metadata
 from ditch_drake.demos.store import EPISODE_FILE, DatasetError, DatasetStore, is_store
@@ -63,7 +67,8 @@ class CollectConfig:
         seed: demo i's first attempt uses seed + i; a failed attempt k uses
             seed + i + 1000 k (failed demonstrations are not kept).
         out: the dataset folder (`ditch_drake.demos.store`); demonstration i is its episode i.
-        workers: processes (None: one per core; 0: in this process).
+        workers: processes (None: one per core; 0: in this process). With Ray: at most this
+            many demonstrations at once (None or 0: as many as the cluster takes).
         observation: perception settings.
         variation: the expert's per-demonstration variation.
         learner: None records the expert's demonstrations (successes only). A checkpoint
@@ -75,6 +80,14 @@ class CollectConfig:
         environments: several environments (of `environments_file` or packaged) instead of
             `environment`: demonstration i drives the i-th (environment, task) pair, in order
             environment by environment, wrapping round (`slot_pairs`).
+        backend: "local" (a process pool on this machine) or "ray" (a Ray cluster; the
+            optional `ray` extra): each demonstration a Ray task, returned to this process,
+            which writes it into `out`. A task whose worker dies is retried once by Ray, then
+            its slot is reported unfilled. The environments file and the learner's checkpoint
+            must be at the same path on every node (a shared filesystem); give the
+            checkpoint as an absolute path (a relative one is looked up in each worker's
+            folder, which on a local Ray is this process's).
+        address: the Ray cluster's address (None or "local": start Ray on this machine).
     """
 
     environment: str = "wide"
@@ -87,6 +100,8 @@ class CollectConfig:
     learner: str | None = None
     environments_file: str = ""
     environments: list[str] = field(default_factory=list)
+    backend: str = "local"
+    address: str | None = None
 
 
 @dataclass
@@ -240,7 +255,10 @@ def trim_rollover(demonstration: Demonstration) -> Demonstration:
     return Demonstration(arrays, {**demonstration.metadata, "trimmed_steps": len(demonstration) - keep})
 
 
-def _collect_slot(config: CollectConfig, index: int) -> dict:
+def _record_slot(config: CollectConfig, index: int) -> tuple[dict, Demonstration | None]:
+    """Records demonstration `index`: its slot's result (seed, steps, failed attempts, status;
+    seed None for an unfilled slot) and the demonstration to keep (None: none succeeded).
+    A Ray task's whole work: the demonstration comes back to the process that writes the store."""
     pairs = slot_pairs(config)
     environment, task = pairs[index % len(pairs)]
     if config.learner is not None:
@@ -248,9 +266,8 @@ def _collect_slot(config: CollectConfig, index: int) -> dict:
         rig = _worker_rig(config, environment, task, draw_expert_style(seed, config.variation).reaction_delay_steps)
         demonstration = trim_rollover(record_demonstration(environment, task, seed, config.observation,
                                                            config.variation, rig, config.learner))
-        DatasetStore.open(config.out).append(demonstration, index)
-        return {"index": index, "seed": seed, "steps": len(demonstration), "failures": [],
-                "status": demonstration.metadata["outcome"]["status"]}
+        return ({"index": index, "seed": seed, "steps": len(demonstration), "failures": [],
+                 "status": demonstration.metadata["outcome"]["status"]}, demonstration)
     failures = []
     for attempt in range(ATTEMPTS_PER_DEMO):
         seed = config.seed + index + 1000 * attempt
@@ -258,11 +275,52 @@ def _collect_slot(config: CollectConfig, index: int) -> dict:
         demonstration = record_demonstration(environment, task, seed, config.observation, config.variation, rig)
         status = demonstration.metadata["outcome"]["status"]
         if status == "reached_goal":
-            DatasetStore.open(config.out).append(demonstration, index)
-            return {"index": index, "seed": seed, "steps": len(demonstration), "failures": failures,
-                    "status": status}
+            return ({"index": index, "seed": seed, "steps": len(demonstration), "failures": failures,
+                     "status": status}, demonstration)
         failures.append({"seed": seed, "status": status})
-    return {"index": index, "seed": None, "steps": 0, "failures": failures, "status": None}
+    return _unfilled(index, failures), None
+
+
+def _unfilled(index: int, failures: list[dict], error: str = "") -> dict:
+    """The result of slot `index` when no demonstration was kept (`error`: why its task gave none)."""
+    return {"index": index, "seed": None, "steps": 0, "failures": failures, "status": None,
+            **({"error": error} if error else {})}
+
+
+def _collect_slot(config: CollectConfig, index: int) -> dict:
+    """A local worker's task: records slot `index` and writes its demonstration into the store."""
+    result, demonstration = _record_slot(config, index)
+    if demonstration is not None:
+        DatasetStore.open(config.out).append(demonstration, index)
+    return result
+
+
+def _collect_on_ray(config: CollectConfig, store: DatasetStore, missing: list[int], keep) -> None:
+    """Runs the `missing` slots as Ray tasks (`_record_slot`), writes each demonstration that
+    comes back into `store` here, and passes its slot's result to `keep`.
+
+    A task whose worker died twice (Ray retries once) leaves its slot unfilled, with the
+    error in its result; an exception the recording raised is raised here, as from the
+    local pool.
+    """
+
+    def write(call: tuple, returned: tuple[dict, Demonstration | None]) -> None:
+        result, demonstration = returned
+        with deferred_interrupts():  # Stored and counted together: a stop lands before or after.
+            if demonstration is not None:
+                store.append(demonstration, call[1])
+            keep(result)
+
+    def lost(call: tuple, error: Exception) -> None:
+        raised = raised_by_task(error)
+        if raised is not None:
+            raise raised from (error if raised is not error else None)
+        keep(_unfilled(call[1], [], failure_message(error)))
+
+    if config.environments_file:  # Relative to this process's folder, not to a worker's on another node.
+        config = replace(config, environments_file=str(Path(config.environments_file).resolve()))
+    run_ray_tasks(_record_slot, [(config, index) for index in missing], config.address, config.workers, write, lost,
+                  calls_per_worker=DEMOS_PER_WORKER)
 
 
 def _existing_episode(store: DatasetStore, index: int, set_aside: list[str]) -> bool:
@@ -294,11 +352,20 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     missing ones; a torn episode folder is renamed aside, not overwritten. Ctrl-C
     (KeyboardInterrupt) or SIGTERM stops it within a second or two: the report then has
     `interrupted` True and the shell's `exit_code` (130 or 143), and is not re-raised.
+    The same holds on Ray (`config.backend`); there a slot whose task's worker died twice is
+    unfilled, its reason in the report's `task_errors`.
+
+    Raises:
+        ConfigError: an unknown environment or backend, counts or seeds out of range, Ray
+            asked for but not installed, a malformed or unreachable Ray address, an output
+            path that is a file or holds the older .npz format, or a learner checkpoint
+            that is missing.
     """
     slot_pairs(config)  # An unknown environment fails here, naming it.
     if not isinstance(config.demos, int) or config.demos <= 0:
         raise ConfigError(f"demos={config.demos!r} must be a positive integer")
     check_workers(config.workers)
+    check_backend(config.backend, config.address)  # An unreachable cluster fails here, before the folder is made.
     check_seed(config.seed, config.demos)
     out = Path(config.out)
     if out.exists() and not out.is_dir():
@@ -333,7 +400,9 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     interrupted, exit_code = False, 0
     try:
         with terminate_as_interrupt():
-            if workers == 0 or not missing:
+            if config.backend == "ray" and missing:
+                _collect_on_ray(config, store, missing, keep)
+            elif workers == 0 or not missing:
                 for index in missing:
                     keep(_collect_slot(config, index))
             else:
@@ -365,6 +434,7 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
                                for status in sorted({r["status"] for r in results if r["status"]})},
         "wall_s": wall_s,
         "demos_per_minute": 60.0 * recorded / wall_s if recorded else 0.0,
+        "task_errors": {result["index"]: result["error"] for result in results if "error" in result},
         "interrupted": interrupted,
         "exit_code": exit_code,
     }

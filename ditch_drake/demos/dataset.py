@@ -283,23 +283,15 @@ def demonstration_paths(directory: str | Path) -> list[Path]:
 
 
 def load_dataset(directory: str | Path, max_demos: int | None = None) -> list[Demonstration]:
-    """All (or the first `max_demos`) demonstrations of a dataset folder (`ditch_drake.demos.store`)
-    or of a folder of `.npz` files, validated, in memory.
+    """All (or the first `max_demos`) demonstrations of a folder of `.npz` files, validated
+    (`ditch_drake.demos.store.load_demonstrations` reads a dataset folder too).
 
     Raises:
         ConfigError: `max_demos` < 1 (a negative one would silently drop the last files).
-        DatasetError: no such directory, no demonstrations, or a bad file.
+        DatasetError: no such directory, no demonstration files, or a bad file.
     """
     if max_demos is not None and max_demos < 1:
         raise ConfigError(f"max_demos={max_demos}: expected an integer >= 1, or none for all (--max-demos)")
-    from ditch_drake.demos.store import DatasetStore, is_store
-
-    if is_store(directory):
-        store = DatasetStore.open(directory)
-        episodes = store.episodes()
-        if not episodes:
-            raise DatasetError(f"dataset folder {directory} holds no complete episodes")
-        return [store.load(episode) for episode in episodes[:max_demos]]
     paths = demonstration_paths(directory)
     if not paths:
         raise DatasetError(f"dataset directory {directory} holds no {FILE_PATTERN} files")

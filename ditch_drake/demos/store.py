@@ -54,9 +54,9 @@ from pathlib import Path
 import numpy as np
 
 from ditch_drake import __version__
-from ditch_drake.common.errors import DatasetError
+from ditch_drake.common.errors import ConfigError, DatasetError
 from ditch_drake.common.files import atomic_write_text
-from ditch_drake.demos.dataset import ARRAY_FIELDS, Demonstration, validate_demonstration
+from ditch_drake.demos.dataset import ARRAY_FIELDS, Demonstration, load_dataset, validate_demonstration
 from ditch_drake.world.ditch_splits import seed_of_environment, split_of_environment
 
 STORE_FORMAT = "ditch_drake.dataset"
@@ -347,6 +347,25 @@ class DatasetStore:
         validate_demonstration({k: v for k, v in arrays.items() if k != "intervention"}, demonstration.metadata,
                                episode.path)
         return demonstration
+
+
+def load_demonstrations(folder: str | os.PathLike, max_demos: int | None = None) -> list[Demonstration]:
+    """All (or the first `max_demos`) demonstrations of a dataset folder, or of an older folder
+    of `.npz` files (`load_dataset`), validated, in memory.
+
+    Raises:
+        ConfigError: `max_demos` < 1.
+        DatasetError: no such folder, no complete episodes, or a bad file.
+    """
+    if not is_store(folder):
+        return load_dataset(folder, max_demos)
+    if max_demos is not None and max_demos < 1:
+        raise ConfigError(f"max_demos={max_demos}: expected an integer >= 1, or none for all (--max-demos)")
+    store = DatasetStore.open(folder)
+    episodes = store.episodes()
+    if not episodes:
+        raise DatasetError(f"dataset folder {folder} holds no complete episodes")
+    return [store.load(episode) for episode in episodes[:max_demos]]
 
 
 def episode_metadata(metadata: dict, steps: int) -> dict:

@@ -128,6 +128,9 @@ class SmoteConfig:
 
 
 PRECISIONS = ("fp32", "bf16")
+# The class balancing methods (`TrainConfig.balancing`); `ditch_drake.learning.balance.BALANCING`
+# implements them (a test keeps the two in step).
+BALANCING_METHODS = ("smote", "oversample", "weighted_sampler", "class_weights", "ordinal_soft_labels", "none")
 # The `ditch-drake train` option of each TrainConfig field it sets, named in config errors.
 _OPTIONS = {
     "epochs": "--epochs",
@@ -139,6 +142,8 @@ _OPTIONS = {
     "seed": "--seed",
     "device": "--device",
     "precision": "--precision",
+    "balancing": "--balancing",
+    "num_workers": "--loader-workers",
 }
 # Torch device strings a training run can use ("cuda:1" picks a GPU).
 _DEVICE_PATTERN = re.compile(r"(cpu|cuda|mps|xpu)(:\d+)?")
@@ -171,7 +176,21 @@ class TrainConfig:
         val_fraction: share of the demonstrations held out for validation (0: none; then
             the last epoch's weights are kept and there is no early stopping).
         seed: seeds the split, SMOTE, initialization, shuffling and dropout.
-        smote: class balancing of the training split (`SmoteConfig`).
+        smote: SMOTE's targets, budget and memory bounds (`SmoteConfig`); "oversample" reaches
+            the same targets by repeating rows.
+        balancing: how the training split's classes are balanced, one of `BALANCING_METHODS`
+            (`ditch_drake.learning.balance`): "smote" (the paper's: synthetic samples
+            interpolated within each minority class, up to `smote`'s targets), "oversample"
+            (rows of the minority classes drawn again, to the same targets: no copies),
+            "weighted_sampler" (each epoch draws its samples with replacement, a sample's
+            chance inverse to its class's count), "class_weights" (cross-entropy weighted
+            inverse to the class counts), "ordinal_soft_labels" (cross-entropy against targets
+            spread over the neighbouring turn rates, `soft_label_sigma`) or "none".
+        soft_label_sigma: with "ordinal_soft_labels", the width (in labels) of the discretized
+            Gaussian over the 17 ordered labels that a sample's target is.
+        num_workers: processes reading the batches (torch `DataLoader` workers; 0 reads in the
+            training process); None: 0 on a CPU, where the training steps take the time, and
+            up to 4 on CUDA. The result does not depend on it.
         max_demos: train on the demonstrations with the `max_demos` smallest ids (None: all).
         ordinal_tolerance: labels of slack of the ordinal accuracy (paper: 1).
         device: torch device ("cpu"; "cuda" works but is not bitwise reproducible).
@@ -198,6 +217,9 @@ class TrainConfig:
     val_fraction: float = 0.2
     seed: int = 0
     smote: SmoteConfig = field(default_factory=lambda: SmoteConfig(max_synthetic_fraction=0.5))
+    balancing: str = "smote"
+    soft_label_sigma: float = 1.0
+    num_workers: int | None = None
     max_demos: int | None = None
     ordinal_tolerance: int = 1
     device: str = "cpu"
@@ -222,13 +244,15 @@ class TrainConfig:
             raise _bad_field("batch_size", self.batch_size, "an integer >= 2 (BatchNorm needs two samples a batch)")
         none_means = {
             "num_threads": "torch's default (all cores)",
+            "num_workers": "0 on a CPU, up to 4 on CUDA",
             "max_batches_per_epoch": "all batches",
             "max_demos": "all demonstrations",
         }
         for name, meaning in none_means.items():
             value = getattr(self, name)
-            if value is not None and not (_is_integer(value) and value >= 1):
-                raise _bad_field(name, value, f"an integer >= 1, or None for {meaning}")
+            lowest = 0 if name == "num_workers" else 1
+            if value is not None and not (_is_integer(value) and value >= lowest):
+                raise _bad_field(name, value, f"an integer >= {lowest}, or None for {meaning}")
         for name in ("lr", "scalar_lr_factor"):
             value = getattr(self, name)
             if not (_is_number(value) and value > 0):
@@ -240,6 +264,10 @@ class TrainConfig:
         # SmoteConfig refuses negative fractions itself, but lets NaN and inf through.
         if not (_is_number(self.smote.max_synthetic_fraction) and self.smote.max_synthetic_fraction >= 0):
             raise _bad_field("smote.max_synthetic_fraction", self.smote.max_synthetic_fraction, "a finite number >= 0")
+        if self.balancing not in BALANCING_METHODS:
+            raise _bad_field("balancing", self.balancing, f"one of {BALANCING_METHODS}")
+        if not (_is_number(self.soft_label_sigma) and self.soft_label_sigma > 0):
+            raise _bad_field("soft_label_sigma", self.soft_label_sigma, "a finite number > 0 (labels)")
         if self.precision not in PRECISIONS:
             raise _bad_field("precision", self.precision, f"one of {PRECISIONS}")
         if not (isinstance(self.device, str) and _DEVICE_PATTERN.fullmatch(self.device)):

@@ -1,4 +1,4 @@
-"""The in-memory training set, its split by demonstration and the input standardization.
+"""The training set, its split by demonstration and the input standardization.
 
 The on-disk demonstration format and its loader live elsewhere; they hand `train` an
 `ArraySet`: one row per control step, the four stacked inputs exactly as the FrameStacker
@@ -7,7 +7,10 @@ demonstration the step came from.
 
 Images are kept compact: uint8 (0..255 standing for [0, 1]) or float16 ([0, 1]). 16 k
 samples of 4 x 128 x 128 take 1 GiB as uint8 (2 GiB as float16, 4 GiB as float32), so the
-training code converts them to float32 one batch at a time (`images_to_tensor`).
+training code converts them to float32 one batch at a time (`images_to_tensor`). Or they stay
+on disk: the image may be a `ditch_drake.learning.stream.LazyImageStack`, which builds the
+stacks of the rows it is indexed by from each episode's frames (what
+`ditch_drake.demos.training_set` makes of a dataset folder); the scalars are always in memory.
 """
 
 from dataclasses import dataclass
@@ -38,7 +41,9 @@ class ArraySet:
     Attributes:
         image: (N, 4, 128, 128) uint8 (0..255 for [0, 1]) or float16 in [0, 1]; channel 0
             newest, rows and columns as `FrameStacker.image_stack` reshaped to
-            `IMAGE_STACK_SHAPE`.
+            `IMAGE_STACK_SHAPE`. A numpy array, or an object of that `shape` and `dtype` whose
+            indexing by an integer array returns those rows as one (`stream.LazyImageStack`,
+            `stream.NpyRows`: images read from disk when a batch needs them).
         imu: (N, 8) float32, [roll_t, pitch_t, roll_t-1, ...] (rad).
         distance: (N, 4) float32, distance to the goal, newest first (m).
         bearing: (N, 4) float32, bearing to the goal, newest first (rad).

@@ -26,11 +26,13 @@ def mirror_left_right(batch: dict[str, np.ndarray], rows: np.ndarray | slice = s
 
     Args:
         batch: arrays named as `ArraySet`'s fields: "image" (N, ..., cols: stacked or single
-            frames), "imu" (N, stack * 2), "bearing" (N, stack) and, where there are labels,
-            "label" (N,); any other key is kept.
+            frames; absent when the images are reflected where they are read, as
+            `ditch_drake.learning.stream.LazyImageStack` does), "imu" (N, stack * 2), "bearing"
+            (N, stack) and, where there are labels, "label" (N,); any other key is kept.
         rows: which samples to reflect (default: all).
     """
-    batch["image"][rows] = batch["image"][rows][..., ::-1]
+    if "image" in batch:
+        batch["image"][rows] = batch["image"][rows][..., ::-1]
     batch["imu"][rows, _ROLL::IMU_SIZE] = -batch["imu"][rows, _ROLL::IMU_SIZE]
     batch["bearing"][rows] = -batch["bearing"][rows]
     if "label" in batch:

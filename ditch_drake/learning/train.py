@@ -1,16 +1,29 @@
-"""Training the behavioural clone (paper 3.5, 3.6): split, SMOTE, layer-specific rates, early stopping.
+"""Training the behavioural clone (paper 3.5, 3.6): split, class balancing, layer-specific rates,
+early stopping.
 
-`train(arrays, config)` runs the whole protocol on an in-memory `ArraySet`:
+`train(arrays, config)` runs the whole protocol on an `ArraySet`, whose images are in memory
+or streamed from disk (a `ditch_drake.learning.stream.LazyImageStack`, as
+`ditch_drake.demos.training_set` makes of a dataset folder):
 
 1. keep the first `max_demos` demonstrations (the 10/20/40 study);
 2. hold out whole demonstrations for validation (`split_indices_by_demo`);
 3. fit the scalar inputs' standardization on the training split;
-4. add SMOTE samples to the training split only (`balance.smote_samples`);
+4. balance the classes of the training split only, by `config.balancing`
+   (`ditch_drake.learning.balance`; SMOTE by default, the paper's);
 5. train with Adam, the image branch and head at `lr`, the scalar branches at
-   `lr * scalar_lr_factor`, cross-entropy on the logits;
+   `lr * scalar_lr_factor`, cross-entropy on the logits (weighted, or against soft targets,
+   as the balancing says);
 6. after every epoch evaluate on the validation split and keep the weights with the best
    ordinal accuracy (ties: lower validation loss); stop after `patience` epochs without
    improvement.
+
+Batches come through a torch `DataLoader` over `stream.SampleBatches` (`num_workers`
+processes, pinned memory on CUDA), in the order of the epoch's shuffle, so they are the same
+whether the images are in memory or on disk and however many workers read them; validation
+reads through one too, `eval_batch_size` samples at a time. With the images on disk, memory
+does not grow with the data: the scalars (80 bytes a sample), the batches in flight, and
+SMOTE's own bounded working set, its new images written to a temporary folder (`TMPDIR`)
+that is removed when training ends.
 
 Determinism: the model's initialization, every epoch's shuffle and its dropout masks are
 drawn from generators seeded by (`seed`, epoch), inside `torch.random.fork_rng` so the
@@ -46,6 +59,7 @@ environment's 40 demonstrations (~13 k real + ~13 k SMOTE samples) takes about 1
 import copy
 import os
 import sys
+import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -60,7 +74,7 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import remove_stale_temporaries
 from ditch_drake.common.parallel import interrupt_exit_code
 from ditch_drake.common.progress import log_progress
-from ditch_drake.learning.balance import smote_samples
+from ditch_drake.learning.balance import Balancing, balance_training_split
 from ditch_drake.learning.checkpoint import (
     CheckpointError,
     PolicyCheckpoint,
@@ -75,18 +89,18 @@ from ditch_drake.learning.data import (
     ArraySet,
     InputStats,
     first_demos_indices,
-    images_to_tensor,
     split_indices_by_demo,
 )
 from ditch_drake.learning.metrics import confusion_matrix, exact_accuracy, ordinal_accuracy
 from ditch_drake.learning.model import FourInputClassifier, parameter_groups
+from ditch_drake.learning.stream import TrainingSamples, batch_loader, epoch_batches, to_device
 from ditch_drake.spec.actions import NUM_LABELS
 
 RESUME_SCHEMA = "ditch_drake.training_state"
 RESUME_SCHEMA_VERSION = 1
 RESUME_SUFFIX = ".resume"
 # Fields that may change between a run and its resumption; all others must match.
-_RESUMABLE_CHANGES = {"epochs", "patience", "num_threads", "device", "precision"}
+_RESUMABLE_CHANGES = {"epochs", "patience", "num_threads", "device", "precision", "num_workers"}
 INTERRUPTED_SUFFIX = ".interrupted"
 
 
@@ -123,42 +137,13 @@ class TrainResult:
     exit_code: int = 0
 
 
-class _TrainingSamples:
-    """The training rows of the set followed by the synthetic samples, gathered per batch."""
-
-    def __init__(self, arrays: ArraySet, rows: np.ndarray, synthetic: ArraySet):
-        self._arrays, self._rows, self._synthetic = arrays, rows, synthetic
-
-    def __len__(self) -> int:
-        return len(self._rows) + len(self._synthetic)
-
-    def labels(self) -> np.ndarray:
-        return np.concatenate([self._arrays.label[self._rows], self._synthetic.label])
-
-    def batch(self, positions: np.ndarray, device: str) -> tuple[list[torch.Tensor], torch.Tensor]:
-        real = positions < len(self._rows)
-        out = {}
-        for name in ("image", "imu", "distance", "bearing", "label"):
-            source, synthetic = getattr(self._arrays, name), getattr(self._synthetic, name)
-            values = np.empty((len(positions), *source.shape[1:]), dtype=source.dtype)
-            values[real] = source[self._rows[positions[real]]]
-            values[~real] = synthetic[positions[~real] - len(self._rows)]
-            out[name] = values
-        return _tensors(out, device)
-
-
-def _tensors(values: dict, device: str) -> tuple[list[torch.Tensor], torch.Tensor]:
-    inputs = [images_to_tensor(values["image"])] + [
-        torch.from_numpy(np.ascontiguousarray(values[name])) for name in ("imu", "distance", "bearing")
-    ]
-    return [x.to(device) for x in inputs], torch.from_numpy(values["label"]).to(device)
-
-
 @torch.no_grad()
 def predict(
-    model: FourInputClassifier, arrays: ArraySet, rows: np.ndarray | None = None, batch_size: int = 256
+    model: FourInputClassifier, arrays: ArraySet, rows: np.ndarray | None = None, batch_size: int = 256,
+    num_workers: int = 0,
 ) -> np.ndarray:
-    """(len(rows), num_labels) float32 logits of the rows of `arrays` (all by default), in eval mode.
+    """(len(rows), num_labels) float32 logits of the rows of `arrays` (all by default), in eval mode,
+    read `batch_size` rows at a time through a loader of `num_workers` processes.
 
     The model's train/eval mode is restored afterwards.
     """
@@ -167,11 +152,11 @@ def predict(
     was_training = model.training
     model.eval()
     logits = []
+    positions = np.arange(len(rows))
+    chunks = [positions[start : start + batch_size] for start in range(0, len(rows), batch_size)]
     try:
-        for start in range(0, len(rows), batch_size):
-            chunk = rows[start : start + batch_size]
-            values = {name: getattr(arrays, name)[chunk] for name in ("image", "imu", "distance", "bearing", "label")}
-            inputs, _ = _tensors(values, device)
+        for batch in batch_loader(TrainingSamples(arrays, rows), chunks, num_workers, device.type == "cuda"):
+            inputs, _ = to_device(batch, device)
             logits.append(model(*inputs).float().cpu().numpy())
     finally:
         model.train(was_training)
@@ -184,6 +169,7 @@ def evaluate(
     rows: np.ndarray | None = None,
     tolerance: int = 1,
     batch_size: int = 256,
+    num_workers: int = 0,
 ) -> dict:
     """Loss, exact and ordinal accuracy and the confusion matrix on the rows of `arrays`.
 
@@ -192,7 +178,7 @@ def evaluate(
         ((17, 17) int64, row = true label), "predicted" (labels)}.
     """
     rows = np.arange(len(arrays)) if rows is None else np.asarray(rows, dtype=np.int64)
-    logits = predict(model, arrays, rows, batch_size)
+    logits = predict(model, arrays, rows, batch_size, num_workers)
     true = arrays.label[rows]
     predicted = logits.argmax(axis=1) if len(rows) else np.zeros(0, np.int64)
     loss = float("nan")
@@ -241,6 +227,13 @@ def _config_dict(config: TrainConfig) -> dict:
     return to_plain(asdict(config), "train_config")
 
 
+def loader_workers(config: TrainConfig) -> int:
+    """`config.num_workers`, or for None: 0 on a CPU, up to 4 (half the cores) on another device."""
+    if config.num_workers is not None:
+        return config.num_workers
+    return 0 if torch.device(config.device).type == "cpu" else min(4, (os.cpu_count() or 2) // 2)
+
+
 def train(
     arrays: ArraySet,
     config: TrainConfig | None = None,
@@ -287,40 +280,51 @@ def train(
     if len(train_rows) < 2:
         raise ConfigError(f"{len(train_rows)} training sample(s) after the validation split; expected at least 2")
     stats = InputStats.fit(arrays, train_rows)
-    start = time.perf_counter()
-    synthetic = smote_samples(arrays, config.smote, config.seed, train_rows, stats)
-    log_progress(
-        progress,
-        f"{len(train_rows)} training samples ({len(np.unique(arrays.demo_id[train_rows]))} demonstrations), "
-        f"{len(val_rows)} validation ({len(np.unique(arrays.demo_id[val_rows]))}); SMOTE added {len(synthetic)} "
-        f"in {time.perf_counter() - start:.1f} s",
-    )
-    samples = _TrainingSamples(arrays, train_rows, synthetic)
-    summary = {
-        "label_counts": np.bincount(arrays.label[train_rows], minlength=NUM_LABELS),
-        "synthetic_label_counts": synthetic.label_counts(),
-        "val_label_counts": np.bincount(arrays.label[val_rows], minlength=NUM_LABELS),
-        "train_demo_ids": np.unique(arrays.demo_id[train_rows]),
-        "val_demo_ids": np.unique(arrays.demo_id[val_rows]),
-        "num_train_samples": len(train_rows),
-        "num_synthetic_samples": len(synthetic),
-        "num_val_samples": len(val_rows),
-        "train_config": _config_dict(config),
-        "smote_seconds": time.perf_counter() - start,
-    }
-
-    previous_threads = torch.get_num_threads()
-    previous_deterministic = torch.are_deterministic_algorithms_enabled()
-    previous_warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    # SMOTE's new images go to disk when the set's own images are there: in memory they would
+    # grow with the data (64 KiB a sample).
+    spill = None if isinstance(arrays.image, np.ndarray) or config.balancing != "smote" else (
+        tempfile.TemporaryDirectory(prefix="ditch_drake_smote_"))
     try:
-        if config.num_threads is not None:
-            torch.set_num_threads(config.num_threads)
-        torch.use_deterministic_algorithms(True, warn_only=True)
-        with torch.random.fork_rng(devices=[]):
-            return _run(arrays, config, progress, output_path, resume, val_rows, stats, samples, summary)
+        balancing = balance_training_split(arrays, train_rows, stats, config, spill and spill.name)
+        added = int(balancing.extra_label_counts.sum())
+        log_progress(
+            progress,
+            f"{len(train_rows)} training samples ({len(np.unique(arrays.demo_id[train_rows]))} demonstrations), "
+            f"{len(val_rows)} validation ({len(np.unique(arrays.demo_id[val_rows]))}); {config.balancing} added "
+            f"{added} in {balancing.seconds:.1f} s",
+        )
+        summary = {
+            "label_counts": np.bincount(arrays.label[train_rows], minlength=NUM_LABELS),
+            # The samples balancing added: SMOTE's new ones, or the rows oversampling draws again.
+            "synthetic_label_counts": balancing.extra_label_counts,
+            "val_label_counts": np.bincount(arrays.label[val_rows], minlength=NUM_LABELS),
+            "train_demo_ids": np.unique(arrays.demo_id[train_rows]),
+            "val_demo_ids": np.unique(arrays.demo_id[val_rows]),
+            "num_train_samples": len(train_rows),
+            "num_synthetic_samples": added,
+            "num_val_samples": len(val_rows),
+            "train_config": _config_dict(config),
+            "balancing": config.balancing,
+            "balancing_seconds": balancing.seconds,
+            # Kept for the readers of older checkpoints' key: SMOTE's time, 0 for another method.
+            "smote_seconds": balancing.seconds if config.balancing == "smote" else 0.0,
+        }
+
+        previous_threads = torch.get_num_threads()
+        previous_deterministic = torch.are_deterministic_algorithms_enabled()
+        previous_warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+        try:
+            if config.num_threads is not None:
+                torch.set_num_threads(config.num_threads)
+            torch.use_deterministic_algorithms(True, warn_only=True)
+            with torch.random.fork_rng(devices=[]):
+                return _run(arrays, config, progress, output_path, resume, val_rows, stats, balancing, summary)
+        finally:
+            torch.set_num_threads(previous_threads)
+            torch.use_deterministic_algorithms(previous_deterministic, warn_only=previous_warn_only)
     finally:
-        torch.set_num_threads(previous_threads)
-        torch.use_deterministic_algorithms(previous_deterministic, warn_only=previous_warn_only)
+        if spill is not None:
+            spill.cleanup()
 
 
 def available_device() -> str:
@@ -337,13 +341,25 @@ def available_precision(device: str) -> str:
     return "bf16" if any(getattr(torch.cpu, probe, lambda: False)() for probe in probes) else "fp32"
 
 
-def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples, summary) -> TrainResult:
+def _loss_function(balancing: Balancing, device: str):
+    """The training loss of a balancing: cross-entropy, class-weighted or against soft targets."""
+    if balancing.soft_targets is not None:
+        targets = torch.from_numpy(balancing.soft_targets).to(device)
+        return lambda logits, labels: nn.functional.cross_entropy(logits, targets[labels])
+    weights = None if balancing.class_weights is None else torch.from_numpy(balancing.class_weights).to(device)
+    return nn.CrossEntropyLoss(weight=weights)
+
+
+def _run(arrays, config, progress, output_path, resume, val_rows, stats, balancing, summary) -> TrainResult:
     torch.manual_seed(_torch_seed(config.seed, 0))
     model = FourInputClassifier(config.model)
     model.set_input_stats(stats.to_dict())
     model.to(config.device)
     optimizer = torch.optim.Adam(parameter_groups(model, config.lr, config.scalar_lr_factor))
-    loss_function = nn.CrossEntropyLoss()
+    loss_function = _loss_function(balancing, config.device)
+    samples = TrainingSamples(arrays, balancing.rows, balancing.synthetic)
+    workers = loader_workers(config)
+    pin = torch.device(config.device).type == "cuda"
     run = {"history": [], "best_state": None, "best_key": None, "best_epoch": -1, "bad_epochs": 0, "confusion": None}
     start_epoch = 0
     state_file = None if output_path is None else resume_path(output_path)
@@ -351,10 +367,6 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
         start_epoch = _restore(state_file, config, summary, model, optimizer, run)
         log_progress(progress, f"resuming from {state_file} after epoch {start_epoch - 1}")
 
-    n = len(samples)
-    steps = -(-n // config.batch_size)
-    if config.max_batches_per_epoch is not None:
-        steps = min(steps, config.max_batches_per_epoch)
     has_val = len(val_rows) > 0
     stopped_early = interrupted = False
     exit_code = 0
@@ -365,15 +377,14 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
                 break
             start = time.perf_counter()
             torch.manual_seed(_torch_seed(config.seed, 1, epoch))
-            order = np.random.default_rng([config.seed, 2, epoch]).permutation(n)
+            batches = epoch_batches(balancing.epoch_order(config.seed, epoch), config.batch_size,
+                                    config.max_batches_per_epoch)
             model.train()
             loss_sum, predicted, true = 0.0, [], []
-            bar = tqdm(range(steps), desc=f"epoch {epoch}", disable=not progress, leave=False, file=sys.stderr)
-            for step in bar:
-                positions = order[step * config.batch_size : (step + 1) * config.batch_size]
-                if len(positions) < 2:  # BatchNorm needs two samples.
-                    continue
-                inputs, labels = samples.batch(positions, config.device)
+            bar = tqdm(batch_loader(samples, batches, workers, pin), total=len(batches), desc=f"epoch {epoch}",
+                       disable=not progress, leave=False, file=sys.stderr)
+            for batch in bar:
+                inputs, labels = to_device(batch, config.device)
                 with torch.autocast(torch.device(config.device).type, torch.bfloat16, config.precision == "bf16"):
                     logits = model(*inputs)
                     loss = loss_function(logits, labels)
@@ -381,12 +392,12 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, samples
                 loss.backward()
                 optimizer.step()
                 loss_value = loss.item()
-                loss_sum += loss_value * len(positions)
+                loss_sum += loss_value * len(labels)
                 predicted.append(logits.argmax(dim=1).cpu().numpy())
                 true.append(labels.cpu().numpy())
                 bar.set_postfix(loss=f"{loss_value:.3f}")
             predicted, true = np.concatenate(predicted), np.concatenate(true)
-            val = evaluate(model, arrays, val_rows, config.ordinal_tolerance, config.eval_batch_size)
+            val = evaluate(model, arrays, val_rows, config.ordinal_tolerance, config.eval_batch_size, workers)
             record = {
                 "epoch": epoch,
                 "train_loss": loss_sum / len(true),
@@ -459,8 +470,8 @@ def _checkpoint(
         "stopped_early": stopped_early,
         "interrupted": interrupted,
         "history": run["history"],
-        # SMOTE plus every finished epoch (training and validation); loading the data is not in it.
-        "training_seconds": summary["smote_seconds"] + sum(record["seconds"] for record in run["history"]),
+        # Balancing plus every finished epoch (training and validation); loading the data is not in it.
+        "training_seconds": summary["balancing_seconds"] + sum(record["seconds"] for record in run["history"]),
     }
     model = FourInputClassifier(config.model)
     model.load_state_dict(run["best_state"])
@@ -493,6 +504,8 @@ def _restore(state_file: Path, config, summary, model, optimizer, run) -> int:
     """Loads a resume file into `model`, `optimizer` and `run`; returns the next epoch."""
     state = load_payload(state_file, RESUME_SCHEMA, RESUME_SCHEMA_VERSION)
     mine, theirs = _config_dict(config), state.get("train_config", {})
+    # A field added since the file was written had its default value then.
+    theirs = {**{k: v for k, v in _config_dict(TrainConfig()).items() if k not in theirs}, **theirs}
     differ = sorted(k for k in set(mine) | set(theirs) if k not in _RESUMABLE_CHANGES and mine.get(k) != theirs.get(k))
     if differ or state.get("train_demo_ids") != to_plain(summary["train_demo_ids"]):
         raise CheckpointError(

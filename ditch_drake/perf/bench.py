@@ -191,8 +191,9 @@ def measure_host_reference_ms(repeats: int = 5) -> float:
 
 
 def run_bench(environments: list[str] | None = None, training: bool = False, environments_file: str = "") -> dict:
-    """All figures, in a stable key order; `training` adds the slow training-memory run.
-    `environments_file` adds its environments to the packaged ones that `environments` may name."""
+    """All figures, in a stable key order; `training` adds SMOTE's slow training-memory run
+    (`bench_training.measure_smote_memory`). `environments_file` adds its environments to the
+    packaged ones that `environments` may name."""
     figures: dict[str, float] = {"host_reference_start_ms": measure_host_reference_ms()}
     environments = environments or environment_names()
     for name in environments:
@@ -203,10 +204,16 @@ def run_bench(environments: list[str] | None = None, training: bool = False, env
     figures.update(measure_closed_loops(environments, environments_file=environments_file))
     figures["closed_loop_min_rtf"] = min(figures[f"closed_loop_{name}_rtf"] for name in environments)
     figures.update(measure_blocks())
-    from ditch_drake.perf.bench_training import measure_training_throughput, shipped_model_figures
+    from ditch_drake.perf.bench_training import (
+        measure_streaming_memory,
+        measure_training_throughput,
+        shipped_model_figures,
+    )
 
     figures.update(measure_training_throughput())
     figures.update(shipped_model_figures())
+    # Training streamed from a synthetic dataset folder of 16 k and 128 k samples (fresh processes).
+    figures.update(measure_streaming_memory())
     figures.update(measure_rollouts_per_minute())
     figures.update(measure_gym_figures())
     from ditch_drake.perf.bench_scene import (
@@ -220,11 +227,9 @@ def run_bench(environments: list[str] | None = None, training: bool = False, env
     figures.update({key: value for key, value in rss.items() if key.endswith("_mib")})
     figures.update(measure_benchmark_rollouts_per_min())
     if training:
-        from ditch_drake.perf.bench_training import measure_training_memory_mib
+        from ditch_drake.perf.bench_training import measure_smote_memory
 
-        memory = measure_training_memory_mib()
-        figures["train_peak_rss_mib"] = memory["train_peak_rss_mib"]
-        figures["train_pipeline_s"] = memory["train_pipeline_s"]
+        figures.update(measure_smote_memory())
     figures["peak_rss_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     figures["host_reference_end_ms"] = measure_host_reference_ms()
     return figures

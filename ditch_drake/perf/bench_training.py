@@ -1,16 +1,28 @@
 """Memory of the training pipeline and time of one learned-policy step.
 
-Run: `python -m ditch_drake.perf.bench_training.py [samples]`. Prints
+Run: `python -m ditch_drake.perf.bench_training [samples]`. Prints
 {"policy_step_ms": ..., "train_peak_rss_mib": ..., ...} (keys end with their unit).
 
 - `measure_policy_step_ms`: median wall time of one `LearnedPolicy` update (read the four
   stacked inputs, one forward pass, softmax, write the state) on one CPU thread, with
   random weights (the time does not depend on them).
-- `measure_training_memory_mib`: peak resident memory of a fresh process that builds a
-  synthetic set the size of one environment's 40 demonstrations (16 k samples, uint8
-  images, label 8 dominant) and runs the whole `train` pipeline on it: split, input
-  statistics, SMOTE with the default `SmoteConfig`, and a few training batches plus a
-  full validation pass (the memory of an epoch does not grow with its length).
+- `measure_streaming_memory`: peak resident memory of the training pipeline streaming from a
+  dataset folder, each in a fresh process that writes a synthetic store (random frames, label
+  8 dominant) into a temporary folder and trains on it as `ditch-drake train --data` does
+  (`load_training_set`, then `train`: split, input statistics, class balancing, a few
+  training batches and a whole validation pass, whose memory does not grow with its length),
+  on one thread. `train_peak_rss_mib` is for one environment's 40 demonstrations (40 episodes
+  of 400 steps, 16 k samples), `train_peak_rss_8x_mib` for 8 times as many episodes (128 k
+  samples; the target is at most 1.2 times the 16 k figure, `train_rss_8x_ratio`). Both
+  balance by "oversample" (`MEMORY_BALANCING`), which draws rows again by index, so the
+  figures are the pipeline's own. The 8x run holds out 1/8 of the 16 k run's share of the
+  demonstrations for validation, the same 3,200 samples, so that its validation pass takes
+  as long (a full one over 25 k samples would take minutes more, for logits of 68 bytes a
+  sample). The 16 k run also times every balancing method but SMOTE on its training split
+  (`balancing_<method>_s`: milliseconds, labels only).
+- `measure_smote_memory` (`ditch-drake bench --training`): the same 16 k run balanced by
+  SMOTE, the paper's and the default (`train_peak_rss_smote_mib`, `balancing_smote_s`:
+  minutes).
 """
 
 import json
@@ -18,7 +30,9 @@ import os
 import resource
 import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -32,66 +46,123 @@ from ditch_drake.spec.observation_layout import (
 
 TRAINING_SAMPLES = 16_000
 DEMOS = 40
+# How many times more episodes the second streaming run has (`train_peak_rss_8x_mib`).
+SCALE = 8
+# The balancing of the streaming memory runs: rows drawn again by index, no copies.
+MEMORY_BALANCING = "oversample"
+VAL_FRACTION = 0.2
 
 
-def synthetic_arrays(samples: int, demos: int = DEMOS, seed: int = 0):
-    """A random `ArraySet` with a driving-like label distribution.
-
-    Label 8 takes 55 % of the samples; the rest fall off as exp(-|l - 8| / 3) around it.
-    Samples are split evenly over `demos` consecutive demonstrations.
-    """
-    from ditch_drake.learning.data import ArraySet
-
-    rng = np.random.default_rng(seed)
+def _driving_labels(rng: np.random.Generator, samples: int) -> np.ndarray:
+    """Label 8 for 55 % of the samples; the rest fall off as exp(-|l - 8| / 3) around it."""
     weights = np.exp(-np.abs(np.arange(NUM_LABELS) - STRAIGHT_LABEL) / 3.0)
     weights[STRAIGHT_LABEL] = 0.0
     weights = 0.45 * weights / weights.sum()
     weights[STRAIGHT_LABEL] = 0.55
-    image = np.empty((samples, *IMAGE_STACK_SHAPE), dtype=np.uint8)
-    for start in range(0, samples, 1024):  # Bounded temporaries.
-        chunk = image[start : start + 1024]
-        chunk[:] = rng.integers(0, 256, chunk.shape, dtype=np.uint8)
-    return ArraySet(
-        image=image,
-        imu=rng.normal(0.0, 0.2, (samples, IMU_STACK_SIZE)).astype(np.float32),
-        distance=rng.uniform(0.0, 20.0, (samples, DISTANCE_STACK_SIZE)).astype(np.float32),
-        bearing=rng.uniform(-np.pi, np.pi, (samples, BEARING_STACK_SIZE)).astype(np.float32),
-        label=rng.choice(NUM_LABELS, samples, p=weights),
-        demo_id=np.arange(samples) * demos // samples,
-    )
+    return rng.choice(NUM_LABELS, samples, p=weights)
 
 
-def _training_memory_worker(samples: int) -> dict:
-    """Runs in a fresh process: the pipeline on `samples` synthetic samples."""
+def write_synthetic_store(folder: str | os.PathLike, samples: int, demos: int = DEMOS, seed: int = 0) -> Path:
+    """A dataset store of `demos` episodes of samples // demos steps each (`DatasetStore.append`):
+    random frames and scalars, driving-like labels (`_driving_labels`)."""
+    from ditch_drake.demos.dataset import Demonstration, standard_metadata
+    from ditch_drake.demos.store import DatasetStore
+
+    store = DatasetStore.create(folder)
+    steps = samples // demos
+    for index in range(demos):
+        rng = np.random.default_rng([seed, index])
+        arrays = {
+            "image": rng.integers(0, 256, (steps, *IMAGE_STACK_SHAPE[1:]), dtype=np.uint8),
+            "imu_stack": rng.normal(0.0, 0.2, (steps, IMU_STACK_SIZE)).astype(np.float32),
+            "distance_stack": rng.uniform(0.0, 20.0, (steps, DISTANCE_STACK_SIZE)).astype(np.float32),
+            "bearing_stack": rng.uniform(-np.pi, np.pi, (steps, BEARING_STACK_SIZE)).astype(np.float32),
+            "label": _driving_labels(rng, steps).astype(np.int16),
+            "time_s": np.arange(steps) * 0.1,
+            "pose": np.zeros((steps, 6), np.float32),
+            "raw_command": np.zeros((steps, 2), np.float32),
+        }
+        metadata = standard_metadata(environment="wide", task={"index": index % 3, "name": "synthetic"}, seed=index,
+                                     outcome={"status": "reached_goal"}, control_period_s=0.1)
+        store.append(Demonstration(arrays, metadata), index)
+    return Path(folder)
+
+
+def _streaming_memory_worker(samples: int, demos: int, val_fraction: float, balancing: str) -> dict:
+    """Runs in a fresh process: writes a synthetic store and trains on it, streaming."""
+    from ditch_drake.demos.training_set import load_training_set
+    from ditch_drake.learning.balance import balance_training_split
+    from ditch_drake.learning.config import BALANCING_METHODS
+    from ditch_drake.learning.data import InputStats, split_indices_by_demo
     from ditch_drake.learning.train import TrainConfig, train
 
-    arrays = synthetic_arrays(samples)
-    data_mib = sum(getattr(arrays, name).nbytes for name in arrays.__dataclass_fields__) / 2**20
-    start = time.perf_counter()
-    result = train(arrays, TrainConfig(epochs=1, max_batches_per_epoch=4, num_threads=1), progress=False)
-    return {
-        "train_peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
-        "train_data_mib": data_mib,
-        "train_pipeline_s": time.perf_counter() - start,
-        "train_synthetic_samples": int(result.checkpoint.training["num_synthetic_samples"]),
-        "train_real_samples": int(result.checkpoint.training["num_train_samples"]),
-    }
+    with tempfile.TemporaryDirectory(prefix="ditch_drake_bench_") as folder:
+        start = time.perf_counter()
+        write_synthetic_store(Path(folder) / "store", samples, demos)
+        written = time.perf_counter()
+        arrays = load_training_set([Path(folder) / "store"])
+        config = TrainConfig(epochs=1, max_batches_per_epoch=4, num_threads=1, balancing=balancing,
+                             val_fraction=val_fraction)
+        result = train(arrays, config, progress=False)
+        figures = {
+            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "store_write_s": written - start,
+            "pipeline_s": time.perf_counter() - written,
+            "val_samples": int(result.checkpoint.training["num_val_samples"]),
+            "balancing_s": float(result.checkpoint.training["balancing_seconds"]),
+        }
+        if balancing == MEMORY_BALANCING:  # The other quick methods' time on the same split.
+            train_rows, _ = split_indices_by_demo(arrays.demo_id, val_fraction, config.seed)
+            stats = InputStats.fit(arrays, train_rows)
+            for method in BALANCING_METHODS:
+                if method != "smote":
+                    made = balance_training_split(arrays, train_rows, stats, TrainConfig(balancing=method))
+                    figures[f"balancing_{method}_s"] = made.seconds
+        return figures
 
 
-def measure_training_memory_mib(samples: int = TRAINING_SAMPLES) -> dict:
-    """Peak RSS (MiB) of the training pipeline on a synthetic set, in a fresh process.
-
-    Returns:
-        {"train_peak_rss_mib", "train_data_mib" (the input set), "train_pipeline_s",
-        "train_synthetic_samples", "train_real_samples"}.
-    """
+def _run_worker(samples: int, demos: int, val_fraction: float, balancing: str) -> dict:
     completed = subprocess.run(
-        [sys.executable, "-m", "ditch_drake.perf.bench_training", "--memory-worker", str(samples)],
+        [sys.executable, "-m", "ditch_drake.perf.bench_training", "--memory-worker", str(samples), str(demos),
+         repr(val_fraction), balancing],
         check=True,
         capture_output=True,
         text=True,
     )
     return json.loads(completed.stdout.strip().splitlines()[-1])
+
+
+def measure_streaming_memory(samples: int = TRAINING_SAMPLES, scale: int = SCALE) -> dict:
+    """Peak RSS (MiB) of the training pipeline streaming from a synthetic store of `samples`
+    samples, and of `scale` times as many episodes, each in a fresh process (module docstring).
+
+    Returns:
+        {"train_peak_rss_mib", "train_peak_rss_8x_mib", "train_rss_8x_ratio",
+        "train_pipeline_s", "train_pipeline_8x_s" (loading the set's index, balancing, the
+        batches and the validation pass; writing the store is not in it), and
+        "balancing_<method>_s" for every method but SMOTE, on the 16 k training split}.
+    """
+    small = _run_worker(samples, DEMOS, VAL_FRACTION, MEMORY_BALANCING)
+    large = _run_worker(samples * scale, DEMOS * scale, VAL_FRACTION / scale, MEMORY_BALANCING)
+    return {
+        "train_peak_rss_mib": small["peak_rss_mib"],
+        "train_peak_rss_8x_mib": large["peak_rss_mib"],
+        "train_rss_8x_ratio": large["peak_rss_mib"] / small["peak_rss_mib"],
+        "train_pipeline_s": small["pipeline_s"],
+        "train_pipeline_8x_s": large["pipeline_s"],
+        **{key: value for key, value in small.items() if key.startswith("balancing_") and key != "balancing_s"},
+    }
+
+
+def measure_smote_memory(samples: int = TRAINING_SAMPLES) -> dict:
+    """The 16 k streaming run balanced by SMOTE (the default, the paper's), in a fresh process.
+
+    Returns:
+        {"train_peak_rss_smote_mib", "balancing_smote_s", "train_pipeline_smote_s"}.
+    """
+    run = _run_worker(samples, DEMOS, VAL_FRACTION, "smote")
+    return {"train_peak_rss_smote_mib": run["peak_rss_mib"], "balancing_smote_s": run["balancing_s"],
+            "train_pipeline_smote_s": run["pipeline_s"]}
 
 
 def measure_policy_step_ms(repeats: int = 50) -> dict:
@@ -173,9 +244,10 @@ def shipped_model_figures() -> dict:
 
 
 if __name__ == "__main__":
-    if len(sys.argv) == 3 and sys.argv[1] == "--memory-worker":
-        print(json.dumps(_training_memory_worker(int(sys.argv[2]))))
+    if len(sys.argv) == 6 and sys.argv[1] == "--memory-worker":
+        print(json.dumps(_streaming_memory_worker(int(sys.argv[2]), int(sys.argv[3]), float(sys.argv[4]),
+                                                  sys.argv[5])))
     else:
         figures = measure_policy_step_ms()
-        figures.update(measure_training_memory_mib(*[int(a) for a in sys.argv[1:2]]))
+        figures.update(measure_streaming_memory(*[int(a) for a in sys.argv[1:2]]))
         print(json.dumps(figures, indent=1))

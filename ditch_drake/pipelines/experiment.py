@@ -446,12 +446,11 @@ def _collect(config: ExperimentConfig, models: list[ModelSpec], progress: bool) 
 
 
 def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
-    from ditch_drake.demos.dataset import load_dataset, to_array_set
+    from ditch_drake.demos.training_set import load_training_set
     from ditch_drake.learning.config import TrainConfig
 
-    def samples():
-        return to_array_set([demonstration for env in model.environments
-                             for demonstration in load_dataset(Path(config.demos_dir) / env, max_demos=model.demos)])
+    def samples():  # A dataset folder's images stay on disk, read batch by batch.
+        return load_training_set([Path(config.demos_dir) / env for env in model.environments], max_demos=model.demos)
 
     settings = config.training
     defaults = TrainConfig()

@@ -36,9 +36,9 @@ from ditch_drake.benchmark.splits import split_ditches, write_ditches
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_write_bytes, atomic_write_text, prepare_output, remove_stale_temporaries
 from ditch_drake.common.progress import log_progress
+from ditch_drake.common.ray_tasks import check_backend
 from ditch_drake.evaluation.batch import load_results
 from ditch_drake.evaluation.results import current_records
-from ditch_drake.learning.mirror import mirror_left_right
 from ditch_drake.pipelines.stages import (
     collect_demonstrations,
     pass_on_stop,
@@ -100,6 +100,11 @@ class GeneralistConfig:
         workers: processes for collection and evaluation (None: one per core).
         ranges: the val split's ranges YAML file ("": the benchmark's, `ranges.yaml`).
         train_ranges: the train ditches' ranges YAML file ("": `generalist_train_ranges.yaml`).
+        backend, address: where the collection rounds and the val rollouts run: "local" (process
+            pools on this machine) or "ray" (a Ray cluster at `address`; None or "local" starts
+            Ray here), as for `collect` and `evaluate`, which write what the tasks return
+            into the work dir here. Training stays in this process: on a cluster, run the
+            whole command on the node with the GPU.
     """
 
     out: str = ""
@@ -117,6 +122,8 @@ class GeneralistConfig:
     workers: int | None = None
     ranges: str = ""
     train_ranges: str = ""
+    backend: str = "local"
+    address: str | None = None
 
 
 def _collect(config: GeneralistConfig, names: list[str], ditches: str, out: Path, learner: str | None,
@@ -128,48 +135,53 @@ def _collect(config: GeneralistConfig, names: list[str], ditches: str, out: Path
     collect_demonstrations(CollectConfig(environment=names[0], environments=names, environments_file=ditches,
                                          demos=len(names) * 3 * (1 if learner else config.demos_per_task),
                                          seed=seed, out=str(out), workers=config.workers, variation=variation,
-                                         learner=learner),
+                                         learner=learner, backend=config.backend, address=config.address),
                            str(out), progress)
 
 
 def _training_samples(config: GeneralistConfig, data: list[Path], ditches: str, progress: bool = False):
-    """The demonstrations of data[0] and every dagger_stride-th step of the rest, stacked,
-    each followed by its reflection where `config.mirror` asks for one, or reflected where
-    it crosses turned left with `config.canonical_side`.
+    """The demonstrations of data[0] and every dagger_stride-th step of the rest, each followed
+    by its reflection where `config.mirror` asks for one, or reflected where it crosses turned
+    left with `config.canonical_side`.
 
-    The loaded frames (every step's: 4.6 GiB for the demonstrations and five DAgger rounds
-    here) are freed on return, before SMOTE and training.
+    The images of a dataset folder stay on disk and are stacked (and reflected) batch by batch
+    as training reads them (`ditch_drake.demos.training_set`); a folder of `.npz` files of the
+    older format is loaded into memory (every step's frames: 4.6 GiB for the demonstrations and
+    five DAgger rounds here).
     """
-    from ditch_drake.demos.dataset import load_dataset, reflected, to_array_set
+    from ditch_drake.demos.training_set import dataset_episodes, training_set
 
     environments = dict(load_environments(ditches, prove_walls=False)) if (
         config.mirror or config.canonical_side) else {}
-    demonstrations, strides, sides = [], [], []
+    episodes, strides, reflect = [], [], []
     for index, directory in enumerate(data):
         stride = 1 if index == 0 else config.dagger_stride
-        for demonstration in load_dataset(directory):
-            demonstrations.append(demonstration)
+        for episode in dataset_episodes(directory):
+            episodes.append(episode)
             strides.append(stride)
             if config.canonical_side:
-                sides.append(_crossing_sides(demonstration, environments)[::stride])
-            if config.mirror and _turns_clearly(demonstration.metadata, environments):
-                demonstrations.append(reflected(demonstration))
+                pose = episode.read(["pose"])["pose"]
+                reflect.append(_crossing_sides(episode.metadata, pose, environments)[::stride] < 0.0)
+            else:
+                reflect.append(False)
+            if config.mirror and _turns_clearly(episode.metadata, environments):
+                episodes.append(episode)
                 strides.append(stride)
-    arrays = to_array_set(demonstrations, strides=strides)
+                reflect.append(True)
+    arrays = training_set(episodes, strides, reflect)
     if config.canonical_side:
-        left = np.concatenate(sides) < 0.0
-        mirror_left_right({name: getattr(arrays, name) for name in ("image", "imu", "bearing", "label")}, left)
-        log_progress(progress, f"canonical side: {int(left.sum())} of {len(left)} samples reflected (their crossings turn left)")
+        left = int(sum(np.count_nonzero(flags) for flags in reflect))
+        log_progress(progress, f"canonical side: {left} of {len(arrays)} samples reflected (their crossings turn left)")
     return arrays
 
 
-def _crossing_sides(demonstration, environments: dict) -> np.ndarray:
-    """The side along the edge (+1 right, -1 left) at each step of a recorded rollout, by the
-    rule of `OracleCrossingSide` with its driver's approach margin and convention."""
-    metadata = demonstration.metadata
+def _crossing_sides(metadata: dict, pose: np.ndarray, environments: dict) -> np.ndarray:
+    """The side along the edge (+1 right, -1 left) at each step of a recorded rollout (its
+    metadata and (T, 6) poses), by the rule of `OracleCrossingSide` with its driver's approach
+    margin and convention."""
     driver = metadata["expert_style"]["driver"]
     environment = environments[metadata["environment"]]
-    return crossing_sides(DitchTerrain(environment.terrain), demonstration.arrays["pose"][:, :2],
+    return crossing_sides(DitchTerrain(environment.terrain), np.asarray(pose)[:, :2],
                           np.asarray(metadata["task"]["goal"], dtype=float), driver["approach_margin_m"],
                           driver["straight_across_deg"])
 
@@ -248,6 +260,7 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
         raise ConfigError("mirror and canonical_side: expected at most one (--mirror, --canonical-side); a clone "
                           "that learns only right-turned crossings has no use for their reflections")
     load_ranges(config.ranges or None)  # A bad val ranges file is refused before hours of training, not after.
+    check_backend(config.backend, config.address)
     train_ranges = load_ranges(config.train_ranges or packaged_ranges_path(GENERALIST_TRAIN_RANGES))
     work = prepare_output(config.work_dir, "work dir", folder=True)
     remove_stale_temporaries(work)  # A killed run's recipe.json or choice.json half-written.
@@ -272,7 +285,8 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
     for candidate in candidates:
         report = run_benchmark(BenchmarkConfig(split="val", controller="learned", checkpoint=str(candidate),
                                                geometries=config.val_geometries, rollouts=1, seed=config.seed,
-                                               out=str(val_results), ranges=config.ranges, workers=config.workers),
+                                               out=str(val_results), ranges=config.ranges, workers=config.workers,
+                                               backend=config.backend, address=config.address),
                                progress)
         if report.interrupted:
             pass_on_stop(report.exit_code)
