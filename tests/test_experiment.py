@@ -109,6 +109,13 @@ def test_experiment_files_with_a_typo_or_an_unknown_environment_are_refused(tmp_
     fp16.write_text(tiny_experiment.read_text().replace("synthetic_fraction: 0.5}", "synthetic_fraction: 0.5, precision: fp16}"))
     with pytest.raises(ConfigError, match="training.precision='fp16'"):
         load_experiment(fp16)
+    smote2 = tmp_path / "smote2.yaml"
+    smote2.write_text(tiny_experiment.read_text().replace("synthetic_fraction: 0.5}", "synthetic_fraction: 0.5, balancing: smote2}"))
+    with pytest.raises(ConfigError, match="training.balancing='smote2': expected one of"):
+        load_experiment(smote2)
+    for method in ("smote", "oversample", "weighted_sampler", "class_weights", "ordinal_soft_labels"):
+        balancing = load_experiment(f"experiments/balancing/{method}.yaml")
+        assert balancing.training.balancing == method and balancing.studies.scalability.demos == [40]
 
 
 def test_the_paper_protocol_plans_13_models_and_29_evaluations_and_32_where_the_ditch_must_be_crossed():

@@ -39,6 +39,7 @@ from ditch_drake.common.parallel import check_workers
 from ditch_drake.common.progress import log_progress
 from ditch_drake.evaluation.results import RolloutSpec
 from ditch_drake.evaluation.runs import record_run
+from ditch_drake.learning.config import BALANCING_METHODS
 from ditch_drake.pipelines.stages import (
     collect_demonstrations,
     pass_on_stop,
@@ -54,7 +55,7 @@ class TrainingSettings:
     """`ditch-drake train` settings shared by every model of the experiment (see `TrainConfig`).
 
     `precision`: "auto" (`available_precision`: bf16 on a CPU that runs it natively), "fp32"
-    or "bf16".
+    or "bf16". `balancing`: one of `BALANCING_METHODS` (`ditch_drake.learning.balance`).
     """
 
     epochs: int = 8
@@ -62,6 +63,7 @@ class TrainingSettings:
     batches_per_epoch: int = 96
     synthetic_fraction: float = 0.5
     precision: str = "auto"
+    balancing: str = "smote"
 
 
 @dataclass
@@ -223,6 +225,9 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
     if config.training.precision not in ("auto", "fp32", "bf16"):
         raise ConfigError(f"experiment file {path}: training.precision={config.training.precision!r} must be "
                           "'auto', 'fp32' or 'bf16'")
+    if config.training.balancing not in BALANCING_METHODS:
+        raise ConfigError(f"experiment file {path}: training.balancing={config.training.balancing!r}: expected one "
+                          f"of {list(BALANCING_METHODS)}")
     return config
 
 
@@ -457,7 +462,7 @@ def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
     device = training_device("auto")
     train_config = TrainConfig(epochs=settings.epochs, patience=settings.patience, seed=config.seed,
                                device=device, precision=training_precision(device, settings.precision),
-                               max_batches_per_epoch=settings.batches_per_epoch,
+                               max_batches_per_epoch=settings.batches_per_epoch, balancing=settings.balancing,
                                smote=replace(defaults.smote, max_synthetic_fraction=settings.synthetic_fraction))
     train_or_resume(model_path(config, model), model.name, samples, train_config, progress)
 
