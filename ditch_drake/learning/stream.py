@@ -356,8 +356,14 @@ def batch_loader(samples: TrainingSamples, batches: Iterable[np.ndarray], num_wo
         num_workers: reading processes (0: read in this one); each opens its own files.
         pin_memory: page-lock the batches for fast copies to a GPU.
     """
+    # Workers forked from this multi-threaded process can deadlock (Python 3.12 warns); a
+    # forkserver's are clean, but each gets the samples pickled: cheap only when the images are
+    # on disk, so in-memory images keep fork's shared pages.
+    on_disk = not isinstance(samples.arrays.image, np.ndarray) and (
+        samples.extra is None or not isinstance(samples.extra.image, np.ndarray))
     return DataLoader(SampleBatches(samples), batch_size=None, sampler=list(batches), num_workers=num_workers,
                       pin_memory=pin_memory,
+                      multiprocessing_context="forkserver" if num_workers and on_disk else None,
                       # Its own generator: a loader's first draw would otherwise advance the global
                       # torch generator, whose draws seed the dropout masks.
                       generator=torch.Generator())
