@@ -43,7 +43,7 @@ def atomic_output(path: str | os.PathLike):
         os.replace(temporary, path)
     finally:
         temporary.unlink(missing_ok=True)
-    _fsync_folder(path.parent)
+    fsync_folder(path.parent)
 
 
 def prepare_output(path: str | os.PathLike, what: str, folder: bool = False) -> Path:
@@ -93,7 +93,7 @@ def save_figure(figure, path: str | os.PathLike, dpi: int = 80) -> Path:
     return Path(path)
 
 
-def _fsync_folder(folder: Path) -> None:
+def fsync_folder(folder: Path) -> None:
     """Makes a rename into `folder` durable (POSIX); a no-op where folders cannot be opened."""
     try:
         descriptor = os.open(folder, os.O_RDONLY)
@@ -107,7 +107,8 @@ def _fsync_folder(folder: Path) -> None:
         os.close(descriptor)
 
 
-def _process_exists(pid: int) -> bool:
+def process_exists(pid: int) -> bool:
+    """Whether a process with this id is running (one of another user's counts)."""
     try:
         os.kill(pid, 0)
     except ProcessLookupError:
@@ -125,7 +126,7 @@ def remove_stale_temporaries(folder: str | os.PathLike) -> list[Path]:
     removed = []
     for candidate in folder.iterdir():
         match = _TEMPORARY.match(candidate.name)
-        if match and candidate.is_file() and not _process_exists(int(match.group(1))):
+        if match and candidate.is_file() and not process_exists(int(match.group(1))):
             candidate.unlink(missing_ok=True)
             removed.append(candidate)
     return removed

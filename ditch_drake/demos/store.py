@@ -56,7 +56,7 @@ import numpy as np
 
 from ditch_drake import __version__
 from ditch_drake.common.errors import ConfigError, DatasetError
-from ditch_drake.common.files import atomic_write_text
+from ditch_drake.common.files import atomic_write_text, fsync_folder, process_exists
 from ditch_drake.demos.dataset import ARRAY_FIELDS, Demonstration, load_dataset, validate_demonstration
 from ditch_drake.world.ditch_splits import seed_of_environment, split_of_environment
 
@@ -136,29 +136,11 @@ def _store_header() -> dict:
     }
 
 
-def _fsync_folder(path: Path) -> None:
-    descriptor = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(descriptor)
-    finally:
-        os.close(descriptor)
-
-
 def _write_synced(path: Path, write) -> None:
     with open(path, "wb") as file:
         write(file)
         file.flush()
         os.fsync(file.fileno())
-
-
-def _process_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 class DatasetStore:
@@ -237,7 +219,7 @@ class DatasetStore:
         removed = []
         for path in self.temporary_episodes():
             pid = int(_TEMPORARY_EPISODE.match(path.name).group(2))
-            if pid != os.getpid() and not _process_alive(pid):
+            if pid != os.getpid() and not process_exists(pid):
                 shutil.rmtree(path, ignore_errors=True)
                 removed.append(path)
         return removed
@@ -304,12 +286,12 @@ class DatasetStore:
             metadata = episode_metadata(demonstration.metadata, len(demonstration))
             text = json.dumps(metadata, indent=1).encode("utf-8")
             _write_synced(temporary / EPISODE_FILE, lambda file: file.write(text))
-            _fsync_folder(temporary)
+            fsync_folder(temporary)
             try:
                 os.rename(temporary, final)  # Fails, rather than merging, if another writer took the index.
             except OSError as error:
                 raise DatasetError(f"{final} was written by another process meanwhile ({error})") from error
-            _fsync_folder(self.episodes_dir)
+            fsync_folder(self.episodes_dir)
         finally:
             if temporary.exists():
                 shutil.rmtree(temporary, ignore_errors=True)
