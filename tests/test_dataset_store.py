@@ -134,6 +134,9 @@ def test_bad_folders_are_refused_naming_the_file(tmp_path, capsys):
     assert "schema_version 99" in capsys.readouterr().err
     assert main(["dataset", "info", str(tmp_path / "missing")]) == 2
     assert main(["dataset", "convert", str(tmp_path / "missing"), str(tmp_path / "out")]) == 2
+    (tmp_path / "a_file").write_text("")
+    with pytest.raises(DatasetError, match="a_file/d cannot be made: Not a directory"):
+        DatasetStore.create(tmp_path / "a_file" / "d")
 
 
 def test_dataset_info_reads_a_store(tmp_path, capsys):

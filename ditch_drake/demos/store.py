@@ -193,8 +193,11 @@ class DatasetStore:
             raise DatasetError(f"dataset path {root} is a file; expected a folder for {_EXPECTED_STORE}")
         if is_store(root):
             return cls.open(root)
-        (root / EPISODES_DIR).mkdir(parents=True, exist_ok=True)
-        atomic_write_text(root / STORE_FILE, json.dumps(_store_header(), indent=2) + "\n")
+        try:
+            (root / EPISODES_DIR).mkdir(parents=True, exist_ok=True)
+            atomic_write_text(root / STORE_FILE, json.dumps(_store_header(), indent=2) + "\n")
+        except OSError as error:  # A part of the path is a file, no permission, a full disk.
+            raise DatasetError(f"dataset folder {root} cannot be made: {error.strerror or error}") from error
         return cls(root)
 
     @property
