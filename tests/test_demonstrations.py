@@ -221,7 +221,7 @@ def _with_convention(path, straight_across_deg):
 
 
 def test_collect_resumes_keeping_what_is_written(tmp_path):
-    config = CollectConfig(environment="narrow", demos=1, seed=0, out=str(tmp_path), workers=1)
+    config = CollectConfig(environment="narrow", demos=1, seed=0, out=str(tmp_path), workers=0)
     first = collect(config, progress=False)
     store = DatasetStore.open(tmp_path)
     assert first["recorded"] == 1 and store.has_episode(0)

@@ -9,7 +9,8 @@ EXPORT_FORMATS = ("lerobot", "robomimic")
 
 def add_dataset(commands: Commands) -> None:
     dataset = commands.add("dataset", "dataset folders: info, convert (from .npz folders), export (LeRobot, robomimic)")
-    actions = dataset.add_subparsers(dest="dataset_command", required=True, metavar="ACTION")
+    actions = dataset.add_subparsers(dest="dataset_command", required=True, metavar="ACTION",
+                                     help="info, convert or export (each has its own --help)")
     info = actions.add_parser("info", help="episodes, steps, counts per label, task, split and driver",
                               description="episodes, steps, counts per label, task, split and driver")
     info.add_argument("path", help="a dataset folder (or an older folder of demo_NNN.npz files)")
