@@ -1211,22 +1211,6 @@ def _free_local_port() -> int:
         return probe.getsockname()[1]
 
 
-def _session_processes(session: int) -> list[str]:
-    """The processes of `session` still alive (Linux /proc): "pid command" each."""
-    alive = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            fields = (entry / "stat").read_text().rpartition(")")[2].split()
-            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
-        except OSError:
-            continue
-        if int(fields[3]) == session and fields[0] != "Z":
-            alive.append(f"{entry.name} {command[:80]}")
-    return alive
-
-
 @pytest.mark.parametrize("address", ["unreachable", "not an address"])
 def test_a_bad_or_unreachable_ray_address_is_an_error_within_seconds(tmp_path, capsys, address):
     pytest.importorskip("ray")
@@ -1244,7 +1228,7 @@ def test_a_bad_or_unreachable_ray_address_is_an_error_within_seconds(tmp_path, c
 # then), so it runs with the slow tests; the default suite keeps SIGTERM's.
 @pytest.mark.parametrize("signum, to_group, code", [pytest.param(signal.SIGINT, True, 130, marks=pytest.mark.slow),
                                                     (signal.SIGTERM, False, 143)])
-def test_a_signal_stops_a_ray_evaluation_and_leaves_no_ray_process(tmp_path, signum, to_group, code):
+def test_a_signal_stops_a_ray_evaluation_and_leaves_no_ray_process(tmp_path, signum, to_group, code, session_processes):
     pytest.importorskip("ray")
     results = tmp_path / "results.jsonl"
     process = _start(["evaluate", "--controller", "head_on", "--env", "wide", "--task", "0", "--rollouts", "200",
@@ -1258,9 +1242,9 @@ def test_a_signal_stops_a_ray_evaluation_and_leaves_no_ray_process(tmp_path, sig
     assert after[:len(before)] == before
     assert not [line for line in after if json.loads(line)["status"] == "error"]
     deadline = time.monotonic() + STOP_WITHIN_S
-    while _session_processes(process.pid) and time.monotonic() < deadline:
+    while session_processes(process.pid) and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert not _session_processes(process.pid), "a Ray process outlived the command"
+    assert not session_processes(process.pid), "a Ray process outlived the command"
 
 
 def test_sigterm_stops_train_generalist_with_143(tmp_path):

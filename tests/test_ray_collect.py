@@ -7,7 +7,6 @@ import socket
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -123,29 +122,13 @@ def test_collect_and_train_generalist_list_the_backend(capsys):
         assert "--backend {local,ray}" in text and "--address" in text, command
 
 
-def _session_processes(session: int) -> list[str]:
-    """The processes of `session` still alive (Linux /proc): "pid command" each."""
-    alive = []
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            fields = (entry / "stat").read_text().rpartition(")")[2].split()
-            command = (entry / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
-        except OSError:
-            continue
-        if int(fields[3]) == session and fields[0] != "Z":
-            alive.append(f"{entry.name} {command[:80]}")
-    return alive
-
-
 _CLI_WITH_CTRL_C = ("import signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
                     "from ditch_drake.cli.main import main; sys.exit(main())")
 
 
 @pytest.mark.slow  # Two Ray starts in fresh processes, each importing Drake: about a minute.
 @pytest.mark.parametrize("signum, to_group, code", [(signal.SIGINT, True, 130), (signal.SIGTERM, False, 143)])
-def test_a_signal_stops_collect_on_ray_keeping_whole_episodes_and_no_ray_process(tmp_path, signum, to_group, code):
+def test_a_signal_stops_collect_on_ray_keeping_whole_episodes_and_no_ray_process(tmp_path, signum, to_group, code, session_processes):
     pytest.importorskip("ray", reason="the ray extra is not installed (pip install -e '.[ray]')")
     out = tmp_path / "d"
     # In a process group of its own with Ctrl-C's handler (a background job's children ignore
@@ -169,6 +152,6 @@ def test_a_signal_stops_collect_on_ray_keeping_whole_episodes_and_no_ray_process
     for episode in episodes:
         assert all(len(values) == episode.steps for values in store.read(episode).values())
     deadline = time.monotonic() + 10
-    while _session_processes(process.pid) and time.monotonic() < deadline:
+    while session_processes(process.pid) and time.monotonic() < deadline:
         time.sleep(0.2)
-    assert not _session_processes(process.pid), "a Ray process outlived the command"
+    assert not session_processes(process.pid), "a Ray process outlived the command"
