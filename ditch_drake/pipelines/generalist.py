@@ -76,10 +76,12 @@ class GeneralistConfig:
         demos_per_task: expert demonstrations per task of each.
         dagger_rounds: DAgger rounds after round 0.
         val_geometries: the val split's first N ditches each candidate runs (one rollout per task).
-        dagger_stride: train on every k-th control step of the DAgger rollouts. Each sample
-            is a 64 KiB image stack; a round of 120 learner rollouts, many of them timeouts
-            circling for 120 s, holds about 80 k steps, and all of them beside the
-            demonstrations' 52 k ran training out of memory (17 GiB) on a 24 GiB machine.
+        dagger_stride: train on every k-th control step of the DAgger rollouts. A round of 120
+            learner rollouts, many of them timeouts circling for 120 s, holds about 80 k steps
+            of which many are alike; the stride was chosen when the samples were held in memory
+            (all of them beside the demonstrations' 52 k ran out of 24 GiB) and is kept so that
+            the recipe, and its rounds, stay as they were. Streaming from the dataset folders,
+            memory no longer depends on it.
         epochs, patience: training's.
         mirror: also train on the left-right reflection (`ditch_drake.learning.mirror`) of each
             demonstration and DAgger rollout whose task turns at least the expert's
