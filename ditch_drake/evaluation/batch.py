@@ -45,6 +45,7 @@ from ditch_drake.common.parallel import (
     terminate_as_interrupt,
     worker_count,
 )
+from ditch_drake.common.ray_tasks import BACKENDS
 from ditch_drake.common.seeds import check_seed
 from ditch_drake.diagrams.controllers import (
     UndeclaredInputError,
@@ -64,7 +65,6 @@ from ditch_drake.learning.checkpoint import (
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 from ditch_drake.world.environments import get_environment
 
-BACKENDS = ("local", "ray")
 # About how many rollouts a worker process runs before a fresh pool replaces it (see the module docstring).
 ROLLOUTS_PER_WORKER = 100
 # Pools broken by a dying worker before each remaining rollout runs in a process of its own.
