@@ -282,6 +282,12 @@ def demonstration_paths(directory: str | Path) -> list[Path]:
     return sorted(directory.glob(FILE_PATTERN))
 
 
+def check_max_demos(max_demos: int | None) -> None:
+    """Raises ConfigError for `max_demos` < 1 (a negative one would silently drop the last files)."""
+    if max_demos is not None and max_demos < 1:
+        raise ConfigError(f"max_demos={max_demos}: expected an integer >= 1, or none for all (--max-demos)")
+
+
 def load_dataset(directory: str | Path, max_demos: int | None = None) -> list[Demonstration]:
     """All (or the first `max_demos`) demonstrations of a folder of `.npz` files, validated
     (`ditch_drake.demos.store.load_demonstrations` reads a dataset folder too).
@@ -290,8 +296,7 @@ def load_dataset(directory: str | Path, max_demos: int | None = None) -> list[De
         ConfigError: `max_demos` < 1 (a negative one would silently drop the last files).
         DatasetError: no such directory, no demonstration files, or a bad file.
     """
-    if max_demos is not None and max_demos < 1:
-        raise ConfigError(f"max_demos={max_demos}: expected an integer >= 1, or none for all (--max-demos)")
+    check_max_demos(max_demos)
     paths = demonstration_paths(directory)
     if not paths:
         raise DatasetError(f"dataset directory {directory} holds no {FILE_PATTERN} files")

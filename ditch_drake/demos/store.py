@@ -55,9 +55,15 @@ from pathlib import Path
 import numpy as np
 
 from ditch_drake import __version__
-from ditch_drake.common.errors import ConfigError, DatasetError
+from ditch_drake.common.errors import DatasetError
 from ditch_drake.common.files import atomic_write_text, fsync_folder, process_exists
-from ditch_drake.demos.dataset import ARRAY_FIELDS, Demonstration, load_dataset, validate_demonstration
+from ditch_drake.demos.dataset import (
+    ARRAY_FIELDS,
+    Demonstration,
+    check_max_demos,
+    load_dataset,
+    validate_demonstration,
+)
 from ditch_drake.world.ditch_splits import seed_of_environment, split_of_environment
 
 STORE_FORMAT = "ditch_drake.dataset"
@@ -345,13 +351,22 @@ def load_demonstrations(folder: str | os.PathLike, max_demos: int | None = None)
     """
     if not is_store(folder):
         return load_dataset(folder, max_demos)
-    if max_demos is not None and max_demos < 1:
-        raise ConfigError(f"max_demos={max_demos}: expected an integer >= 1, or none for all (--max-demos)")
     store = DatasetStore.open(folder)
+    return [store.load(episode) for episode in first_episodes(store, max_demos)]
+
+
+def first_episodes(store: DatasetStore, max_demos: int | None = None) -> list[Episode]:
+    """The first `max_demos` complete episodes of `store` (None: all), in index order.
+
+    Raises:
+        ConfigError: `max_demos` < 1.
+        DatasetError: the store holds no complete episode.
+    """
+    check_max_demos(max_demos)
     episodes = store.episodes()
     if not episodes:
-        raise DatasetError(f"dataset folder {folder} holds no complete episodes")
-    return [store.load(episode) for episode in episodes[:max_demos]]
+        raise DatasetError(f"dataset folder {store.root} holds no complete episodes")
+    return episodes[:max_demos]
 
 
 def episode_metadata(metadata: dict, steps: int) -> dict:

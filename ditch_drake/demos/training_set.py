@@ -24,9 +24,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ditch_drake.common.errors import ConfigError, DatasetError
+from ditch_drake.common.errors import DatasetError
 from ditch_drake.demos.dataset import Demonstration, to_array_set
-from ditch_drake.demos.store import DatasetStore, Episode, demonstration_metadata, is_store, load_demonstrations
+from ditch_drake.demos.store import (
+    DatasetStore,
+    Episode,
+    demonstration_metadata,
+    first_episodes,
+    is_store,
+    load_demonstrations,
+)
 from ditch_drake.learning.data import ArraySet
 from ditch_drake.learning.mirror import mirror_left_right
 from ditch_drake.learning.stream import LazyImageStack
@@ -75,17 +82,12 @@ def dataset_episodes(directory: str | os.PathLike, max_demos: int | None = None)
         ConfigError: `max_demos` < 1.
         DatasetError: no such folder, no episodes, or a bad one.
     """
-    if max_demos is not None and max_demos < 1:
-        raise ConfigError(f"max_demos={max_demos}: expected an integer >= 1, or none for all (--max-demos)")
     if not is_store(directory):
         return [DatasetEpisode(demo.metadata, len(demo), demonstration=demo)
                 for demo in load_demonstrations(directory, max_demos)]
     store = DatasetStore.open(directory)
-    episodes = store.episodes()
-    if not episodes:
-        raise DatasetError(f"dataset folder {directory} holds no complete episodes")
     return [DatasetEpisode(demonstration_metadata(episode.metadata), episode.steps, store, episode)
-            for episode in episodes[:max_demos]]
+            for episode in first_episodes(store, max_demos)]
 
 
 def _reflect_masks(reflect, counts: np.ndarray) -> list[np.ndarray]:
