@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -377,3 +378,30 @@ def test_box_mesh_keeps_the_faces_asked_for(faces, triangles):
     assert tilted_obj.count("\nf ") == {"all": 12, "up": 4, "top": 2}[faces]
     with pytest.raises(ValueError, match="faces='side'"):
         boxes_obj([(np.array([1.0, 1.0, 1.0]), flat)], "side")
+
+
+@pytest.mark.parametrize("noisy", [False, True])
+def test_update_stores_the_organized_points_of_recorded_depths_bit_for_bit(noisy):
+    # Depth images the lidar's cameras rendered in a learned rollout (`ditch-drake evaluate --env
+    # wide --task 1 --seed 300`, control steps `rollout_steps`). The update writes the points
+    # straight into the cloud; they must be the float32 of the float64 points that the code
+    # before that change computed and assigned.
+    depths = np.load(Path(__file__).parent / "data" / "lidar_depths_recorded.npz")["depths"]
+    config = LidarConfig(noise_std_m=0.02, dropout_probability=0.1) if noisy else LidarConfig()
+    converter = DepthImagesToLidarCloud(config)
+    context = converter.CreateDefaultContext()
+    if noisy:
+        converter.GetInputPort("noise_seed").FixValue(context, [0.25, 0.75])
+    for cameras in depths:
+        for i, depth in enumerate(cameras):
+            image = ImageDepth32F(config.width, config.height)
+            image.mutable_data[:] = depth
+            converter.GetInputPort(f"depth_image_{i}").FixValue(context, image)
+        distance, keep = converter._ranges(list(cameras), converter._rng(context))
+        before = np.where(keep, converter._unit_rays_L * np.where(keep, distance, 0.0), np.nan)
+        assert 0 < keep.sum() < keep.size
+        converter.ExecuteForcedEvents(context)
+        stored = converter.GetOutputPort("organized_points").Eval(context).xyzs()
+        assert stored.tobytes() == np.asarray(before, dtype=np.float32).tobytes()
+        if not noisy:
+            assert converter.organized_points_from_depths(list(cameras)).tobytes() == before.tobytes()

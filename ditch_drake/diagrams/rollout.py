@@ -12,7 +12,6 @@ from pydrake.common import RandomGenerator
 from pydrake.geometry import Meshcat
 from pydrake.systems.analysis import Simulator, SimulatorStatus
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, EventStatus, OutputPort, System
-from pydrake.systems.primitives import ConstantVectorSource
 from tqdm import tqdm
 
 from ditch_drake.common.errors import ConfigError
@@ -36,6 +35,7 @@ from ditch_drake.systems.perceived_crossing_side import PerceivedCrossingSide, P
 from ditch_drake.systems.policy import LearnedPolicy
 from ditch_drake.systems.teleop import ActionQuantizer
 
+from ditch_drake.systems.skid_steer_drive import ConstantCommand
 
 @dataclass
 class ConstantCommandConfig:
@@ -235,7 +235,7 @@ def AddEdgeAngleDriver(builder: DiagramBuilder, scene: DitchScene, config: EdgeA
 
 def AddConstantCommand(builder: DiagramBuilder, scene: DitchScene, config: ConstantCommandConfig) -> OutputPort:
     config.validate()
-    return builder.AddNamedSystem("constant_command", ConstantVectorSource(config.command)).get_output_port()
+    return builder.AddNamedSystem("constant_command", ConstantCommand(config.command)).get_output_port()
 
 
 def AddExpert(builder: DiagramBuilder, scene: DitchScene, config: ExpertConfig) -> OutputPort:

@@ -371,25 +371,8 @@ def _splat(x: np.ndarray, y: np.ndarray, values: np.ndarray, config: NormalImage
     col_f = (config.y_max - y) * (1.0 / dy)
     row0 = np.clip(np.rint(row_f), -rows, 2 * rows)
     col0 = np.clip(np.rint(col_f), -cols, 2 * cols)
-    # Squared distances to the grid rows and columns around each point, and their indices.
-    row_sq = np.add(
-        (row_offsets * dx).astype(np.float32)[:, None],
-        ((row0 - row_f) * dx).astype(np.float32),
-        out=_scratch("row_sq", (len(row_offsets), count), np.float32),
-    )
-    col_sq = np.add(
-        (col_offsets * dy).astype(np.float32)[:, None],
-        ((col0 - col_f) * dy).astype(np.float32),
-        out=_scratch("col_sq", (len(col_offsets), count), np.float32),
-    )
-    np.square(row_sq, out=row_sq)
-    np.square(col_sq, out=col_sq)
-    row_index = np.add(row_offsets[:, None], row0.astype(np.intp), out=_scratch("row_index", row_sq.shape, np.intp))
-    col_index = np.add(col_offsets[:, None], col0.astype(np.intp), out=_scratch("col_index", col_sq.shape, np.intp))
-    row_sq[(row_index < 0) | (row_index >= rows)] = np.inf
-    col_sq[(col_index < 0) | (col_index >= cols)] = np.inf
-    np.clip(row_index, 0, rows - 1, out=row_index)
-    np.clip(col_index, 0, cols - 1, out=col_index)
+    row_sq, row_index = _offset_distances_sq(row_offsets, row0, row_f, dx, rows, "row")
+    col_sq, col_index = _offset_distances_sq(col_offsets, col0, col_f, dy, cols, "col")
     row_index *= cols
     # Squared distances and flat pixel indices of the (point, grid point) pairs: (S, N).
     pairs = sum(last - first + 1 for first, last in spans)
@@ -408,16 +391,42 @@ def _splat(x: np.ndarray, y: np.ndarray, values: np.ndarray, config: NormalImage
     else:
         np.power(weights, np.float32(-0.5 * config.idw_power), out=weights)
     weights -= np.float32((config.radius**2 + softening_sq) ** (-0.5 * config.idw_power))
-    np.maximum(weights, np.float32(0.0), out=weights)
-    flat = flat.ravel()
-    denominator = np.zeros(rows * cols, dtype=np.float32)
-    np.add.at(denominator, flat, weights.ravel())
-    weights *= values.astype(np.float32)
-    numerator = np.zeros(rows * cols, dtype=np.float32)
-    np.add.at(numerator, flat, weights.ravel())
+    # Both sums in one pass: a complex64 sum adds the real parts (the weights) and the
+    # imaginary parts (the weighted values) as two float32 sums, in the same order, so it
+    # gives the two sums of two separate passes bit for bit, at a little over the cost of one.
+    terms = _scratch("terms", (pairs, count), np.complex64)
+    parts = terms.view(np.float32).reshape(pairs, count, 2)
+    np.maximum(weights, np.float32(0.0), out=parts[..., 0])
+    np.multiply(parts[..., 0], values.astype(np.float32), out=parts[..., 1])
+    sums = np.zeros(rows * cols, dtype=np.complex64)
+    np.add.at(sums, flat.ravel(), terms.ravel())
+    denominator, numerator = sums.real, sums.imag
     image = np.zeros(rows * cols, dtype=np.float32)
     np.divide(numerator, denominator, out=image, where=denominator > 0.0)
     return np.clip(image, 0.0, 1.0, out=image).reshape(rows, cols)
+
+
+def _offset_distances_sq(
+    offsets: np.ndarray, nearest: np.ndarray, position: np.ndarray, spacing: float, size: int, name: str
+) -> tuple[np.ndarray, np.ndarray]:
+    """Float32 squared distances (offset, point) along one axis from each point (`position`,
+    in grid units; `nearest` its rounded value) to the grid lines `offsets` away from its
+    nearest one, and their indices clipped into 0..size-1; inf where the line is off the grid."""
+    distances_sq = np.add(
+        (offsets * spacing).astype(np.float32)[:, None],
+        ((nearest - position) * spacing).astype(np.float32),
+        out=_scratch(f"{name}_sq", (len(offsets), len(position)), np.float32),
+    )
+    np.square(distances_sq, out=distances_sq)
+    index = np.add(offsets[:, None], nearest.astype(np.intp), out=_scratch(f"{name}_index", distances_sq.shape, np.intp))
+    # Only the offsets that take some point off the grid need the test (often none, at most
+    # the outer few).
+    lowest, highest = (int(nearest.min()), int(nearest.max())) if len(nearest) else (0, 0)
+    for one_sq, one_index, offset in zip(distances_sq, index, offsets):
+        if lowest + offset < 0 or highest + offset >= size:
+            one_sq[(one_index < 0) | (one_index >= size)] = np.inf
+            np.clip(one_index, 0, size - 1, out=one_index)
+    return distances_sq, index
 
 
 def normal_image(points: np.ndarray, normals_z: np.ndarray, config: NormalImageConfig | None = None) -> np.ndarray:
@@ -450,26 +459,25 @@ def normal_image(points: np.ndarray, normals_z: np.ndarray, config: NormalImageC
         return np.zeros((config.rows, config.cols), dtype=np.float32)
     points = _scaled_down(points, _extent(points))
     centroid = np.ones(len(points)) @ points / len(points)
-    return _image_of_finite_points(points[:, 0], points[:, 1], points[:, 2], centroid, normals_z, config)
+    return _image_of_finite_points(points.T, centroid, normals_z, config)
 
 
 def _image_of_finite_points(
-    x: np.ndarray, y: np.ndarray, z: np.ndarray, centroid: np.ndarray, normals_z: np.ndarray, config: NormalImageConfig
+    coordinates: np.ndarray, centroid: np.ndarray, normals_z: np.ndarray, config: NormalImageConfig
 ) -> np.ndarray:
-    """`normal_image` of finite points given by coordinates, and their centroid."""
-    # normalize_to_unit_ball, on columns (faster than on rows).
-    x = x - centroid[0]
-    y = y - centroid[1]
-    z = z - centroid[2]
+    """`normal_image` of finite points given as (3, N) coordinates (x, y, z rows), and their centroid."""
+    # normalize_to_unit_ball, on coordinate rows (faster than on points).
+    centered = coordinates - centroid[:, None]
+    x, y, z = centered
     scale = math.sqrt(float((x * x + y * y + z * z).max()))
     scale = 1.0 / scale if scale > 0.0 else 0.0
     values = np.abs(normals_z)
     use = np.isfinite(values)
+    plane = centered[:2]
     if not use.all():
-        x, y, values = x[use], y[use], values[use]
-    x *= scale
-    y *= scale
-    return _splat(x, y, np.minimum(values, 1.0), config)
+        plane, values = np.compress(use, plane, axis=1), values[use]
+    plane *= scale
+    return _splat(plane[0], plane[1], np.minimum(values, 1.0, out=values), config)
 
 
 def organized_cloud_to_normal_image(
@@ -516,7 +524,7 @@ def organized_cloud_to_normal_image(
     normals, inverse_norm = _organized_normals_planar(grid, config.discontinuity_ratio)
     normals_z = np.multiply(normals[2], inverse_norm).ravel()
     centroid = points @ np.ones(points.shape[1]) / points.shape[1]
-    return _image_of_finite_points(points[0], points[1], points[2], centroid, normals_z[in_band], config)
+    return _image_of_finite_points(points, centroid, normals_z[in_band], config)
 
 
 def cloud_to_normal_image(

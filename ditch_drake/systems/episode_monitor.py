@@ -79,7 +79,11 @@ def stability_margins_rad(R_WB: np.ndarray) -> list[float]:
     wheel support rectangle before the centre of mass passes over it; negative
     means it has passed.
     """
-    up_x, up_y, up_z = (float(value) for value in R_WB[2, :])  # The world's +z expressed in B.
+    return _margins_of_up(*R_WB[2].tolist())  # The world's +z expressed in B.
+
+
+def _margins_of_up(up_x: float, up_y: float, up_z: float) -> list[float]:
+    """`stability_margins_rad` of the world's +z expressed in B."""
     lean_y = math.atan2(up_y, up_z)
     lean_x = math.atan2(up_x, up_z)
     return [_LATERAL_TIP_RAD + lean_y, _LATERAL_TIP_RAD - lean_y,
@@ -128,10 +132,11 @@ class EpisodeMonitor(LeafSystem):
             return EventStatus.DidNothing()
         time = context.get_time()
         X_WB = self._poses_port.Eval(context)[self._chassis_index]
-        R_WB = X_WB.rotation().matrix()
-        x, y = float(X_WB.translation()[0]), float(X_WB.translation()[1])
-        rpy = RollPitchYaw(X_WB.rotation())
-        tilt = math.acos(min(1.0, max(-1.0, float(R_WB[2, 2]))))
+        R_WB = X_WB.rotation()
+        up = R_WB.row(2).tolist()  # The world's +z expressed in B.
+        x, y, _ = X_WB.translation().tolist()
+        rpy = RollPitchYaw(R_WB)
+        tilt = math.acos(min(1.0, max(-1.0, up[2])))
         if not state[_STARTED]:
             state[_LAST_X], state[_LAST_Y], state[_ANCHOR_X], state[_ANCHOR_Y] = x, y, x, y
             state[_ANCHOR_T] = time
@@ -141,7 +146,7 @@ class EpisodeMonitor(LeafSystem):
         state[_ROLL] = max(state[_ROLL], abs(rpy.roll_angle()))
         state[_PITCH] = max(state[_PITCH], abs(rpy.pitch_angle()))
         state[_TILT] = max(state[_TILT], tilt)
-        state[_MARGIN] = min(state[_MARGIN], min(stability_margins_rad(R_WB)))
+        state[_MARGIN] = min(state[_MARGIN], min(_margins_of_up(*up)))
         if math.hypot(x - state[_ANCHOR_X], y - state[_ANCHOR_Y]) > self._config.stuck_distance_m:
             state[_ANCHOR_X], state[_ANCHOR_Y], state[_ANCHOR_T] = x, y, time
         config = self._config

@@ -174,6 +174,11 @@ class DepthImagesToLidarCloud(LeafSystem):
         Returns:
             (3, rows * cols) positions in L (m), like `PointCloud.xyzs()`; NaN where no return is kept.
         """
+        distance, keep = self._ranges(depths, rng)
+        return self._unit_rays_L * np.where(keep, distance, np.nan)  # The rays are finite: NaN ranges, NaN points.
+
+    def _ranges(self, depths: list[np.ndarray], rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:
+        """Each ray's range (m) for the cameras' depth arrays, and whether its return is kept."""
         config = self._config
         rows = self._organized_shape[0]
         panorama = np.concatenate([np.reshape(d, (rows, config.width)) for d in depths], axis=1)
@@ -185,7 +190,7 @@ class DepthImagesToLidarCloud(LeafSystem):
         keep &= (distance < self._self_enter) | (distance > self._self_leave)  # self-returns
         if rng is not None and config.dropout_probability > 0:
             keep &= rng.random(distance.shape) >= config.dropout_probability
-        return np.where(keep, self._unit_rays_L * np.where(keep, distance, 0.0), np.nan)
+        return distance, keep
 
     def _rng(self, context) -> np.random.Generator | None:
         if self._seed_port is None:
@@ -195,8 +200,11 @@ class DepthImagesToLidarCloud(LeafSystem):
 
     def _update(self, context, state) -> EventStatus:
         depths = [port.Eval(context).data for port in self._image_ports]
-        points = self.organized_points_from_depths(depths, self._rng(context))
-        state.get_mutable_abstract_state(self._organized_index).get_mutable_value().mutable_xyzs()[:] = points
+        distance, keep = self._ranges(depths, self._rng(context))
+        xyzs = state.get_mutable_abstract_state(self._organized_index).get_mutable_value().mutable_xyzs()
+        # `organized_points_from_depths` written straight into the cloud: the float64 products
+        # are rounded to the cloud's float32 as they are stored, as an assignment would round them.
+        np.multiply(self._unit_rays_L, np.where(keep, distance, np.nan), out=xyzs, casting="same_kind")
         return EventStatus.Succeeded()
 
     def _calc_returns(self, context, output) -> None:

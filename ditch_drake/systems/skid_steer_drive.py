@@ -1,9 +1,12 @@
-"""Skid-steer drive: a (v, w) body command to wheel speed targets."""
+"""Skid-steer drive: a (v, w) body command to wheel speed targets, and a fixed command's source."""
 
 import numpy as np
-from pydrake.systems.framework import BasicVector, LeafSystem
+from pydrake.systems.framework import BasicVector, LeafSystem, NumericParameterIndex
 
 from ditch_drake.spec import robot
+
+# How many commands' wheel speeds a drive keeps (`SkidSteerDrive._calc_desired_state`).
+_KEPT_COMMANDS = 64
 
 
 def effective_track_m(w_radps: float) -> float:
@@ -57,13 +60,68 @@ class SkidSteerDrive(LeafSystem):
         self._wheel_is_left = np.asarray(wheel_is_left, dtype=bool)
         count = len(self._wheel_is_left)
         self._command_port = self.DeclareVectorInputPort("command", 2)
+        self._desired_by_command: dict[bytes, np.ndarray] = {}
         self.DeclareVectorOutputPort(
             "wheel_desired_state", 2 * count, self._calc_desired_state,
             prerequisites_of_calc={self._command_port.ticket()})
 
     def _calc_desired_state(self, context, output: BasicVector) -> None:
-        command = self._command_port.Eval(context)
-        if not np.all(np.isfinite(command)):
-            raise ValueError(f"command {command} must be finite [v m/s, w rad/s]")
-        speeds = wheel_speeds_radps(command, self._wheel_is_left)
-        output.SetFromVector(np.concatenate([np.zeros_like(speeds), speeds]))
+        command = self._command_port.EvalBasicVector(context).value()
+        # The commands are few (17 action labels for the learned policy), and the map costs
+        # more than a lookup: its results are kept by the command's exact bits.
+        key = command.tobytes()
+        desired = self._desired_by_command.get(key)
+        if desired is None:
+            if not np.all(np.isfinite(command)):
+                raise ValueError(f"command {command} must be finite [v m/s, w rad/s]")
+            speeds = wheel_speeds_radps(command, self._wheel_is_left)
+            desired = np.concatenate([np.zeros_like(speeds), speeds])
+            if len(self._desired_by_command) >= _KEPT_COMMANDS:  # A continuous controller's commands.
+                self._desired_by_command.clear()
+            self._desired_by_command[key] = desired
+        output.SetFromVector(desired)
+
+
+class ConstantCommand(LeafSystem):
+    """A fixed command, as `ConstantVectorSource` gives it, whose output depends on the command alone.
+
+    `ConstantVectorSource`'s output depends, for Drake's cache, on the time as well, so a
+    `SkidSteerDrive` fed by one recomputes its wheel targets at every physics step; fed by this
+    source it computes them once, and again only when the command is changed.
+
+    .. pydrake_system::
+
+        name: ConstantCommand
+        output_ports:
+        - command
+
+    Ports:
+        command: [v (m/s), w (rad/s)]: the value of the block's numeric parameter.
+    """
+
+    def __init__(self, command):
+        """Args:
+            command: [v (m/s), w (rad/s)], the parameter's default value.
+
+        Raises:
+            ValueError: `command` is not two numbers.
+        """
+        super().__init__()
+        command = np.asarray(command, dtype=float)
+        if command.shape != (2,):
+            raise ValueError(f"command {command.tolist()} must be [v m/s, w rad/s]")
+        self._index = self.DeclareNumericParameter(BasicVector(command))
+        self.DeclareVectorOutputPort(
+            "command", 2, self._calc_command,
+            prerequisites_of_calc={self.numeric_parameter_ticket(NumericParameterIndex(self._index))})
+
+    def get_source_value(self, context) -> BasicVector:
+        """The command in `context` (as `ConstantVectorSource.get_source_value`)."""
+        return context.get_numeric_parameter(self._index)
+
+    def get_mutable_source_value(self, context) -> BasicVector:
+        """The command in `context`, to change it (as `ConstantVectorSource.get_mutable_source_value`)."""
+        return context.get_mutable_numeric_parameter(self._index)
+
+    def _calc_command(self, context, output: BasicVector) -> None:
+        output.SetFrom(context.get_numeric_parameter(self._index))
