@@ -10,7 +10,14 @@ import argparse
 import os
 import sys
 
-from ditch_drake.cli import dataset_commands, episode_commands, evaluation_commands, tool_commands, training_commands
+from ditch_drake.cli import (
+    dataset_commands,
+    episode_commands,
+    evaluation_commands,
+    export_commands,
+    tool_commands,
+    training_commands,
+)
 from ditch_drake.cli.options import Commands, Parser, environments_epilog
 from ditch_drake.common.errors import ConfigError, ResultsError, TerrainError
 from ditch_drake.common.parallel import interrupt_exit_code, terminate_as_interrupt
@@ -26,6 +33,7 @@ COMMANDS = (
     dataset_commands.add_dataset,
     episode_commands.add_replay,
     training_commands.add_checkpoint_info,
+    export_commands.add_export_policy,
     evaluation_commands.add_evaluate,
     evaluation_commands.add_benchmark,
     evaluation_commands.add_benchmark_report,

@@ -225,7 +225,8 @@ def _built_in(action: argparse.Action, field: str, owner: str = SCENARIO) -> Non
 def add_checkpoint(sub: argparse.ArgumentParser, default_text: str) -> None:
     """`--checkpoint`: the learned policy's."""
     sub.add_argument("--checkpoint", default=None,
-                     help=f"the learned policy, a shipped name or a .pt file (default: {default_text})")
+                     help=f"the learned policy, a shipped name, a .pt file or a .onnx of export-policy (default: "
+                          f"{default_text})")
 
 
 def add_crossing_side(sub: argparse.ArgumentParser) -> None:
@@ -337,7 +338,7 @@ def scenario_from_options(args, default_controller: str = "learned"):
     --scenario-name), then the options given on the command line, then --override."""
     from dataclasses import replace
 
-    from ditch_drake.diagrams.controllers import controller_config
+    from ditch_drake.diagrams.controllers import controller_config, with_checkpoint
     from ditch_drake.diagrams.scenario import Scenario, check_scenario, load_scenario
 
     scenario = load_scenario(args.scenario, args.scenario_name) if args.scenario else Scenario(
@@ -353,7 +354,7 @@ def scenario_from_options(args, default_controller: str = "learned"):
         if not hasattr(scenario.controller, "checkpoint"):
             raise ConfigError(f"--checkpoint {args.checkpoint}: the controller {type(scenario.controller).__name__} "
                               "takes no checkpoint; expected --checkpoint only with the learned policy")
-        scenario = replace(scenario, controller=replace(scenario.controller, checkpoint=args.checkpoint))
+        scenario = replace(scenario, controller=with_checkpoint(scenario.controller, args.checkpoint))
     if getattr(args, "time_limit", None) is not None:
         scenario = replace(scenario, episode=replace(scenario.episode, time_limit_s=args.time_limit))
     if args.override:

@@ -297,8 +297,15 @@ def controller_config(name: str, checkpoint: str = "", seed: int | None = None):
     entry = get_controller(name)
     config = entry.default_config()
     if checkpoint and any(f.name == "checkpoint" for f in dataclasses.fields(config)):
-        config = dataclasses.replace(config, checkpoint=checkpoint)
+        config = with_checkpoint(config, checkpoint)
     return entry.for_seed(config, seed) if seed is not None else config
+
+
+def with_checkpoint(config, checkpoint: str):
+    """`config` naming `checkpoint`: through the config's own `with_checkpoint` where it has one
+    (the learned policy's: a .onnx file also sets its runtime), else its `checkpoint` replaced."""
+    method = getattr(config, "with_checkpoint", None)
+    return method(checkpoint) if callable(method) else dataclasses.replace(config, checkpoint=checkpoint)
 
 
 def check_controller_config(config) -> ControllerEntry:

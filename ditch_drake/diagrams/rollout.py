@@ -18,7 +18,9 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, ReleaseSceneGraphModelCache, SceneConfig
 from ditch_drake.diagrams.lidar_rig import AddLidar
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
-from ditch_drake.learning.checkpoint import CheckpointError, environment_model, load_checkpoint, resolve_checkpoint_path
+from ditch_drake.learning.checkpoint import CheckpointError, environment_model
+from ditch_drake.learning.inference import check_runtime, load_policy
+from ditch_drake.learning.onnx_policy import is_onnx_path
 from ditch_drake.perception.lidar_model import LidarConfig
 from ditch_drake.planning.costmap import CostmapConfig
 from ditch_drake.planning.elevation_map import ElevationMapConfig
@@ -33,9 +35,9 @@ from ditch_drake.systems.mppi_controller import MppiController
 from ditch_drake.systems.oracle_crossing_side import OracleCrossingSide
 from ditch_drake.systems.perceived_crossing_side import PerceivedCrossingSide, PerceivedCrossingSideConfig
 from ditch_drake.systems.policy import LearnedPolicy
+from ditch_drake.systems.skid_steer_drive import ConstantCommand
 from ditch_drake.systems.teleop import ActionQuantizer
 
-from ditch_drake.systems.skid_steer_drive import ConstantCommand
 
 @dataclass
 class ConstantCommandConfig:
@@ -72,23 +74,38 @@ class LearnedPolicyConfig:
 
     Attributes:
         checkpoint: a shipped model's name (`ditch_drake.learning.checkpoint.SHIPPED_MODELS`,
-            e.g. "wide"), the path of a checkpoint file, or "" for the shipped model of the
-            environment it drives in.
+            e.g. "wide"), the path of a checkpoint file (.pt, or a .onnx of `ditch-drake
+            export-policy`, which needs runtime "onnxruntime"), or "" for the shipped model of
+            the environment it drives in.
         observation: the perception blocks feeding it (their defaults match the demonstrations').
         crossing_side: where a clone trained in one side's frame (`ModelConfig.canonical_side`)
             is told the side to cross on: "perceived" (`PerceivedCrossingSide`, from the lidar's
             points and the pose) or "oracle" (`OracleCrossingSide`, from the analytic ditch: a
             privileged input, for the ablation). Other checkpoints ignore it.
+        runtime: what runs the network (`ditch_drake.learning.inference.RUNTIMES`): "torch"
+            (PyTorch), or "onnxruntime" (ONNX Runtime, one thread; a .pt checkpoint is exported
+            to ONNX in memory when the diagram is built; needs `pip install -e '.[onnx]'`).
+            The softmax, mirror and argmax around it are the same; the labels may differ where
+            two logits tie to within the runtimes' float32 rounding (about 1e-5).
     """
 
     checkpoint: str = ""
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     crossing_side: str = "perceived"
+    runtime: str = "torch"
 
     def validate(self) -> None:
         if self.crossing_side not in CROSSING_SIDE_SOURCES:
             raise ConfigError(f"learned crossing_side={self.crossing_side!r}: expected one of "
                               f"{list(CROSSING_SIDE_SOURCES)}")
+        check_runtime(self.runtime, self.checkpoint)
+
+    def with_checkpoint(self, checkpoint: str) -> "LearnedPolicyConfig":
+        """This config naming `checkpoint`; a .onnx file also sets runtime "onnxruntime", the only
+        one that runs it, so that `--checkpoint policy.onnx` is taken wherever a checkpoint is
+        (`ditch_drake.diagrams.controllers.with_checkpoint`)."""
+        runtime = "onnxruntime" if is_onnx_path(checkpoint) else self.runtime
+        return dataclasses.replace(self, checkpoint=checkpoint, runtime=runtime)
 
 
 def with_crossing_side(config, crossing_side: str) -> LearnedPolicyConfig:
@@ -255,7 +272,8 @@ def AddLearnedController(builder: DiagramBuilder, scene: DitchScene, config: Lea
     config.validate()
     checkpoint = config.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
     observation = AddObservation(builder, scene, config.observation)
-    return AddLearnedPolicy(builder, scene, observation, checkpoint, config.crossing_side).GetOutputPort("command")
+    return AddLearnedPolicy(builder, scene, observation, checkpoint, config.crossing_side,
+                            config.runtime).GetOutputPort("command")
 
 
 def AddDwaController(builder: DiagramBuilder, scene: DitchScene, config: DwaBaselineConfig) -> OutputPort:
@@ -287,17 +305,19 @@ def AddMppiController(builder: DiagramBuilder, scene: DitchScene, config: MppiBa
 
 
 def AddLearnedPolicy(builder: DiagramBuilder, scene: DitchScene, observation: Observation,
-                     checkpoint: str, crossing_side: str = "perceived") -> LearnedPolicy:
+                     checkpoint: str, crossing_side: str = "perceived", runtime: str = "torch") -> LearnedPolicy:
     """Adds the behavioural clone of `checkpoint` (a shipped name or a path) fed by `observation`,
-    and, for a clone trained in one side's frame, the block that tells it the side to cross on
-    (`AddCrossingSide` of `crossing_side`: "perceived" or "oracle").
+    its network run by `runtime` (`LearnedPolicyConfig.runtime`), and, for a clone trained in one
+    side's frame, the block that tells it the side to cross on (`AddCrossingSide` of
+    `crossing_side`: "perceived" or "oracle").
 
     Raises:
-        CheckpointError: the checkpoint expects other input sizes than the blocks give.
+        ConfigError: an unknown or uninstalled runtime, or one that does not run the checkpoint.
+        CheckpointError: the checkpoint does not load, or expects other input sizes than the blocks give.
     """
     schedule = observation.schedule
     policy = builder.AddNamedSystem(
-        "learned_policy", LearnedPolicy(load_checkpoint(resolve_checkpoint_path(checkpoint)),
+        "learned_policy", LearnedPolicy(load_policy(checkpoint, runtime),
                                         offset_s=schedule.controller_offset_s, period_s=schedule.control_period_s))
     for name, port in observation.ports.items():
         expected = policy.GetInputPort(name).size()

@@ -56,12 +56,8 @@ from ditch_drake.diagrams.controllers import (
 )
 from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, finished_keys, read_records
 from ditch_drake.evaluation.rollout_worker import error_record, initialize_worker, run_rollout
-from ditch_drake.learning.checkpoint import (
-    checkpoint_digest,
-    environment_model,
-    load_checkpoint,
-    resolve_checkpoint_path,
-)
+from ditch_drake.learning.checkpoint import checkpoint_digest, environment_model
+from ditch_drake.learning.inference import check_policy_file
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 from ditch_drake.world.environments import get_environment
 
@@ -164,7 +160,7 @@ def check_checkpoint(checkpoint: str) -> str:
     if not checkpoint:
         return ""
     try:
-        load_checkpoint(resolve_checkpoint_path(checkpoint))
+        check_policy_file(checkpoint)  # A .pt checkpoint, or a .onnx policy.
     except FileNotFoundError as error:
         raise ConfigError(str(error)) from error
     return checkpoint_digest(checkpoint)

@@ -5,6 +5,7 @@ import torch
 from pydrake.systems.framework import DiscreteValues, LeafSystem
 
 from ditch_drake.learning.checkpoint import PolicyCheckpoint
+from ditch_drake.learning.inference import PolicyInference, TorchInference
 from ditch_drake.learning.mirror import mirror_left_right
 from ditch_drake.spec import robot
 
@@ -14,9 +15,11 @@ class LearnedPolicy(LeafSystem):
 
     A periodic discrete update every `period_s` (at t_k = offset_s + k * period_s) reads
     the four stacks, runs the network once (eval mode: dropout off, BatchNorm on its
-    running statistics; under `torch.inference_mode`, a stricter `torch.no_grad`), and
-    stores the most probable label, its [v, w] command from the checkpoint's action table
-    and the softmax probabilities in the discrete state, which the outputs read. The same
+    running statistics), and stores the most probable label, its [v, w] command from the
+    checkpoint's action table and the softmax probabilities in the discrete state, which the
+    outputs read. The network runs in the runtime of the inference object it is given
+    (`ditch_drake.learning.inference`: PyTorch under `torch.inference_mode`, or ONNX Runtime);
+    the softmax, the mirror and the argmax here are the same for every runtime. The same
     update is declared as a forced discrete update, so `CalcForcedDiscreteVariableUpdate`
     runs one step too. Until the first update the command is [0, 0] (stand still), the
     label -1 and the probabilities 0.
@@ -31,8 +34,8 @@ class LearnedPolicy(LeafSystem):
     policy runs the network on the left-right reflection of the stacks
     (`ditch_drake.learning.mirror`) and reflects the chosen label and the probabilities back.
 
-    The network's weights are fixed configuration, so they live on the system, not in
-    the Context; everything that changes is discrete state.
+    The network's weights (the inference object) are fixed configuration, so they live on
+    the system, not in the Context; everything that changes is discrete state.
 
     .. pydrake_system::
 
@@ -62,7 +65,7 @@ class LearnedPolicy(LeafSystem):
 
     def __init__(
         self,
-        checkpoint: PolicyCheckpoint,
+        policy: PolicyCheckpoint | PolicyInference,
         offset_s: float = 0.0,
         period_s: float = robot.CONTROL_PERIOD_S,
         num_threads: int | None = 1,
@@ -70,14 +73,17 @@ class LearnedPolicy(LeafSystem):
         """Declares the ports, the state and the periodic update.
 
         Args:
-            checkpoint: a trained policy (`ditch_drake.learning.checkpoint.load_checkpoint`);
-                its model config fixes the input sizes, its action table the commands.
+            policy: a trained policy (`ditch_drake.learning.checkpoint.load_checkpoint`), run
+                in PyTorch, or an inference object of any runtime
+                (`ditch_drake.learning.inference.load_policy`); its model config fixes the
+                input sizes, its action table the commands.
             offset_s: time of the first update (s).
             period_s: update period (s), the control rate.
-            num_threads: torch intra-op threads, set once here for the whole process
-                (`torch.set_num_threads` is process-wide); None leaves torch's setting.
-                Default 1: one forward pass of one sample gains little from more threads,
-                and rollouts run one process per core.
+            num_threads: with a checkpoint, torch's intra-op threads, set once here for the
+                whole process (`torch.set_num_threads` is process-wide); None leaves torch's
+                setting. Default 1: one forward pass of one sample gains little from more
+                threads, and rollouts run one process per core. An inference object comes
+                with its own.
 
         Raises:
             ValueError: a non-positive period, a negative offset or a thread count < 1.
@@ -85,14 +91,10 @@ class LearnedPolicy(LeafSystem):
         super().__init__()
         if not (period_s > 0 and offset_s >= 0):
             raise ValueError(f"period_s={period_s} must be positive and offset_s={offset_s} non-negative")
-        if num_threads is not None:
-            if num_threads < 1:
-                raise ValueError(f"num_threads={num_threads} must be >= 1 or None")
-            torch.set_num_threads(num_threads)
-        config = checkpoint.model_config
-        self._model = checkpoint.build_model()
+        self._inference = TorchInference(policy, num_threads) if isinstance(policy, PolicyCheckpoint) else policy
+        config = self._inference.model_config
         self._image_shape = (1, config.image_channels, config.image_size, config.image_size)
-        self._commands = np.asarray(checkpoint.action_commands, dtype=float)
+        self._commands = np.asarray(self._inference.action_commands, dtype=float)
         self._image_port = self.DeclareVectorInputPort("image_stack", int(np.prod(self._image_shape)))
         self._imu_port = self.DeclareVectorInputPort("imu_stack", config.imu_size)
         self._distance_port = self.DeclareVectorInputPort("distance_stack", config.distance_size)
@@ -106,6 +108,11 @@ class LearnedPolicy(LeafSystem):
         self._probabilities_port = self.DeclareStateOutputPort("probabilities", self._probabilities_index)
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._update)
         self.DeclareForcedDiscreteUpdateEvent(self._update)
+
+    @property
+    def runtime(self) -> str:
+        """The runtime the network runs in (`ditch_drake.learning.inference.RUNTIMES`)."""
+        return self._inference.runtime
 
     @property
     def action_commands(self) -> np.ndarray:
@@ -127,10 +134,8 @@ class LearnedPolicy(LeafSystem):
         if reflect:
             batch = {name: value.copy() for name, value in batch.items()}
             mirror_left_right(batch)
-        inputs = [torch.as_tensor(batch[name]) for name in ("image", "imu", "distance", "bearing")]
-        with torch.inference_mode():
-            logits = self._model(*inputs)
-        probabilities = torch.softmax(logits.double(), dim=1)[0].numpy()
+        logits = self._inference.logits(*(batch[name] for name in ("image", "imu", "distance", "bearing")))
+        probabilities = torch.softmax(torch.from_numpy(logits).double(), dim=1)[0].numpy()
         if reflect:
             # Label k turns as fast the other way as label num_labels - 1 - k (`mirror`).
             probabilities = probabilities[::-1].copy()

@@ -1,0 +1,177 @@
+"""How a policy's network runs: its inference runtimes, one registry.
+
+A runtime turns a checkpoint into an inference object: its model config, its action table
+and one method, `logits(image, imu, distance, bearing)`, from a batch of raw float32 inputs
+(the layouts of `ditch_drake.learning.onnx_policy`) to the (batch, num_labels) logits.
+Everything around it (the softmax, the left-right mirror of a canonical-side model, the
+argmax, the command) is the `LearnedPolicy` block's, the same for every runtime.
+
+| runtime | a .pt checkpoint (or a shipped name) | a .onnx file |
+| --- | --- | --- |
+| torch | the network in PyTorch | refused: it runs only on onnxruntime |
+| onnxruntime | exported in memory (`export_onnx`), run by ONNX Runtime | run by ONNX Runtime, with the action table and model config of its metadata |
+
+onnxruntime needs the onnx extra (`pip install -e '.[onnx]'`); asked for without it, it
+is refused with a `ConfigError` that says so.
+"""
+
+import importlib.util
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from ditch_drake.common.errors import CheckpointError, ConfigError
+from ditch_drake.learning.checkpoint import PolicyCheckpoint, load_checkpoint, resolve_checkpoint_path
+from ditch_drake.learning.config import ModelConfig
+from ditch_drake.learning.onnx_policy import (
+    INPUT_NAMES,
+    INSTALL_HINT,
+    OUTPUT_NAME,
+    export_onnx,
+    file_sha256,
+    is_onnx_path,
+    onnxruntime_session,
+    read_onnx_policy,
+)
+
+
+class PolicyInference(Protocol):
+    """A policy's network in one runtime (the module docstring)."""
+
+    runtime: str
+    model_config: ModelConfig
+    action_commands: np.ndarray
+
+    def logits(self, image: np.ndarray, imu: np.ndarray, distance: np.ndarray, bearing: np.ndarray) -> np.ndarray:
+        """(batch, num_labels) float32 logits of raw float32 inputs (batch, ...)."""
+
+
+class TorchInference:
+    """A checkpoint's network in PyTorch, in eval mode, under `torch.inference_mode`."""
+
+    runtime = "torch"
+
+    def __init__(self, checkpoint: PolicyCheckpoint, num_threads: int | None = 1):
+        """Builds the network.
+
+        Args:
+            checkpoint: the trained policy.
+            num_threads: torch's intra-op threads, set here for the whole process
+                (`torch.set_num_threads` is process-wide); None leaves torch's setting.
+
+        Raises:
+            ValueError: a thread count < 1.
+        """
+        if num_threads is not None:
+            if num_threads < 1:
+                raise ValueError(f"num_threads={num_threads} must be >= 1 or None")
+            torch.set_num_threads(num_threads)
+        self.model_config = checkpoint.model_config
+        self.action_commands = np.asarray(checkpoint.action_commands, dtype=float)
+        self._model = checkpoint.build_model()
+
+    def logits(self, image: np.ndarray, imu: np.ndarray, distance: np.ndarray, bearing: np.ndarray) -> np.ndarray:
+        with torch.inference_mode():
+            return self._model(*(torch.as_tensor(x) for x in (image, imu, distance, bearing))).numpy()
+
+
+class OnnxRuntimeInference:
+    """An ONNX model of the network in an `onnxruntime.InferenceSession` on the CPU."""
+
+    runtime = "onnxruntime"
+
+    def __init__(self, model: bytes, model_config: ModelConfig, action_commands: np.ndarray, num_threads: int = 1,
+                 where: str = "the ONNX policy"):
+        """Opens the session (`onnx_policy.onnxruntime_session`, `num_threads` intra-op threads).
+
+        Raises:
+            ConfigError: onnxruntime is not installed.
+            CheckpointError: onnxruntime cannot load `model`, naming `where`.
+        """
+        self.model_config = model_config
+        self.action_commands = np.asarray(action_commands, dtype=float)
+        self._session = onnxruntime_session(model, num_threads, where)
+        self._outputs = [OUTPUT_NAME]
+
+    def logits(self, image: np.ndarray, imu: np.ndarray, distance: np.ndarray, bearing: np.ndarray) -> np.ndarray:
+        feed = dict(zip(INPUT_NAMES, (image, imu, distance, bearing), strict=True))
+        return self._session.run(self._outputs, feed)[0]
+
+
+def _torch_runtime(path: Path, num_threads: int | None) -> TorchInference:
+    if is_onnx_path(path):
+        raise CheckpointError(f"{path} is an ONNX model, which runs only on runtime 'onnxruntime'; expected a .pt "
+                              "checkpoint for runtime 'torch', or runtime 'onnxruntime'")
+    return TorchInference(load_checkpoint(path), num_threads)
+
+
+def _onnxruntime_runtime(path: Path, num_threads: int | None) -> OnnxRuntimeInference:
+    threads = 1 if num_threads is None else num_threads
+    if is_onnx_path(path):
+        policy = read_onnx_policy(path)
+        return OnnxRuntimeInference(policy.model, policy.model_config, policy.action_commands, threads, str(path))
+    checkpoint = load_checkpoint(path)
+    model = export_onnx(checkpoint, str(path), file_sha256(path))
+    return OnnxRuntimeInference(model, checkpoint.model_config, checkpoint.action_commands, threads,
+                                f"the export of {path}")
+
+
+# The runtimes a policy's network runs on (`LearnedPolicyConfig.runtime`): name -> (checkpoint
+# file, threads) -> inference object, and the packages each needs beyond the package's own.
+RUNTIMES: dict[str, Callable[[Path, int | None], PolicyInference]] = {
+    "torch": _torch_runtime,
+    "onnxruntime": _onnxruntime_runtime,
+}
+RUNTIME_PACKAGES = {"torch": (), "onnxruntime": ("onnxruntime", "onnx")}
+
+
+def check_runtime(runtime: str, checkpoint: str = "") -> None:
+    """That `runtime` is a registered runtime whose packages are installed and that runs `checkpoint`.
+
+    Cheap (nothing is imported or loaded), for configs checked before any rollout.
+
+    Raises:
+        ConfigError: an unknown runtime, naming the choices; a missing package, naming the
+            extra that installs it; a .onnx checkpoint with a runtime other than onnxruntime.
+    """
+    if runtime not in RUNTIMES:
+        raise ConfigError(f"learned runtime={runtime!r}: expected one of {list(RUNTIMES)}")
+    missing = [name for name in RUNTIME_PACKAGES[runtime] if importlib.util.find_spec(name) is None]
+    if missing:
+        raise ConfigError(f"learned runtime={runtime!r} needs {missing}, not installed; expected the onnx extra: "
+                          f"{INSTALL_HINT}")
+    if checkpoint and is_onnx_path(checkpoint) and runtime != "onnxruntime":
+        raise ConfigError(f"learned checkpoint {checkpoint!r} is an ONNX model with runtime={runtime!r}; expected "
+                          "runtime 'onnxruntime', the one that runs it")
+
+
+def load_policy(checkpoint: str | os.PathLike, runtime: str = "torch", num_threads: int | None = 1) -> PolicyInference:
+    """The inference object of `checkpoint` (a shipped name, a .pt or a .onnx file) on `runtime`.
+
+    Args:
+        checkpoint: what `--checkpoint` takes.
+        runtime: a name of `RUNTIMES`.
+        num_threads: intra-op threads (torch: process-wide, None leaves its setting; onnxruntime:
+            the session's, None is 1).
+
+    Raises:
+        ConfigError: an unknown or uninstalled runtime, or a .onnx checkpoint on torch.
+        CheckpointNotFoundError: no such checkpoint.
+        CheckpointError: a file that does not load or check, naming it.
+    """
+    check_runtime(runtime, str(checkpoint))
+    return RUNTIMES[runtime](resolve_checkpoint_path(checkpoint), num_threads)
+
+
+def check_policy_file(checkpoint: str | os.PathLike) -> None:
+    """Loads a .pt checkpoint (`load_checkpoint`) or reads a .onnx policy (`read_onnx_policy`),
+    raising what they raise: a batch checks its checkpoint once before any rollout."""
+    path = resolve_checkpoint_path(checkpoint)
+    if is_onnx_path(path):
+        read_onnx_policy(path)
+    else:
+        load_checkpoint(path)
