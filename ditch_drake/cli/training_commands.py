@@ -20,6 +20,7 @@ from ditch_drake.common.seeds import check_seed
 COLLECT = "ditch_drake.demos.collect:CollectConfig"
 TRAIN = "ditch_drake.learning.config:TrainConfig"
 GENERALIST = "ditch_drake.pipelines.generalist:GeneralistConfig"
+ENSEMBLE = "ditch_drake.learning.ensemble_training:train_ensemble"
 
 
 def add_collect(commands: Commands) -> None:
@@ -130,6 +131,10 @@ def add_train(commands: Commands) -> None:
                           help="processes reading the batches (default %(default)s: 0 on a CPU, up to 4 on CUDA)")
     training.add_argument("--resume", action="store_true",
                           help="continue an interrupted run from its .resume file beside --out")
+    training.add_argument("--ensemble", type=int, nargs="?", const=ConfigDefault(ENSEMBLE, "members"), default=None,
+                          metavar="K", help="train K clones (default K %(const)s), each on a bootstrap resample of the "
+                                            "demonstrations with seed --seed + k, into one ensemble file at --out; "
+                                            "a rerun keeps the finished members and continues the interrupted one")
     training.set_defaults(run=cmd_train)
 
 
@@ -152,6 +157,8 @@ def cmd_train(args) -> int:
     device = training_device(args.device)
     precision = training_precision(device, args.precision)
     config = replace(config, device=device, precision=precision)
+    if args.ensemble is not None:
+        return _train_ensemble(args, config)
     # Several directories train the amalgam model; a dataset folder's images stay on disk.
     arrays = load_training_set(args.data, max_demos=args.max_demos)
     result = train(arrays, config, output_path=args.out, resume=args.resume)
@@ -164,6 +171,31 @@ def cmd_train(args) -> int:
         print("interrupted: " + (f"the best finished epoch is in {result.output_path}" if result.output_path
                                  else "no epoch had finished, so no checkpoint was written")
               + (f"; --resume continues from {result.resume_file}" if result.resume_file else ""), file=sys.stderr)
+        return result.exit_code
+    return 0
+
+
+def _train_ensemble(args, config) -> int:
+    """`train --ensemble K`: K clones on bootstrap resamples of the demonstrations, one file."""
+    from ditch_drake.demos.training_set import dataset_episodes, training_set
+    from ditch_drake.learning.bootstrap import check_member_count
+    from ditch_drake.learning.ensemble_training import train_ensemble
+
+    members = check_member_count(args.ensemble)
+    episodes, names = [], []
+    for directory in args.data:
+        found = dataset_episodes(directory, args.max_demos)
+        episodes += found
+        names += [f"{directory}[{index}]" for index in range(len(found))]
+    result = train_ensemble(lambda indices: training_set([episodes[i] for i in indices]), names, args.out, config,
+                            members)
+    print(json.dumps({"out": str(result.output_path) if result.output_path else None,
+                      "members_folder": str(result.members_folder), "trained": result.trained,
+                      "skipped": result.skipped, "interrupted": result.interrupted,
+                      "best": {str(member): best for member, best in result.best.items()}}, default=float))
+    if result.interrupted:
+        print(f"interrupted: the finished members are kept in {result.members_folder}; run the same command again "
+              "to continue", file=sys.stderr)
         return result.exit_code
     return 0
 

@@ -332,7 +332,21 @@ def load_checkpoint(
             untrained weights.
     """
     path = Path(path)
-    payload = load_payload(path, SCHEMA, SCHEMA_VERSION)
+    return checkpoint_from_payload(load_payload(path, SCHEMA, SCHEMA_VERSION), path, allow_other_action_table,
+                                   allow_untrained)
+
+
+def checkpoint_from_payload(
+    payload: dict, path: str | os.PathLike, allow_other_action_table: bool = False, allow_untrained: bool = False
+) -> PolicyCheckpoint:
+    """The checks of `load_checkpoint` on a payload already read (of `SCHEMA`, as `load_payload`
+    checks): an ensemble file holds its members' payloads (`ditch_drake.learning.ensemble`).
+    `path` names it in the messages ("ensemble.pt member 2") and becomes the checkpoint's `path`.
+
+    Raises:
+        CheckpointError: as `load_checkpoint`.
+    """
+    path = Path(path)
     try:
         model_config = ModelConfig.from_dict(_require(payload, "model_config", dict, path))
         model_config.image_feature_size()
