@@ -128,7 +128,7 @@ def add_train(commands: Commands) -> None:
     training.add_argument("--balancing", choices=BALANCING_METHODS, default=ConfigDefault(TRAIN, "balancing"),
                           help="class balancing of the training split (ditch_drake/learning/balance.py)")
     training.add_argument("--loader-workers", type=int, default=ConfigDefault(TRAIN, "num_workers"),
-                          help="processes reading the batches (default %(default)s: 0 on a CPU, up to 4 on CUDA)")
+                          help="processes reading the batches (default 0: read in the training process)")
     training.add_argument("--resume", action="store_true",
                           help="continue an interrupted run from its .resume file beside --out")
     training.add_argument("--ensemble", type=int, nargs="?", const=ConfigDefault(ENSEMBLE, "members"), default=None,

@@ -189,8 +189,9 @@ class TrainConfig:
         soft_label_sigma: with "ordinal_soft_labels", the width (in labels) of the discretized
             Gaussian over the 17 ordered labels that a sample's target is.
         num_workers: processes reading the batches (torch `DataLoader` workers; 0 reads in the
-            training process); None: 0 on a CPU, where the training steps take the time, and
-            up to 4 on CUDA. The result does not depend on it.
+            training process); None: 0 (`loader_workers`: workers start afresh for every
+            epoch and validation, which on a GPU cost more than the reads they share out). The
+            result does not depend on it.
         max_demos: train on the demonstrations with the `max_demos` smallest ids (None: all).
         ordinal_tolerance: labels of slack of the ordinal accuracy (paper: 1).
         device: torch device ("cpu"; "cuda" works but is not bitwise reproducible).
@@ -244,7 +245,7 @@ class TrainConfig:
             raise _bad_field("batch_size", self.batch_size, "an integer >= 2 (BatchNorm needs two samples a batch)")
         none_means = {
             "num_threads": "torch's default (all cores)",
-            "num_workers": "0 on a CPU, up to 4 on CUDA",
+            "num_workers": "0 (read in the training process)",
             "max_batches_per_epoch": "all batches",
             "max_demos": "all demonstrations",
         }

@@ -228,10 +228,14 @@ def _config_dict(config: TrainConfig) -> dict:
 
 
 def loader_workers(config: TrainConfig) -> int:
-    """`config.num_workers`, or for None: 0 on a CPU, up to 4 (half the cores) on another device."""
-    if config.num_workers is not None:
-        return config.num_workers
-    return 0 if torch.device(config.device).type == "cpu" else min(4, (os.cpu_count() or 2) // 2)
+    """`config.num_workers`, or for None: 0 on every device.
+
+    Measured on an H100 (`python -m ditch_drake.perf.bench_training_device`, docs/concepts/learning.md):
+    reading in the training process streams 7,300 samples/s, while each epoch's and each
+    validation's loader pays its workers' start (several seconds each), so 2, 4 and 8 workers
+    made an epoch 22, 50 and 92 times longer.
+    """
+    return 0 if config.num_workers is None else config.num_workers
 
 
 def train(
