@@ -124,7 +124,7 @@ def test_records_carry_what_the_controller_declared_and_the_side_blocks_source()
     record = rollout_worker.run_rollout(still)
     assert record.status == "timeout" and (record.privileged, record.crossing_side_source) == ([], "")
     line = json.loads(record.to_json())
-    assert line["schema_version"] == SCHEMA_VERSION == 6 and line["privileged"] == []
+    assert line["schema_version"] == SCHEMA_VERSION == 7 and line["privileged"] == []
     for source in ("perceived", "oracle"):
         builder = DiagramBuilder()
         builder.AddNamedSystem(f"{source}_crossing_side", ConstantVectorSource([0.0]))

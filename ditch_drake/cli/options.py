@@ -363,7 +363,6 @@ def scenario_from_options(args, default_controller: str = "learned"):
     if getattr(scenario.controller, "checkpoint", None) == "":  # Named, so that records and pages say which.
         from ditch_drake.learning.checkpoint import environment_model
 
-        scenario = replace(scenario, controller=replace(scenario.controller,
-                                                        checkpoint=environment_model(
-                                                            scenario.environment, scenario.environments_file)))
+        scenario = replace(scenario, controller=with_checkpoint(scenario.controller, environment_model(
+            scenario.environment, scenario.environments_file)))
     return scenario

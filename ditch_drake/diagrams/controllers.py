@@ -296,7 +296,7 @@ def controller_config(name: str, checkpoint: str = "", seed: int | None = None):
     """
     entry = get_controller(name)
     config = entry.default_config()
-    if checkpoint and any(f.name == "checkpoint" for f in dataclasses.fields(config)):
+    if checkpoint and hasattr(config, "checkpoint"):  # A field, or a property of a nested policy's (shared).
         config = with_checkpoint(config, checkpoint)
     return entry.for_seed(config, seed) if seed is not None else config
 
@@ -425,4 +425,10 @@ register_controller(
 register_controller(
     "constant", "ditch_drake.diagrams.rollout:ConstantCommandConfig", "ditch_drake.diagrams.rollout:AddConstantCommand",
     "a fixed command [v m/s, w rad/s] (flat-ground tests)")
+register_controller(
+    "shared", "ditch_drake.diagrams.shared_controller:SharedControlControllerConfig",
+    "ditch_drake.diagrams.shared_controller:AddSharedController",
+    "the learned policy gated by its uncertainty: a fallback (the expert, or mppi) drives where it is unsure",
+    per_seed="ditch_drake.diagrams.shared_controller:shared_for_seed",
+    privileged="ditch_drake.diagrams.shared_controller:shared_privileged")
 _BUILT_IN = frozenset(_REGISTRY)

@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, ReleaseSceneGraphModelCache, SceneConfig
-from ditch_drake.diagrams.lidar_rig import AddLidar
+from ditch_drake.diagrams.lidar_rig import AddLidar, LidarHandles
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
 from ditch_drake.learning.checkpoint import CheckpointError, environment_model
 from ditch_drake.learning.inference import check_runtime, load_policy
@@ -31,10 +31,11 @@ from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriv
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
 from ditch_drake.systems.halt_counter import HaltCounter
+from ditch_drake.systems.handover_counter import HandoverCounter, handover_capacity
 from ditch_drake.systems.mppi_controller import MppiController
 from ditch_drake.systems.oracle_crossing_side import OracleCrossingSide
 from ditch_drake.systems.perceived_crossing_side import PerceivedCrossingSide, PerceivedCrossingSideConfig
-from ditch_drake.systems.policy import LearnedPolicy
+from ditch_drake.systems.policy import DEFAULT_UNCERTAINTY_SIGNAL, LearnedPolicy
 from ditch_drake.systems.skid_steer_drive import ConstantCommand
 from ditch_drake.systems.teleop import ActionQuantizer
 
@@ -204,7 +205,26 @@ def AddController(builder: DiagramBuilder, scene: DitchScene, config) -> System:
     builder.Connect(command, scene.drive.GetInputPort("command"))
     AddHaltCounter(builder, scene, command)
     AddCrossingSideAgreement(builder, scene)
+    AddHandoverCounter(builder, scene)
     return command.get_system()
+
+
+def AddHandoverCounter(builder: DiagramBuilder, scene: DitchScene) -> HandoverCounter | None:
+    """Adds a "handover_counter" (`HandoverCounter`) on the builder's "shared_control" gate, if it
+    has one: the rollout's record then says what share of the control steps the fallback drove
+    and in which regions of the ditch the handovers began. An instrument beside the controller,
+    given the analytic ditch as the halt counter is; it drives nothing."""
+    if not builder.HasSubsystemNamed("shared_control"):
+        return None
+    gate = builder.GetSubsystemByName("shared_control")
+    schedule = scene.schedule
+    counter = builder.AddNamedSystem("handover_counter", HandoverCounter(
+        scene.terrain, scene.task.start[:2], scene.plant.GetBodyByName("chassis", scene.husky).index(),
+        max_handovers=handover_capacity(scene.episode.time_limit_s, schedule.control_period_s),
+        period_s=schedule.control_period_s))
+    builder.Connect(gate.GetOutputPort("who_drives"), counter.GetInputPort("who_drives"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), counter.GetInputPort("body_poses"))
+    return counter
 
 
 def AddCrossingSideAgreement(builder: DiagramBuilder, scene: DitchScene) -> CrossingSideAgreement | None:
@@ -287,14 +307,16 @@ def AddDwaController(builder: DiagramBuilder, scene: DitchScene, config: DwaBase
     return controller.GetOutputPort("command")
 
 
-def AddMppiController(builder: DiagramBuilder, scene: DitchScene, config: MppiBaselineConfig) -> OutputPort:
-    """The MPPI baseline on its own lidar.
+def AddMppiController(builder: DiagramBuilder, scene: DitchScene, config: MppiBaselineConfig,
+                      lidar: LidarHandles | None = None) -> OutputPort:
+    """The MPPI baseline on its own lidar, or on `lidar` (one already in the scene, of the same
+    `config.lidar`: the shared controller's fallback reads the policy's).
 
     Raises:
         ConfigError: a planner or map value out of range, naming the key.
     """
     chassis = scene.plant.GetBodyByName("chassis", scene.husky)
-    lidar = AddLidar(builder, scene, config.lidar)
+    lidar = lidar if lidar is not None else AddLidar(builder, scene, config.lidar)
     controller = builder.AddNamedSystem("mppi", MppiController(
         scene.task.goal, chassis.index(), lidar.X_BL, config.planner, config.elevation_map,
         goal_tolerance_m=config.goal_tolerance_m, period_s=scene.schedule.control_period_s,
@@ -305,20 +327,24 @@ def AddMppiController(builder: DiagramBuilder, scene: DitchScene, config: MppiBa
 
 
 def AddLearnedPolicy(builder: DiagramBuilder, scene: DitchScene, observation: Observation,
-                     checkpoint: str, crossing_side: str = "perceived", runtime: str = "torch") -> LearnedPolicy:
-    """Adds the behavioural clone of `checkpoint` (a shipped name or a path) fed by `observation`,
-    its network run by `runtime` (`LearnedPolicyConfig.runtime`), and, for a clone trained in one
-    side's frame, the block that tells it the side to cross on (`AddCrossingSide` of
-    `crossing_side`: "perceived" or "oracle").
+                     checkpoint: str, crossing_side: str = "perceived", runtime: str = "torch",
+                     uncertainty_signal: str = DEFAULT_UNCERTAINTY_SIGNAL) -> LearnedPolicy:
+    """Adds the behavioural clone of `checkpoint` (a shipped name or a path; an ensemble file runs
+    all its members) fed by `observation`, its network run by `runtime`
+    (`LearnedPolicyConfig.runtime`), its `uncertainty` output the signal `uncertainty_signal`,
+    and, for a clone trained in one side's frame, the block that tells it the side to cross on
+    (`AddCrossingSide` of `crossing_side`: "perceived" or "oracle").
 
     Raises:
-        ConfigError: an unknown or uninstalled runtime, or one that does not run the checkpoint.
+        ConfigError: an unknown or uninstalled runtime, or one that does not run the checkpoint;
+            an unknown signal, or a disagreement signal with a single clone.
         CheckpointError: the checkpoint does not load, or expects other input sizes than the blocks give.
     """
     schedule = observation.schedule
     policy = builder.AddNamedSystem(
         "learned_policy", LearnedPolicy(load_policy(checkpoint, runtime),
-                                        offset_s=schedule.controller_offset_s, period_s=schedule.control_period_s))
+                                        offset_s=schedule.controller_offset_s, period_s=schedule.control_period_s,
+                                        uncertainty_signal=uncertainty_signal))
     for name, port in observation.ports.items():
         expected = policy.GetInputPort(name).size()
         if port.size() != expected:

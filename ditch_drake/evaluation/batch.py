@@ -28,7 +28,7 @@ import sys
 import time
 from concurrent.futures import as_completed
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from tqdm import tqdm
@@ -53,6 +53,7 @@ from ditch_drake.diagrams.controllers import (
     config_checkpoint,
     controller_config,
     controller_names,
+    with_checkpoint,
 )
 from ditch_drake.evaluation.results import RecordWriter, RolloutRecord, RolloutSpec, finished_keys, read_records
 from ditch_drake.evaluation.rollout_worker import error_record, initialize_worker, run_rollout
@@ -132,7 +133,7 @@ def make_specs(controller, checkpoint: str, environment: str, tasks: list[int] |
     check_count(rollouts, "rollouts")
     check_finite_positive(time_limit_s, "time_limit_s")
     if hasattr(config, "checkpoint") and not config.checkpoint:  # The learned policy's default: the environment's.
-        config = replace(config, checkpoint=environment_model(environment, environments_file))
+        config = with_checkpoint(config, environment_model(environment, environments_file))
     checkpoint = config_checkpoint(config)
     digest = check_checkpoint(checkpoint)
     task_count = len(get_environment(environment, environments_file or None).tasks)
@@ -151,7 +152,8 @@ def make_specs(controller, checkpoint: str, environment: str, tasks: list[int] |
 
 
 def check_checkpoint(checkpoint: str) -> str:
-    """The checkpoint's digest ("" for none), after loading it once.
+    """The checkpoint's digest ("" for none), after loading it once (a .pt checkpoint, an ensemble
+    file or a .onnx policy: `check_policy_file`).
 
     Raises:
         ConfigError: no such checkpoint file.
@@ -160,7 +162,7 @@ def check_checkpoint(checkpoint: str) -> str:
     if not checkpoint:
         return ""
     try:
-        check_policy_file(checkpoint)  # A .pt checkpoint, or a .onnx policy.
+        check_policy_file(checkpoint)  # A .pt checkpoint, an ensemble file, or a .onnx policy.
     except FileNotFoundError as error:
         raise ConfigError(str(error)) from error
     return checkpoint_digest(checkpoint)

@@ -20,7 +20,9 @@ Schema 5 added `halts_by_region`; records of older versions read with it empty (
 and their keys are unchanged, so a rerun skips them too. Schema 6 added `privileged`,
 `crossing_side_source` and the perceived side's agreement with the oracle (`side_*`); older
 records read with them empty (nothing declared, no side block recorded, nothing counted), keys
-unchanged.
+unchanged. Schema 7 added the shared controller's `handover_fraction`, `switches` and
+`handover_regions`; every other controller's records carry them as 0, 0 and [] (no gate), and
+older records read with those values, keys unchanged.
 """
 
 import json
@@ -32,9 +34,9 @@ from pathlib import Path
 from ditch_drake.common.errors import ResultsError
 
 SCHEMA = "ditch_drake.rollout_record"
-SCHEMA_VERSION = 6
+SCHEMA_VERSION = 7
 # Older versions that still read (see the module docstring).
-READABLE_VERSIONS = (2, 3, 4, 5, 6)
+READABLE_VERSIONS = (2, 3, 4, 5, 6, 7)
 
 
 @dataclass(frozen=True)
@@ -122,6 +124,13 @@ class RolloutRecord:
             nearest and farthest distance to the hinge line (m, negative inside it) of a step
             where they differed ([] if none did); 0 and [] otherwise
             (`ditch_drake.systems.crossing_side_agreement`).
+        handover_fraction: for the `shared` controller, the share of the control steps its
+            fallback drove (`ditch_drake.systems.handover_counter`); 0 for other controllers,
+            error records and records of schema versions before 7.
+        switches: for `shared`, how often its gate passed control either way (handovers plus
+            handbacks, `SharedControl`'s count); 0 otherwise.
+        handover_regions: for `shared`, the region (as `failure_region` names them) where each
+            handover to the fallback began, in order; [] otherwise.
     """
 
     key: str
@@ -157,6 +166,9 @@ class RolloutRecord:
     side_agreeing_steps: int = 0
     side_unseen_steps: int = 0
     side_disagreement_edge_m: list[float] = field(default_factory=list)
+    handover_fraction: float = 0.0
+    switches: int = 0
+    handover_regions: list[str] = field(default_factory=list)
 
     def to_json(self) -> str:
         """One line: the fields plus the schema and its version (non-finite numbers as null)."""

@@ -110,8 +110,9 @@ def spec_privileged(spec: RolloutSpec) -> list[str]:
 
 def outcome_fields(diagram, scene, root_context) -> dict:
     """The record fields that say what an episode did, read from a rollout diagram's Context:
-    the episode monitor's outcome, where it ended relative to the ditch ("" on success) and
-    the "halt_counter"'s halts by region (`RolloutRecord`'s status .. halts_by_region)."""
+    the episode monitor's outcome, where it ended relative to the ditch ("" on success), the
+    "halt_counter"'s halts by region (`RolloutRecord`'s status .. halts_by_region), and the
+    instruments' counts where the diagram has them (side_*, the shared controller's handovers)."""
     outcome = scene.monitor.outcome(scene.monitor.GetMyContextFromRoot(root_context))
     counter = diagram.GetSubsystemByName("halt_counter")
     region = "" if outcome.success else ditch_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
@@ -121,7 +122,7 @@ def outcome_fields(diagram, scene, root_context) -> dict:
         peak_tilt_deg=outcome.peak_tilt_deg, min_stability_margin_deg=outcome.min_stability_margin_deg,
         final_x_m=float(outcome.final_xy[0]), final_y_m=float(outcome.final_xy[1]), failure_region=region,
         halts_by_region=counter.halts_by_region(counter.GetMyContextFromRoot(root_context)),
-        **side_agreement_fields(diagram, root_context))
+        **side_agreement_fields(diagram, root_context), **shared_control_fields(diagram, root_context))
 
 
 def side_agreement_fields(diagram, root_context) -> dict:
@@ -131,6 +132,18 @@ def side_agreement_fields(diagram, root_context) -> dict:
         return {}
     agreement = diagram.GetSubsystemByName("crossing_side_agreement")
     return agreement.summary(agreement.GetMyContextFromRoot(root_context))
+
+
+def shared_control_fields(diagram, root_context) -> dict:
+    """The shared controller's handovers (`RolloutRecord`'s handover_fraction, switches and
+    handover_regions), where the diagram has its "shared_control" gate and "handover_counter",
+    else none."""
+    if not (diagram.HasSubsystemNamed("shared_control") and diagram.HasSubsystemNamed("handover_counter")):
+        return {}
+    gate = diagram.GetSubsystemByName("shared_control")
+    counter = diagram.GetSubsystemByName("handover_counter")
+    switches = gate.GetOutputPort("switches").Eval(gate.GetMyContextFromRoot(root_context))[0]
+    return {**counter.summary(counter.GetMyContextFromRoot(root_context)), "switches": round(float(switches))}
 
 
 def initialize_worker() -> None:

@@ -6,10 +6,15 @@ and one method, `logits(image, imu, distance, bearing)`, from a batch of raw flo
 Everything around it (the softmax, the left-right mirror of a canonical-side model, the
 argmax, the command) is the `LearnedPolicy` block's, the same for every runtime.
 
-| runtime | a .pt checkpoint (or a shipped name) | a .onnx file |
-| --- | --- | --- |
-| torch | the network in PyTorch | refused: it runs only on onnxruntime |
-| onnxruntime | exported in memory (`export_onnx`), run by ONNX Runtime | run by ONNX Runtime, with the action table and model config of its metadata |
+An ensemble file (`ditch_drake.learning.ensemble`, `is_ensemble_checkpoint`) gives an
+`EnsembleInference` instead: `members` K and `member_logits(...)`, every member's
+(K, batch, num_labels) logits in one forward pass. It runs on torch only for now; the policy
+block averages the members' probabilities and measures their uncertainty.
+
+| runtime | a .pt checkpoint (or a shipped name) | a .onnx file | an ensemble file |
+| --- | --- | --- | --- |
+| torch | the network in PyTorch | refused: it runs only on onnxruntime | all members in one `EnsembleNetwork` |
+| onnxruntime | exported in memory (`export_onnx`), run by ONNX Runtime | run by ONNX Runtime, with the action table and model config of its metadata | refused (`ConfigError`) |
 
 onnxruntime needs the onnx extra (`pip install -e '.[onnx]'`); asked for without it, it
 is refused with a `ConfigError` that says so.
@@ -27,6 +32,7 @@ import torch
 from ditch_drake.common.errors import CheckpointError, ConfigError
 from ditch_drake.learning.checkpoint import PolicyCheckpoint, load_checkpoint, resolve_checkpoint_path
 from ditch_drake.learning.config import ModelConfig
+from ditch_drake.learning.ensemble import EnsembleInference, is_ensemble_checkpoint, load_ensemble
 from ditch_drake.learning.onnx_policy import (
     INPUT_NAMES,
     INSTALL_HINT,
@@ -48,6 +54,19 @@ class PolicyInference(Protocol):
 
     def logits(self, image: np.ndarray, imu: np.ndarray, distance: np.ndarray, bearing: np.ndarray) -> np.ndarray:
         """(batch, num_labels) float32 logits of raw float32 inputs (batch, ...)."""
+
+
+class EnsemblePolicyInference(Protocol):
+    """K clones' networks run together (`ditch_drake.learning.ensemble.EnsembleInference`)."""
+
+    runtime: str
+    members: int
+    model_config: ModelConfig
+    action_commands: np.ndarray
+
+    def member_logits(self, image: np.ndarray, imu: np.ndarray, distance: np.ndarray,
+                      bearing: np.ndarray) -> np.ndarray:
+        """(members, batch, num_labels) float32 logits of raw float32 inputs (batch, ...)."""
 
 
 class TorchInference:
@@ -102,14 +121,18 @@ class OnnxRuntimeInference:
         return self._session.run(self._outputs, feed)[0]
 
 
-def _torch_runtime(path: Path, num_threads: int | None) -> TorchInference:
+def _torch_runtime(path: Path, num_threads: int | None) -> TorchInference | EnsembleInference:
     if is_onnx_path(path):
         raise CheckpointError(f"{path} is an ONNX model, which runs only on runtime 'onnxruntime'; expected a .pt "
                               "checkpoint for runtime 'torch', or runtime 'onnxruntime'")
+    if is_ensemble_checkpoint(path):
+        return EnsembleInference(load_ensemble(path), num_threads)
     return TorchInference(load_checkpoint(path), num_threads)
 
 
 def _onnxruntime_runtime(path: Path, num_threads: int | None) -> OnnxRuntimeInference:
+    if is_ensemble_checkpoint(path):
+        raise _ensemble_runtime_error(str(path), "onnxruntime")
     threads = 1 if num_threads is None else num_threads
     if is_onnx_path(path):
         policy = read_onnx_policy(path)
@@ -122,21 +145,42 @@ def _onnxruntime_runtime(path: Path, num_threads: int | None) -> OnnxRuntimeInfe
 
 # The runtimes a policy's network runs on (`LearnedPolicyConfig.runtime`): name -> (checkpoint
 # file, threads) -> inference object, and the packages each needs beyond the package's own.
-RUNTIMES: dict[str, Callable[[Path, int | None], PolicyInference]] = {
+RUNTIMES: dict[str, Callable[[Path, int | None], PolicyInference | EnsemblePolicyInference]] = {
     "torch": _torch_runtime,
     "onnxruntime": _onnxruntime_runtime,
 }
 RUNTIME_PACKAGES = {"torch": (), "onnxruntime": ("onnxruntime", "onnx")}
+# The runtimes that run an ensemble file's members (in one pass).
+ENSEMBLE_RUNTIMES = ("torch",)
+
+
+def _ensemble_runtime_error(checkpoint: str, runtime: str) -> ConfigError:
+    return ConfigError(f"learned checkpoint {checkpoint!r} is an ensemble with runtime={runtime!r}; expected runtime "
+                       f"among {list(ENSEMBLE_RUNTIMES)}, the ones that run an ensemble's members")
+
+
+def is_ensemble(checkpoint: str | os.PathLike) -> bool:
+    """Whether `checkpoint` (a shipped name or a path) is an ensemble file; False for a name or
+    path that resolves to no file (its loader says what is wrong)."""
+    if not str(checkpoint) or is_onnx_path(checkpoint):
+        return False
+    try:
+        path = resolve_checkpoint_path(checkpoint)
+    except FileNotFoundError:
+        return False
+    return is_ensemble_checkpoint(path)
 
 
 def check_runtime(runtime: str, checkpoint: str = "") -> None:
     """That `runtime` is a registered runtime whose packages are installed and that runs `checkpoint`.
 
-    Cheap (nothing is imported or loaded), for configs checked before any rollout.
+    Cheap (nothing is imported or loaded; for a runtime other than torch, an ensemble file's
+    header is read), for configs checked before any rollout.
 
     Raises:
         ConfigError: an unknown runtime, naming the choices; a missing package, naming the
-            extra that installs it; a .onnx checkpoint with a runtime other than onnxruntime.
+            extra that installs it; a .onnx checkpoint with a runtime other than onnxruntime;
+            an ensemble file with a runtime that does not run ensembles (`ENSEMBLE_RUNTIMES`).
     """
     if runtime not in RUNTIMES:
         raise ConfigError(f"learned runtime={runtime!r}: expected one of {list(RUNTIMES)}")
@@ -147,10 +191,14 @@ def check_runtime(runtime: str, checkpoint: str = "") -> None:
     if checkpoint and is_onnx_path(checkpoint) and runtime != "onnxruntime":
         raise ConfigError(f"learned checkpoint {checkpoint!r} is an ONNX model with runtime={runtime!r}; expected "
                           "runtime 'onnxruntime', the one that runs it")
+    if checkpoint and runtime not in ENSEMBLE_RUNTIMES and is_ensemble(checkpoint):
+        raise _ensemble_runtime_error(checkpoint, runtime)
 
 
-def load_policy(checkpoint: str | os.PathLike, runtime: str = "torch", num_threads: int | None = 1) -> PolicyInference:
-    """The inference object of `checkpoint` (a shipped name, a .pt or a .onnx file) on `runtime`.
+def load_policy(checkpoint: str | os.PathLike, runtime: str = "torch",
+                num_threads: int | None = 1) -> PolicyInference | EnsemblePolicyInference:
+    """The inference object of `checkpoint` (a shipped name, a .pt or a .onnx file, or an ensemble
+    file: then an `EnsembleInference`) on `runtime`.
 
     Args:
         checkpoint: what `--checkpoint` takes.
@@ -159,7 +207,8 @@ def load_policy(checkpoint: str | os.PathLike, runtime: str = "torch", num_threa
             the session's, None is 1).
 
     Raises:
-        ConfigError: an unknown or uninstalled runtime, or a .onnx checkpoint on torch.
+        ConfigError: an unknown or uninstalled runtime, a .onnx checkpoint on torch, or an
+            ensemble on a runtime other than torch, naming the runtime.
         CheckpointNotFoundError: no such checkpoint.
         CheckpointError: a file that does not load or check, naming it.
     """
@@ -168,10 +217,13 @@ def load_policy(checkpoint: str | os.PathLike, runtime: str = "torch", num_threa
 
 
 def check_policy_file(checkpoint: str | os.PathLike) -> None:
-    """Loads a .pt checkpoint (`load_checkpoint`) or reads a .onnx policy (`read_onnx_policy`),
-    raising what they raise: a batch checks its checkpoint once before any rollout."""
+    """Loads a .pt checkpoint (`load_checkpoint`) or an ensemble file (`load_ensemble`), or reads
+    a .onnx policy (`read_onnx_policy`), raising what they raise: a batch checks its checkpoint
+    once before any rollout."""
     path = resolve_checkpoint_path(checkpoint)
     if is_onnx_path(path):
         read_onnx_policy(path)
+    elif is_ensemble_checkpoint(path):
+        load_ensemble(path)
     else:
         load_checkpoint(path)

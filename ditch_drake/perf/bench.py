@@ -117,7 +117,7 @@ def measure_blocks() -> dict:
     from ditch_drake.perf.bench_lidar import measure_lidar_ms
     from ditch_drake.perf.bench_mppi import measure_mppi_ms
     from ditch_drake.perf.bench_normal_image import measure_normal_image_ms
-    from ditch_drake.perf.bench_training import measure_policy_step_ms
+    from ditch_drake.perf.bench_training import measure_ensemble_policy_step_ms, measure_policy_step_ms
 
     lidar = measure_lidar_ms("wide")
     normal_image = measure_normal_image_ms(repeats=30)
@@ -126,6 +126,8 @@ def measure_blocks() -> dict:
         "normal_image_organized_ms": normal_image["normal_image_organized_ms"],
         "normal_image_pca_reference_ms": normal_image["normal_image_pca_ms"],
         "policy_step_ms": measure_policy_step_ms()["policy_step_ms"],
+        # Five clones in one forward pass (the shared controller's ensemble); issue 41's target: <= 2.5x one.
+        "ensemble_policy_step_ms": measure_ensemble_policy_step_ms()["ensemble_policy_step_ms"],
     }
     # The DWA baseline on the real lidar: costmap update + local plan apart from the global plan.
     dwa = measure_dwa_ms()

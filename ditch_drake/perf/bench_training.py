@@ -4,8 +4,10 @@ Run: `python -m ditch_drake.perf.bench_training [samples]`. Prints
 {"policy_step_ms": ..., "train_peak_rss_mib": ..., ...} (keys end with their unit).
 
 - `measure_policy_step_ms`: median wall time of one `LearnedPolicy` update (read the four
-  stacked inputs, one forward pass, softmax, write the state) on one CPU thread, with
-  random weights (the time does not depend on them).
+  stacked inputs, one forward pass, softmax, its uncertainty signal, write the state) on one
+  CPU thread, with random weights (the time does not depend on them).
+- `measure_ensemble_policy_step_ms`: the same for a 5-member ensemble (`EnsembleNetwork`: all
+  members in one forward pass, their mean probabilities and uncertainty).
 - `measure_streaming_memory`: peak resident memory of the training pipeline streaming from a
   dataset folder, each in a fresh process that writes a synthetic store (random frames, label
   8 dominant) into a temporary folder and trains on it as `ditch-drake train --data` does
@@ -177,7 +179,51 @@ def measure_policy_step_ms(repeats: int = 50) -> dict:
     from ditch_drake.learning.model import FourInputClassifier
     from ditch_drake.systems.policy import LearnedPolicy
 
-    policy = LearnedPolicy(make_checkpoint(FourInputClassifier()), num_threads=1)
+    times = _policy_update_times(LearnedPolicy(make_checkpoint(FourInputClassifier()), num_threads=1), repeats)
+    return {"policy_step_ms": 1e3 * float(np.median(times)), "policy_step_max_ms": 1e3 * float(np.max(times))}
+
+
+def measure_ensemble_policy_step_ms(members: int = 5, repeats: int = 50, noise: float = 0.01) -> dict:
+    """Median time (ms) of one `LearnedPolicy` discrete update of a `members`-clone ensemble on
+    one thread, timed as `measure_policy_step_ms` times one clone: all members in one forward
+    pass (`EnsembleNetwork`), their mean probabilities and the default uncertainty signal.
+
+    The ensemble is the shipped `wide` model's weights copied `members` times, each copy's
+    floating-point tensors perturbed by seeded Gaussian noise of `noise` times the tensor's
+    own standard deviation: the trained network's shapes and value ranges for timing, not a
+    trained ensemble (the members' values do not change the time).
+
+    Returns:
+        {"ensemble_policy_step_ms": median, "ensemble_policy_step_max_ms": slowest}.
+    """
+    import dataclasses
+
+    import torch
+    from pydrake.systems.analysis import Simulator  # noqa: F401 (loads Drake's analysis module)
+
+    from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
+    from ditch_drake.learning.ensemble import EnsembleCheckpoint, EnsembleInference
+    from ditch_drake.systems.policy import LearnedPolicy
+
+    wide = load_checkpoint(resolve_checkpoint_path("wide"))
+    generator = torch.Generator().manual_seed(0)
+
+    def perturbed(tensor: torch.Tensor) -> torch.Tensor:
+        if not tensor.is_floating_point() or tensor.numel() < 2:
+            return tensor.clone()
+        return tensor + noise * tensor.std() * torch.randn(tensor.shape, generator=generator, dtype=tensor.dtype)
+
+    copies = [dataclasses.replace(wide, state_dict={name: perturbed(value) for name, value in wide.state_dict.items()})
+              for _ in range(members)]
+    policy = LearnedPolicy(EnsembleInference(EnsembleCheckpoint(copies), num_threads=1))
+    times = _policy_update_times(policy, repeats)
+    return {"ensemble_policy_step_ms": 1e3 * float(np.median(times)),
+            "ensemble_policy_step_max_ms": 1e3 * float(np.max(times))}
+
+
+def _policy_update_times(policy, repeats: int) -> list[float]:
+    """Wall times (s) of `repeats` forced discrete updates of `policy` on fixed random inputs,
+    after 3 warm-up updates (oneDNN picks its kernels on the first calls)."""
     context = policy.CreateDefaultContext()
     rng = np.random.default_rng(0)
     policy.GetInputPort("image_stack").FixValue(context, rng.random(int(np.prod(IMAGE_STACK_SHAPE))))
@@ -190,8 +236,7 @@ def measure_policy_step_ms(repeats: int = 50) -> dict:
         start = time.perf_counter()
         policy.CalcForcedDiscreteVariableUpdate(context, state)
         times.append(time.perf_counter() - start)
-    times = times[3:]  # Warm-up: oneDNN picks its kernels on the first calls.
-    return {"policy_step_ms": 1e3 * float(np.median(times)), "policy_step_max_ms": 1e3 * float(np.max(times))}
+    return times[3:]
 
 
 def measure_training_throughput(batches: int = 6, warmup: int = 2) -> dict:

@@ -1,0 +1,185 @@
+"""The `shared` controller: the learned policy drives where it is sure, a fallback where it is not.
+
+The policy's `LearnedPolicy` block reports its uncertainty (`ditch_drake.learning.uncertainty`)
+beside its command; a fallback computes its own command at every control step, driving
+nothing; the `SharedControl` gate chooses between the two commands, with hysteresis, and its
+`command` drives the robot. `AddController` adds a "handover_counter" beside the gate, so that
+the rollout's record says what share of the steps the fallback drove, how often the gate
+switched and where the handovers began (`RolloutRecord.handover_fraction`, `switches`,
+`handover_regions`).
+
+| fallback | what drives when the policy is unsure | reads beyond the sensors, pose and goal |
+| --- | --- | --- |
+| expert | the scripted shallow-angle expert (standing in for a person), style drawn from the seed | the analytic terrain (privileged) |
+| mppi | the rollover-aware MPPI planner on the policy's lidar | nothing |
+| teleop | a person at the Meshcat page (`MeshcatTeleop`) | nothing; needs a Meshcat, which a batch never has |
+"""
+
+import dataclasses
+from dataclasses import dataclass, field
+
+from pydrake.geometry import Meshcat
+from pydrake.systems.framework import DiagramBuilder, OutputPort
+
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.diagrams.ditch_scene import DitchScene
+from ditch_drake.diagrams.lidar_rig import AddLidar
+from ditch_drake.diagrams.observation import AddObservation, Observation
+from ditch_drake.diagrams.rollout import (
+    AddExpert,
+    AddLearnedPolicy,
+    AddMppiController,
+    ExpertConfig,
+    LearnedPolicyConfig,
+    MppiBaselineConfig,
+)
+from ditch_drake.learning.checkpoint import environment_model
+from ditch_drake.learning.inference import is_ensemble
+from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS
+from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
+from ditch_drake.systems.shared_control import SharedControl, SharedControlConfig
+from ditch_drake.systems.teleop import ActionQuantizer
+
+
+def default_gate() -> SharedControlConfig:
+    """The gate of the shipped single clones: their own softmax entropy, thresholds provisional.
+
+    Measured with the shipped `wide` model on wide task 1, seeds 0-5 (six learned rollouts, 1893
+    control steps; `LearnedPolicy`'s probabilities at each step): the mean softmax entropy's
+    median was 1.05 nats, its 90th, 95th and 99th percentiles 2.09, 2.44 and 2.47, its largest
+    value 2.65 (log 17 = 2.83 is the most). Most steps above 2.3 are the last 30 or so before
+    the goal, where the clone's probabilities flatten to about 2.44. An upper threshold of 2.55
+    with a lower one of 2.3 handed over in one of the six sequences (8 % of its steps), 1.4 %
+    of all steps: rarely. It does not foresee the one failure among them (seed 0 rolled over
+    at 8.4 s; its largest value was 2.05). Provisional until the signals are measured against
+    failures on validation rollouts (issue 41), which will also set thresholds from a budget.
+    """
+    return SharedControlConfig(signal="mean_softmax_entropy", upper_threshold=2.55, lower_threshold=2.3,
+                               calm_steps=5, fallback="expert")
+
+
+@dataclass
+class SharedControlControllerConfig:
+    """The learned policy gated by its uncertainty, with a fallback where it is unsure.
+
+    Attributes:
+        policy: the clone (`LearnedPolicyConfig`): its checkpoint ("" for the environment's
+            shipped model, as for `learned`; an ensemble file runs all its members), its
+            observation, crossing side and runtime. Its `uncertainty` output reports
+            `gate.signal`.
+        gate: when control passes to the fallback and back (`SharedControlConfig`), and who
+            the fallback is (`gate.fallback`: "expert", "mppi" or "teleop"). A `budget` is
+            refused for now: the signal's values over the policy's validation rollouts that
+            it needs are not recorded by any command yet; set the thresholds instead.
+        expert: the scripted expert's config, for `gate.fallback` "expert" (its style drawn
+            from the episode's seed unless set).
+        mppi: the MPPI planner's config, for `gate.fallback` "mppi" (it reads the policy's
+            lidar when their lidar configs are equal, else its own).
+    """
+
+    policy: LearnedPolicyConfig = field(default_factory=LearnedPolicyConfig)
+    gate: SharedControlConfig = field(default_factory=default_gate)
+    expert: ExpertConfig = field(default_factory=ExpertConfig)
+    mppi: MppiBaselineConfig = field(default_factory=MppiBaselineConfig)
+
+    @property
+    def checkpoint(self) -> str:
+        """The policy's checkpoint (what records, `--checkpoint` and the batch's digest name)."""
+        return self.policy.checkpoint
+
+    def with_checkpoint(self, checkpoint: str) -> "SharedControlControllerConfig":
+        """This config with its policy naming `checkpoint` (`LearnedPolicyConfig.with_checkpoint`)."""
+        return dataclasses.replace(self, policy=self.policy.with_checkpoint(checkpoint))
+
+    def validate(self, meshcat: Meshcat | None = None) -> None:
+        """Raises ConfigError naming the first bad value.
+
+        Args:
+            meshcat: the Meshcat a teleop fallback is steered on; None (a batch, every
+                registered builder) refuses fallback "teleop".
+        """
+        self.gate.validate()
+        self.policy.validate()
+        if self.gate.fallback == "teleop" and meshcat is None:
+            raise ConfigError("shared control fallback 'teleop' without a Meshcat: a person steers it on the Meshcat "
+                              "page, which batch evaluation and the registered builders have none of; expected "
+                              "fallback 'expert' or 'mppi'")
+        if self.gate.budget is not None:
+            raise ConfigError(f"shared control budget {self.gate.budget!r}: its upper threshold is the quantile of "
+                              f"the {self.gate.signal} signal over the policy's validation rollouts, and no command "
+                              "records those values yet; expected budget null with upper_threshold and "
+                              "lower_threshold set")
+        if self.gate.signal in DISAGREEMENT_SIGNALS and not is_ensemble(self.policy.checkpoint):
+            name = self.policy.checkpoint or "the environment's shipped model"
+            raise ConfigError(f"shared control signal {self.gate.signal!r} with checkpoint {name!r}, a single clone "
+                              "(K = 1): the signal is the members' disagreement; expected an ensemble file "
+                              "(ditch-drake train --ensemble) or signal 'mean_softmax_entropy'")
+
+
+def shared_for_seed(config: SharedControlControllerConfig, seed: int) -> SharedControlControllerConfig:
+    """The config an episode of `seed` builds: the expert fallback's style drawn from the seed
+    (as the `expert` controller's), unless set; other fallbacks are the same for every seed."""
+    if config.gate.fallback != "expert" or config.expert.style_seed is not None:
+        return config
+    return dataclasses.replace(config, expert=dataclasses.replace(config.expert, style_seed=seed))
+
+
+def shared_privileged(config: SharedControlControllerConfig) -> tuple[str, ...]:
+    """What the shared controller reads beyond its sensors, its pose and the goal: its policy's
+    (the oracle crossing side) and its fallback's (the expert's analytic terrain)."""
+    from ditch_drake.diagrams.controllers import get_controller
+
+    names = set(get_controller("learned").privileged_inputs(config.policy))
+    if config.gate.fallback == "expert":
+        names.update(get_controller("expert").privileged_inputs(config.expert))
+    elif config.gate.fallback == "mppi":
+        names.update(get_controller("mppi").privileged_inputs(config.mppi))
+    return tuple(sorted(names))
+
+
+def AddSharedController(builder: DiagramBuilder, scene: DitchScene, config: SharedControlControllerConfig,
+                        meshcat: Meshcat | None = None) -> OutputPort:
+    """Adds the observation and the policy (its `uncertainty` the gate's signal), the fallback
+    (its command connected to the gate only) and the "shared_control" gate; returns the gate's
+    `command`.
+
+    The gate ticks after the controllers and before a recorder (between the schedule's
+    controller and recorder offsets), so it chooses between this control step's commands.
+
+    Raises:
+        ConfigError: a bad config (`SharedControlControllerConfig.validate`), naming the value.
+        CheckpointError: the checkpoint does not load.
+    """
+    config.validate(meshcat)
+    checkpoint = config.policy.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
+    observation = AddObservation(builder, scene, config.policy.observation)
+    policy = AddLearnedPolicy(builder, scene, observation, checkpoint, config.policy.crossing_side,
+                              config.policy.runtime, uncertainty_signal=config.gate.signal)
+    fallback = _add_fallback(builder, scene, config, observation, meshcat)
+    schedule = scene.schedule
+    gate = builder.AddNamedSystem("shared_control", SharedControl(
+        config.gate, period_s=schedule.control_period_s,
+        offset_s=(schedule.controller_offset_s + schedule.recorder_offset_s) / 2))
+    builder.Connect(policy.GetOutputPort("command"), gate.GetInputPort("policy_command"))
+    builder.Connect(policy.GetOutputPort("uncertainty"), gate.GetInputPort("uncertainty"))
+    builder.Connect(fallback, gate.GetInputPort("fallback_command"))
+    return gate.GetOutputPort("command")
+
+
+def _add_fallback(builder: DiagramBuilder, scene: DitchScene, config: SharedControlControllerConfig,
+                  observation: Observation, meshcat: Meshcat | None) -> OutputPort:
+    """The fallback's command port (connected to nothing yet)."""
+    fallback = config.gate.fallback
+    if fallback == "expert":
+        return AddExpert(builder, scene, config.expert)
+    if fallback == "mppi":
+        # One lidar on the robot: the planner reads the policy's where they are the same sensor.
+        same = config.mppi.lidar == config.policy.observation.lidar
+        lidar = observation.lidar if same else AddLidar(builder, scene, config.mppi.lidar, name="mppi_lidar")
+        return AddMppiController(builder, scene, config.mppi, lidar)
+    schedule = scene.schedule
+    teleop = builder.AddNamedSystem("meshcat_teleop", MeshcatTeleop(
+        meshcat, period_s=schedule.control_period_s, offset_s=schedule.controller_offset_s))
+    quantizer = builder.AddNamedSystem("teleop_quantizer", ActionQuantizer())
+    builder.Connect(teleop.GetOutputPort("raw_command"), quantizer.GetInputPort("raw_command"))
+    return quantizer.GetOutputPort("command")
