@@ -1,4 +1,4 @@
-"""The control step's profile split (`ditch_drake.perf.profile_step`)."""
+"""The control step's profile split (`ditch_drake.perf.profile_step`) and the policy-step timings."""
 
 import types
 
@@ -56,3 +56,15 @@ def test_the_network_is_counted_layer_by_layer():
     convolutions = 128 * 128 * 64 * 4 * 9 + 32 * 32 * 32 * 64 * 9
     multiply_adds = profile_step.network_multiply_adds("wide")
     assert convolutions < multiply_adds < convolutions * 1.01
+
+
+def test_the_bench_times_one_clone_an_ensemble_and_the_onnx_runtime():
+    from ditch_drake.perf import bench_training
+
+    pytest.importorskip("onnxruntime")
+    one = bench_training.measure_policy_step_ms(repeats=2)
+    five = bench_training.measure_ensemble_policy_step_ms(repeats=2)
+    onnx = bench_training.measure_onnxruntime_policy_step_ms(repeats=2)
+    assert 0 < one["policy_step_ms"] <= one["policy_step_max_ms"]
+    assert 0 < five["ensemble_policy_step_ms"] <= five["ensemble_policy_step_max_ms"]
+    assert 0 < onnx["policy_step_onnxruntime_ms"] <= onnx["policy_step_onnxruntime_max_ms"]

@@ -117,7 +117,11 @@ def measure_blocks() -> dict:
     from ditch_drake.perf.bench_lidar import measure_lidar_ms
     from ditch_drake.perf.bench_mppi import measure_mppi_ms
     from ditch_drake.perf.bench_normal_image import measure_normal_image_ms
-    from ditch_drake.perf.bench_training import measure_ensemble_policy_step_ms, measure_policy_step_ms
+    from ditch_drake.perf.bench_training import (
+        measure_ensemble_policy_step_ms,
+        measure_onnxruntime_policy_step_ms,
+        measure_policy_step_ms,
+    )
 
     lidar = measure_lidar_ms("wide")
     normal_image = measure_normal_image_ms(repeats=30)
@@ -126,9 +130,13 @@ def measure_blocks() -> dict:
         "normal_image_organized_ms": normal_image["normal_image_organized_ms"],
         "normal_image_pca_reference_ms": normal_image["normal_image_pca_ms"],
         "policy_step_ms": measure_policy_step_ms()["policy_step_ms"],
-        # Five clones in one forward pass (the shared controller's ensemble); issue 41's target: <= 2.5x one.
+        # Five clones in one forward pass (the shared controller's ensemble).
         "ensemble_policy_step_ms": measure_ensemble_policy_step_ms()["ensemble_policy_step_ms"],
     }
+    # The same network in ONNX Runtime (`runtime: onnxruntime`), where the `onnx` extra is installed.
+    onnxruntime_step = measure_onnxruntime_policy_step_ms()
+    if onnxruntime_step:
+        figures["policy_step_onnxruntime_ms"] = onnxruntime_step["policy_step_onnxruntime_ms"]
     # The DWA baseline on the real lidar: costmap update + local plan apart from the global plan.
     dwa = measure_dwa_ms()
     figures.update({key: dwa[key] for key in ("dwa_update_ms", "dwa_update_cpu_ms", "dwa_update_p90_ms",

@@ -183,6 +183,35 @@ def measure_policy_step_ms(repeats: int = 50) -> dict:
     return {"policy_step_ms": 1e3 * float(np.median(times)), "policy_step_max_ms": 1e3 * float(np.max(times))}
 
 
+def measure_onnxruntime_policy_step_ms(repeats: int = 50) -> dict:
+    """`measure_policy_step_ms` with the network run by ONNX Runtime (`runtime: onnxruntime`, one
+    thread); none without the `onnx` extra, which says so on stderr.
+
+    Returns:
+        {"policy_step_onnxruntime_ms": median, "policy_step_onnxruntime_max_ms": slowest}, or {}.
+    """
+    import importlib.util
+
+    if importlib.util.find_spec("onnxruntime") is None:
+        print("bench: onnxruntime is not installed (pip install -e '.[onnx]'): no policy_step_onnxruntime_ms",
+              file=sys.stderr)
+        return {}
+    from pydrake.systems.analysis import Simulator  # noqa: F401 (loads Drake's analysis module)
+
+    from ditch_drake.learning.checkpoint import make_checkpoint
+    from ditch_drake.learning.inference import OnnxRuntimeInference
+    from ditch_drake.learning.model import FourInputClassifier
+    from ditch_drake.learning.onnx_policy import export_onnx
+    from ditch_drake.systems.policy import LearnedPolicy
+
+    checkpoint = make_checkpoint(FourInputClassifier())
+    inference = OnnxRuntimeInference(export_onnx(checkpoint, "an untrained network", "0" * 64),
+                                     checkpoint.model_config, checkpoint.action_commands, num_threads=1)
+    times = _policy_update_times(LearnedPolicy(inference), repeats)
+    return {"policy_step_onnxruntime_ms": 1e3 * float(np.median(times)),
+            "policy_step_onnxruntime_max_ms": 1e3 * float(np.max(times))}
+
+
 def measure_ensemble_policy_step_ms(members: int = 5, repeats: int = 50, noise: float = 0.01) -> dict:
     """Median time (ms) of one `LearnedPolicy` discrete update of a `members`-clone ensemble on
     one thread, timed as `measure_policy_step_ms` times one clone: all members in one forward
