@@ -25,7 +25,7 @@ WALLED = ["crater_walled", "wide_walled", "narrow_walled", "sine_walled"]
 
 def test_every_environment_has_a_walled_variant_with_the_same_ditch_and_tasks():
     assert environment_names() == ["crater", "wide", "narrow", "sine"]
-    assert environment_names(variants=True) == [*environment_names(), *WALLED]
+    assert environment_names(variants=True) == [*environment_names(), *WALLED, "wide_search", "wide_search_offset"]
     for name in environment_names():
         open_field, walled = get_environment(name), get_environment(f"{name}_walled")
         assert walled.based_on == name

@@ -61,9 +61,10 @@ def load_environments(path: str | Path | None = None, prove_walls: bool = True) 
     """Loads and validates an environments file (the packaged one by default).
 
     `prove_walls`: also prove, for each walled environment, that its walls leave no way
-    round the ditch (`ditch_drake.world.bypass`, up to a second per environment); the packaged
-    file is read without it for listing names, and each of its environments is proven when
-    first used (`get_environment`).
+    round the ditch (`ditch_drake.world.bypass`, up to a second per environment), and for each
+    one whose walls vary in slope, that each task has a way in and a way out
+    (`ditch_drake.world.ingress`); the packaged file is read without them for listing names,
+    and each of its environments is proven when first used (`get_environment`).
 
     Raises:
         ConfigError: the file cannot be read or parsed, has unknown fields, or
@@ -87,10 +88,16 @@ def load_environments(path: str | Path | None = None, prove_walls: bool = True) 
 
 
 def validate_environment(environment: Environment, prove_walls: bool = True) -> None:
-    """Raises TerrainError or ConfigError unless the terrain builds, every task's start and goal
-    keep `TASK_CLEARANCE_M` from the ditch's edge and the walls and lie on opposite sides, and
-    (with `prove_walls`) no route bypasses a walled ditch (`prove_no_bypass`)."""
+    """Raises TerrainError or ConfigError unless the terrain builds, its walls' windows are wider
+    than the robot (`ingress.check_windows`), every task's start and goal keep
+    `TASK_CLEARANCE_M` from the ditch's edge and the walls and lie on opposite sides, and (with
+    `prove_walls`) no route bypasses a walled ditch and each task of a ditch whose walls vary
+    in slope has a way in and out (`prove_routes`)."""
     terrain = DitchTerrain(environment.terrain)
+    if terrain.sectioned:
+        from ditch_drake.world.ingress import check_windows  # scipy's image module: see prove_no_bypass
+
+        check_windows(terrain)
     if not environment.tasks:
         raise ConfigError("has no tasks")
     for task in environment.tasks:
@@ -110,7 +117,32 @@ def validate_environment(environment: Environment, prove_walls: bool = True) -> 
             raise ConfigError(f"task {task.name!r}: start {task.start[:2]} and goal {task.goal} "
                               "are not on opposite sides of the ditch")
     if prove_walls:
-        prove_no_bypass(environment, terrain)
+        prove_routes(environment, terrain)
+
+
+def prove_routes(environment: Environment, terrain: DitchTerrain | None = None) -> None:
+    """Raises ConfigError, naming the task, unless no route of a walled environment bypasses its
+    ditch (`prove_no_bypass`) and each task of a ditch whose walls vary in slope has a way in
+    and a way out (`prove_ways_in_and_out`)."""
+    terrain = terrain or DitchTerrain(environment.terrain)
+    prove_no_bypass(environment, terrain)
+    prove_ways_in_and_out(environment, terrain)
+
+
+def prove_ways_in_and_out(environment: Environment, terrain: DitchTerrain | None = None) -> None:
+    """Raises ConfigError, naming the task, unless each task of a ditch whose walls vary in
+    slope has a way from its start down to the floor and one from the floor up to its goal
+    (`ditch_drake.world.ingress`); nothing for a ditch without sections."""
+    from ditch_drake.world.ingress import check_ways_in_and_out, traversable_grid
+
+    terrain = terrain or DitchTerrain(environment.terrain)
+    if terrain.sectioned:
+        grid = traversable_grid(terrain)
+        for task in environment.tasks:
+            try:
+                check_ways_in_and_out(terrain, task.start[:2], task.goal, grid)
+            except ConfigError as error:
+                raise ConfigError(f"task {task.name!r}: {error}") from error
 
 
 def prove_no_bypass(environment: Environment, terrain: DitchTerrain | None = None) -> None:
@@ -144,7 +176,7 @@ def _packaged_environments() -> dict[str, Environment]:
 def _proven_packaged(name: str) -> Environment:
     environment = _packaged_environments()[name]
     try:
-        prove_no_bypass(environment)
+        prove_routes(environment)
     except ConfigError as error:
         raise ConfigError(f"environment {name!r} in {_default_path()}: {error}") from error
     return environment
@@ -174,20 +206,21 @@ def _cached_file_environments(key: tuple) -> dict[str, Environment]:
 def _cached_proof(key: tuple, name: str) -> Environment:
     environment = _cached_file_environments(key)[name]
     try:
-        prove_no_bypass(environment)
+        prove_routes(environment)
     except ConfigError as error:
         raise ConfigError(f"environment {name!r} in {key[0]}: {error}") from error
     return environment
 
 
 def _proven_from_file(path: Path, name: str) -> Environment:
-    """A file's environment, its walls proven (once per version of the file)."""
+    """A file's environment, its routes proven (`prove_routes`, once per version of the file)."""
     return _cached_proof(_file_key(path), name)
 
 
 def environment_names(variants: bool = False) -> list[str]:
     """Names of the packaged environments: the paper's four, and with `variants` also those
-    based on them (`Environment.based_on`: the walled ones)."""
+    based on them (`Environment.based_on`: the walled ones, and the search ones based on
+    `wide_walled`)."""
     return [name for name, environment in _packaged_environments().items() if variants or not environment.based_on]
 
 

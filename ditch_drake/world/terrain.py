@@ -16,6 +16,11 @@ The same description gives
   joins each section's wall, hinge and flat edge, whose solid is convex, into one
   `Convex` (`ConvexPiece`).
 
+A straight ditch's two walls may each change slope along the course
+(`TerrainParams.wall_slopes`: sections of the wall's length, each at its own slope), so that
+it can be crossed only where a wall is gentle enough (docs/concepts/terrain_family.md,
+"Walls whose slope varies"); between two sections the wall steps from one profile to the other.
+
 A ditch may also be fenced: `TerrainParams.walls` are straight wall segments on the
 ground (tall boxes, collision and visual geometry), so that every route from a start to
 its goal has to cross the ditch (`ditch_drake.world.bypass` proves it for each task).
@@ -33,6 +38,10 @@ from scipy.spatial import ConvexHull
 from ditch_drake.common.errors import TerrainError
 
 COURSE_KINDS = ("line", "sine", "point", "arc")
+# The ditch's two walls, named by the side of the course they stand on, facing along it.
+WALL_SIDES = ("right", "left")
+# How far two sections' ends may miss each other or the course's ends (m) and still meet.
+SECTION_TOLERANCE_M = 1e-6
 
 
 @dataclass
@@ -53,6 +62,42 @@ class Wall:
 
 
 @dataclass
+class SlopeSection:
+    """One stretch of a ditch's wall at one slope.
+
+    Attributes:
+        from_m: where it begins, along the course from the course's start (m).
+        to_m: where it ends (m); the next section begins here.
+        slope_deg: the wall's angle from horizontal along the stretch, in (0, 90).
+    """
+
+    from_m: float = 0.0
+    to_m: float = 0.0
+    slope_deg: float = 55.0
+
+
+@dataclass
+class WallSlopes:
+    """The slopes of a straight ditch's two walls along the course, each wall on its own.
+
+    Positions run along the course from its start (x = -length_m / 2) to its end (x =
+    length_m / 2). A wall's sections follow each other without gap or overlap and cover its
+    whole length, [0, length_m]; each rounded end of the ditch takes the slopes of the
+    sections that end there. Between two sections of different slopes the wall steps from
+    one profile to the other (docs/concepts/terrain_family.md).
+
+    Attributes:
+        right: the wall on the course's right facing along it (y < 0): the wall a task that
+            starts at y < 0 goes down, and one that ends there climbs. Empty: `slope_deg`
+            all along.
+        left: the wall on its left (y > 0). Empty: `slope_deg` all along.
+    """
+
+    right: list[SlopeSection] = field(default_factory=list)
+    left: list[SlopeSection] = field(default_factory=list)
+
+
+@dataclass
 class TerrainParams:
     """Parameters of one ditch (lengths in m, angles in degrees).
 
@@ -67,7 +112,8 @@ class TerrainParams:
         sine_wavelength_m: L_w, for "sine".
         bottom_width_m: width of the flat bottom (the crater's bottom diameter).
         depth_m: depth below the surrounding ground.
-        slope_deg: wall angle from horizontal.
+        slope_deg: wall angle from horizontal (of both walls all along, unless `wall_slopes`
+            says otherwise).
         hinge_radius_m: rounding radius of the top edge (the hinge line).
         toe_radius_m: rounding radius of the bottom edge.
         arc_facets: flat facets per rounded edge in the collision geometry.
@@ -77,6 +123,8 @@ class TerrainParams:
             most pi: 180 degrees).
         field_margin_m: flat ground kept around the ditch's outer edge.
         walls: fences on the ground (none: an open field).
+        wall_slopes: slopes that vary along a "line" course, each wall on its own (none: both
+            walls at `slope_deg` all along).
     """
 
     course: str = "line"
@@ -93,6 +141,7 @@ class TerrainParams:
     arc_radius_m: float = 15.0
     field_margin_m: float = 20.0
     walls: list[Wall] = field(default_factory=list)
+    wall_slopes: WallSlopes = field(default_factory=WallSlopes)
 
     def validate(self) -> None:
         """Raises TerrainError naming the first parameter out of range."""
@@ -135,6 +184,7 @@ class TerrainParams:
                  f"(they drop {rounding_drop:.3f} m)")
         for index, wall in enumerate(self.walls):
             _validate_wall(index, wall)
+        _validate_wall_slopes(self)
         if self.course == "sine":
             if self.sine_amplitude_m < 0.0:
                 fail("sine_amplitude_m", self.sine_amplitude_m, "sine_amplitude_m >= 0")
@@ -206,9 +256,53 @@ def _validate_wall(index: int, wall: Wall) -> None:
                                f"expected {allowed}")
 
 
-def _profile_width(params: TerrainParams) -> float:
-    """Horizontal distance from the bottom's edge to the end of the hinge (m)."""
-    alpha = math.radians(params.slope_deg)
+def _validate_wall_slopes(params: TerrainParams) -> None:
+    """Raises TerrainError naming the first section out of range (`TerrainParams.wall_slopes`)."""
+
+    def fail(name, value, allowed):
+        raise TerrainError(f"terrain parameter wall_slopes.{name}={value!r} is out of range: expected {allowed}")
+
+    for side in WALL_SIDES:
+        sections = getattr(params.wall_slopes, side)
+        if sections and params.course != "line":
+            raise TerrainError(f"terrain parameter wall_slopes.{side} is set for course={params.course!r}: expected "
+                               "course 'line' (walls whose slope varies are built on a straight ditch only; "
+                               "docs/concepts/terrain_family.md)")
+        reached = 0.0
+        for index, section in enumerate(sections):
+            key = f"{side}[{index}]"
+            for name in ("from_m", "to_m", "slope_deg"):
+                value = getattr(section, name)
+                if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                    fail(f"{key}.{name}", value, "a finite number")
+            if not 0.0 < section.slope_deg < 90.0:
+                fail(f"{key}.slope_deg", section.slope_deg, "0 < slope_deg < 90")
+            drop = (params.hinge_radius_m + params.toe_radius_m) * (1 - math.cos(math.radians(section.slope_deg)))
+            if drop >= params.depth_m:
+                fail(f"{key}.slope_deg", section.slope_deg,
+                     f"a slope at which the rounded edges (hinge_radius_m + toe_radius_m) drop less than "
+                     f"depth_m={params.depth_m} (they drop {drop:.3f} m)")
+            if section.from_m < reached - SECTION_TOLERANCE_M:
+                where = "the course's start" if index == 0 else f"{side}[{index - 1}]'s end"
+                fail(f"{key}.from_m", section.from_m, f"{reached:g}, {where}: it overlaps the section before it "
+                     f"by {reached - section.from_m:g} m")
+            if section.from_m > reached + SECTION_TOLERANCE_M:
+                where = "the course's start" if index == 0 else f"{side}[{index - 1}]'s end"
+                fail(f"{key}.from_m", section.from_m, f"{reached:g}, {where}: it leaves a gap of "
+                     f"{section.from_m - reached:g} m without a slope")
+            if section.to_m <= section.from_m:
+                fail(f"{key}.to_m", section.to_m, f"to_m > from_m ({section.from_m:g})")
+            reached = section.to_m
+        if sections and abs(reached - params.length_m) > SECTION_TOLERANCE_M:
+            past = "reaches past the course's end" if reached > params.length_m else "leaves a gap before its end"
+            fail(f"{side}[{len(sections) - 1}].to_m", reached,
+                 f"length_m={params.length_m:g}: the sections cover the wall's whole length (it {past})")
+
+
+def _profile_width(params: TerrainParams, slope_deg: float | None = None) -> float:
+    """Horizontal distance from the bottom's edge to the end of the hinge (m), for a wall at
+    `slope_deg` (None: `params.slope_deg`)."""
+    alpha = math.radians(params.slope_deg if slope_deg is None else slope_deg)
     rounding = (params.hinge_radius_m + params.toe_radius_m)
     wall_drop = params.depth_m - rounding * (1 - math.cos(alpha))
     return rounding * math.sin(alpha) + wall_drop / math.tan(alpha)
@@ -262,6 +356,8 @@ class DitchTerrain:
         self._alpha = math.radians(params.slope_deg)
         self._half_bottom = params.bottom_width_m / 2
         self._profile_s, self._profile_h = self._make_profile()
+        self._widest_s = float(self._profile_s[-1])
+        self._make_wall_sections()
         self.course_xy = self._make_course()
         starts, ends = self.course_xy[:-1], self.course_xy[1:]
         self._seg_start = starts
@@ -328,10 +424,12 @@ class DitchTerrain:
         return pieces
 
     # ----- cross-section profile -------------------------------------------------
-    def _make_profile(self) -> tuple[np.ndarray, np.ndarray]:
-        """Breakpoints (s, h): s is distance outward from the bottom's edge."""
-        p, alpha = self.params, self._alpha
-        width = _profile_width(p)
+    def _make_profile(self, slope_deg: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Breakpoints (s, h) of the profile of a wall at `slope_deg` (None: `slope_deg` of the
+        params): s is distance outward from the bottom's edge."""
+        p = self.params
+        alpha = self._alpha if slope_deg is None else math.radians(slope_deg)
+        width = _profile_width(p, slope_deg)
         thetas = np.linspace(0.0, alpha, p.arc_facets + 1)
         toe = np.stack([p.toe_radius_m * np.sin(thetas), -p.depth_m + p.toe_radius_m * (1 - np.cos(thetas))], axis=1)
         phis = thetas[::-1]
@@ -355,12 +453,15 @@ class DitchTerrain:
 
     @property
     def half_width_m(self) -> float:
-        """Distance from the course to the outer end of the hinge (m)."""
-        return self._half_bottom + float(self._profile_s[-1])
+        """Distance from the course to the outer end of the hinge (m); where the walls' slope
+        varies, of the gentlest section's (the widest)."""
+        return self._half_bottom + self._widest_s
 
     @property
     def hinge_distance_m(self) -> float:
-        """Distance from the course where the ground starts to drop: the hinge line (m)."""
+        """Distance from the course where the ground starts to drop: the hinge line (m); where
+        the walls' slope varies, the gentlest section's (steeper sections start to drop nearer
+        the course, `hinge_distance_at`)."""
         return self.half_width_m
 
     @property
@@ -369,17 +470,104 @@ class DitchTerrain:
         return self._half_bottom
 
     def profile_height(self, d: np.ndarray) -> np.ndarray:
-        """Height (m) at planar distance d (m) from the course."""
+        """Height (m) at planar distance d (m) from the course, of a wall at `slope_deg` (the
+        walls all along, unless `wall_slopes` varies them: then `height`)."""
         s = np.asarray(d, dtype=float) - self._half_bottom
         return np.interp(s, self._profile_s, self._profile_h, left=-self.params.depth_m, right=0.0)
 
     def profile_slope(self, d: np.ndarray) -> np.ndarray:
-        """dh/dd of the faceted profile (rises away from the course)."""
+        """dh/dd of the faceted profile (rises away from the course), of a wall at `slope_deg`
+        (as `profile_height`)."""
         s = np.asarray(d, dtype=float) - self._half_bottom
-        slopes = np.diff(self._profile_h) / np.diff(self._profile_s)
-        index = np.searchsorted(self._profile_s, s, side="right") - 1
-        inside = (index >= 0) & (index < len(slopes))
-        return np.where(inside, slopes[np.clip(index, 0, len(slopes) - 1)], 0.0)
+        return _facet_slope(self._profile_s, self._profile_h, s)
+
+    # ----- walls whose slope varies ----------------------------------------------
+    @property
+    def sectioned(self) -> bool:
+        """Whether a wall's slope varies along the course (`TerrainParams.wall_slopes`)."""
+        return self._sections is not None
+
+    def _make_wall_sections(self) -> None:
+        """Per wall side, its sections' starts, ends and profile numbers, and the profiles (one per
+        distinct slope); `_sections` None when neither wall has sections."""
+        p = self.params
+        if not (p.wall_slopes.right or p.wall_slopes.left):
+            self._sections = None
+            return
+        self._section_slopes: list[float] = []
+        self._section_profiles: list[tuple[np.ndarray, np.ndarray]] = []
+        self._sections = {}
+        for side in WALL_SIDES:
+            sections = self.slope_sections(side)
+            numbers = []
+            for section in sections:
+                if section.slope_deg not in self._section_slopes:
+                    self._section_slopes.append(section.slope_deg)
+                    self._section_profiles.append(self._make_profile(section.slope_deg))
+                numbers.append(self._section_slopes.index(section.slope_deg))
+            self._sections[side] = (np.array([s.from_m for s in sections], dtype=float),
+                                    np.array([s.to_m for s in sections], dtype=float), np.array(numbers))
+        self._widest_s = max(float(s[-1]) for s, _ in self._section_profiles)
+
+    def slope_sections(self, side: str) -> list[SlopeSection]:
+        """The sections of the wall on `side` ("right" or "left", `WALL_SIDES`) from the course's
+        start to its end: `wall_slopes`' own, or one at `slope_deg` all along."""
+        if side not in WALL_SIDES:
+            raise TerrainError(f"wall side {side!r} is unknown: expected one of {WALL_SIDES}")
+        sections = getattr(self.params.wall_slopes, side)
+        if sections:
+            return [SlopeSection(s.from_m, s.to_m, s.slope_deg) for s in sections]
+        length = self.params.length_m if self.params.course != "point" else 0.0
+        return [SlopeSection(0.0, length, self.params.slope_deg)]
+
+    def _sectioned_profile(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For points xy (N, 2) of a terrain whose walls have sections: the height (m), dh/dd and
+        the section's slope (deg) of the wall section each point faces.
+
+        A point faces the section that holds its nearest course point, on its side of the
+        course; on a boundary between two sections (and on the course's line past an end,
+        between the walls' end sections) the higher of the two profiles: the steeper section's,
+        as the geometry's union of pieces has it.
+        """
+        a, vec = self._seg_start[0], self._seg_vec[0]
+        length = math.sqrt(float(self._seg_len2[0]))
+        rel = xy - a
+        along = np.clip(rel @ vec / length, 0.0, length)
+        left_of = vec[0] * rel[:, 1] - vec[1] * rel[:, 0]  # > 0: left of the course
+        d, _ = self.nearest_on_course(xy)
+        s = d - self._half_bottom
+        heights = np.stack([np.interp(s, sb, hb, left=-self.params.depth_m, right=0.0)
+                            for sb, hb in self._section_profiles])
+        slopes = np.stack([_facet_slope(sb, hb, s) for sb, hb in self._section_profiles])
+        candidates, usable = [], []
+        for side, on_side in (("right", left_of <= 0.0), ("left", left_of >= 0.0)):
+            starts, ends, numbers = self._sections[side]
+            last = len(starts) - 1
+            # The section that begins at or before the point, and the one that ends at or after
+            # it: the same one except on a boundary.
+            candidates.append(numbers[np.clip(np.searchsorted(starts, along, side="right") - 1, 0, last)])
+            candidates.append(numbers[np.clip(np.searchsorted(ends, along, side="left"), 0, last)])
+            usable += [on_side, on_side]
+        candidates, usable = np.stack(candidates), np.stack(usable)
+        columns = np.arange(len(xy))
+        chosen = candidates[np.argmax(np.where(usable, heights[candidates, columns], -np.inf), axis=0), columns]
+        return heights[chosen, columns], slopes[chosen, columns], np.asarray(self._section_slopes)[chosen]
+
+    def section_slope_deg(self, xy: np.ndarray) -> np.ndarray:
+        """The slope (deg) of the wall section that points xy (..., 2) face (`slope_deg` where
+        no wall has sections): the section holding the nearest course point, on the point's
+        side of the course."""
+        xy = np.asarray(xy, dtype=float)
+        if not self.sectioned:
+            return np.full(xy.shape[:-1], float(self.params.slope_deg))
+        return self._sectioned_profile(xy.reshape(-1, 2))[2].reshape(xy.shape[:-1])
+
+    def hinge_distance_at(self, xy: np.ndarray) -> np.ndarray:
+        """Distance (m) from the course to the hinge line of the wall section that points xy
+        (..., 2) face: `hinge_distance_m` where no wall has sections."""
+        slopes = self.section_slope_deg(xy)
+        widths = {slope: _profile_width(self.params, slope) for slope in np.unique(slopes).tolist()}
+        return self._half_bottom + np.vectorize(widths.__getitem__, otypes=[float])(slopes)
 
     # ----- course ----------------------------------------------------------------
     def _make_course(self) -> np.ndarray:
@@ -454,13 +642,19 @@ class DitchTerrain:
     # ----- analytic queries ------------------------------------------------------
     def height(self, xy: np.ndarray) -> np.ndarray:
         """Terrain height z (m) at points xy (..., 2)."""
+        if self.sectioned:
+            xy = np.asarray(xy, dtype=float)
+            return self._sectioned_profile(xy.reshape(-1, 2))[0].reshape(xy.shape[:-1])
         d, _ = self.nearest_on_course(xy)
         return self.profile_height(d)
 
     def normal(self, xy: np.ndarray) -> np.ndarray:
         """Unit upward surface normal (..., 3) at points xy (..., 2)."""
         d, n = self.distance_and_away(xy)
-        slope = self.profile_slope(d)[..., None]
+        if self.sectioned:
+            slope = self._sectioned_profile(np.asarray(xy, dtype=float).reshape(-1, 2))[1].reshape(d.shape)[..., None]
+        else:
+            slope = self.profile_slope(d)[..., None]
         normal = np.concatenate([-slope * n, np.ones(slope.shape)], axis=-1)
         return normal / np.linalg.norm(normal, axis=-1, keepdims=True)
 
@@ -529,14 +723,15 @@ class DitchTerrain:
         """
         key = (ground_cell_m, thickness_m, mitre_bends, convex_sections)
         if key not in self._pieces_made:
-            self._pieces_made[key] = self._make_pieces(*key)
+            make = self._make_sectioned_pieces if self.sectioned else self._make_pieces
+            self._pieces_made[key] = make(*key)
         return list(self._pieces_made[key])
 
     def _make_pieces(self, ground_cell_m: float, thickness_m: float, mitre_bends: bool,
                      convex_sections: bool) -> list[BoxPiece | ConvexPiece]:
         pieces = self._floor_piece()
         # The profile pieces reach past the hinge far enough to close the staircase
-        # gap left by the flat-ground cells.
+        # gap left by the flat-ground cells (`_profile_facets` does the same).
         flat_reach = ground_cell_m * math.sqrt(2.0) + 0.05
         d_breaks = np.concatenate([self._half_bottom + self._profile_s, [self.half_width_m + flat_reach]])
         h_breaks = np.concatenate([self._profile_h, [0.0]])
@@ -591,6 +786,97 @@ class DitchTerrain:
                 pieces += section
         pieces += self._ground_pieces(ground_cell_m)
         return pieces
+
+    def _make_sectioned_pieces(self, ground_cell_m: float, thickness_m: float, mitre_bends: bool,
+                               convex_sections: bool) -> list[BoxPiece | ConvexPiece]:
+        """`_make_pieces` for a straight ditch whose walls have sections: the course cut where any
+        section ends, each piece of it swept with its own section's profile on each side, each
+        quarter of an end revolved with the end section of its wall, and a step's filler
+        (`_step_fillers`) wherever a wall changes slope. A straight course has no bends, so
+        `mitre_bends` changes nothing."""
+        pieces = self._floor_piece()
+        outer = self.half_width_m + ground_cell_m * math.sqrt(2.0) + 0.05
+        facets = [_profile_facets(self._half_bottom + s, h, outer) for s, h in self._section_profiles]
+        extended = [_with_wall_below_toe(f, self.params.depth_m) if convex_sections else f for f in facets]
+        a, b = self.course_xy
+        length = float(np.linalg.norm(b - a))
+        tangent = (b - a) / length
+        heading = math.atan2(tangent[1], tangent[0])
+        left = np.array([-tangent[1], tangent[0]])
+        cuts = np.unique(np.concatenate([np.concatenate(self._sections[side][:2]) for side in WALL_SIDES]))
+        sections: list[tuple[int, list[BoxPiece]]] = []
+        for u0, u1 in itertools.pairwise(cuts):
+            if u1 - u0 < 1e-9:
+                continue
+            for side_sign, side in ((+1.0, "left"), (-1.0, "right")):
+                number = self._section_number(side, (u0 + u1) / 2)
+                sections.append((number, [_swept_piece(a + u0 * tangent, a + u1 * tangent,
+                                                       heading + side_sign * math.pi / 2, facet, thickness_m)
+                                          for facet in extended[number]]))
+        step = math.radians(self.params.max_turn_deg)
+        # Each end's half turn in two quarters, each with its own wall's end section: at the start
+        # from the left wall round to the right, at the end from the right round to the left. Where
+        # the two differ, the steeper quarter's pieces keep off the course's line past the end.
+        quarters = ((a, heading + math.pi / 2, "left", 0.0, False), (a, heading + math.pi, "right", 0.0, True),
+                    (b, heading - math.pi / 2, "right", length, False), (b, heading, "left", length, True))
+        for center, start, side, along_m, line_at_start in quarters:
+            number = self._section_number(side, along_m)
+            other = self._section_number("left" if side == "right" else "right", along_m)
+            if self._section_slopes[number] > self._section_slopes[other]:
+                revolved = _revolved_beside_step(center, start, math.pi / 2, step, extended[number], thickness_m,
+                                                 line_at_start)
+            else:
+                revolved = _revolved_sections(center, start, math.pi / 2, step, extended[number], thickness_m)
+            sections += [(number, section) for section in revolved]
+        for number, section in sections:
+            if convex_sections:
+                wall = _steepest_facet(facets[number])
+                pieces += section[:wall] + [ConvexPiece.hull_of(section[wall:])]
+            else:
+                pieces += section
+        pieces += self._step_fillers(facets, tangent, left)
+        pieces += self._ground_pieces(ground_cell_m)
+        return pieces
+
+    def _section_number(self, side: str, along_m: float) -> int:
+        """The profile number of the section of `side`'s wall that holds `along_m` (m)."""
+        starts, _, numbers = self._sections[side]
+        return int(numbers[min(max(int(np.searchsorted(starts, along_m, side="right")) - 1, 0), len(starts) - 1)])
+
+    def _step_fillers(self, facets: list[list[tuple]], tangent: np.ndarray, left: np.ndarray) -> list[BoxPiece]:
+        """The pieces that close each step where a wall changes slope.
+
+        The steeper section's profile stands above the gentler one's everywhere; its slabs end
+        at the boundary, and below them the step would be open down to the gentler surface. At
+        each step, under each facet of the steeper profile that the gentler one lies below,
+        a slab `STEP_FILLER_LENGTH_M` long reaches down `depth_m` + 0.5 m inside the steeper
+        section. Its face toward the gentler section is the step's face; it leans back by
+        `STEP_FACE_LEAN_RAD`, so that it faces a little upward: the renderer draws the
+        terrain's upward faces only (`ditch_drake.world.box_mesh`)."""
+        a, b = self.course_xy
+        length = float(np.linalg.norm(b - a))
+        heading = math.atan2(tangent[1], tangent[0])
+        steps = []  # (origin, angle of the profile's outward direction, into the steeper side, steep, gentle)
+        for side_sign, side in ((+1.0, "left"), (-1.0, "right")):
+            starts, _, numbers = self._sections[side]
+            for boundary, before, after in zip(starts[1:], numbers[:-1], numbers[1:]):
+                if before != after:
+                    steeper = after if self._section_slopes[after] > self._section_slopes[before] else before
+                    steps.append((a + boundary * tangent, heading + side_sign * math.pi / 2,
+                                  tangent if steeper == after else -tangent, steeper, before + after - steeper))
+        # On the course's line past each end, between the two walls' end sections.
+        for center, outward, along_m in ((a, -tangent, 0.0), (b, tangent, length)):
+            right, left_number = self._section_number("right", along_m), self._section_number("left", along_m)
+            if right != left_number:
+                left_steeper = self._section_slopes[left_number] > self._section_slopes[right]
+                steps.append((center, math.atan2(outward[1], outward[0]), left if left_steeper else -left,
+                              left_number if left_steeper else right, right if left_steeper else left_number))
+        fillers = []
+        for origin, angle, into, steep, gentle in steps:
+            gentle_hinge = self._half_bottom + float(self._section_profiles[gentle][0][-1])
+            fillers += [_step_filler(origin, angle, into, facet, self.params.depth_m + 0.5)
+                        for facet in facets[steep] if facet[0] < gentle_hinge]
+        return fillers
 
     @property
     def winding(self) -> bool:
@@ -672,6 +958,63 @@ class DitchTerrain:
         return top
 
 
+# A step's filler (`DitchTerrain._step_fillers`): how far it reaches into the steeper section (m),
+# and how far its face leans back from the vertical (rad): enough for an upward face on walls up to
+# 87 deg (`box_mesh.UP_FACE_MIN_NORMAL_Z`), little enough that the step's foot stands out less than
+# 2 cm per metre of its height.
+STEP_FILLER_LENGTH_M = 0.1
+STEP_FACE_LEAN_RAD = 0.02
+
+
+def _profile_facets(d_breaks: np.ndarray, h_breaks: np.ndarray, outer_m: float) -> list[tuple]:
+    """The profile's facets (d0, d1, h0, h1) from its breakpoints at distances `d_breaks` from the
+    course, on to flat ground at `outer_m` (the flat-ground cells' reach)."""
+    d = np.concatenate([d_breaks, [outer_m]])
+    h = np.concatenate([h_breaks, [0.0]])
+    return [(d[i], d[i + 1], h[i], h[i + 1]) for i in range(len(d) - 1)]
+
+
+def _steepest_facet(facets: list[tuple]) -> int:
+    """The wall's facet: the profile bends only upwards before it (the toe), only downwards after."""
+    return int(np.argmax([(h1 - h0) / (d1 - d0) for d0, d1, h0, h1 in facets]))
+
+
+def _with_wall_below_toe(facets: list[tuple], depth_m: float) -> list[tuple]:
+    """The facets and the wall's plane continued down to the floor's height under the toe (for
+    convex sections, `DitchTerrain.box_pieces`)."""
+    d0, d1, h0, h1 = facets[_steepest_facet(facets)]
+    slope = (h1 - h0) / (d1 - d0)
+    return facets + [(d0 - (h0 + depth_m) / slope, d1, -depth_m, h1)]
+
+
+def _facet_slope(s_breaks: np.ndarray, h_breaks: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """dh/ds of the faceted profile with breakpoints (s_breaks, h_breaks) at s (0 off its ends)."""
+    slopes = np.diff(h_breaks) / np.diff(s_breaks)
+    index = np.searchsorted(s_breaks, s, side="right") - 1
+    inside = (index >= 0) & (index < len(slopes))
+    return np.where(inside, slopes[np.clip(index, 0, len(slopes) - 1)], 0.0)
+
+
+def _step_filler(origin: np.ndarray, normal_angle: float, into: np.ndarray, facet, thickness_m: float) -> BoxPiece:
+    """A slab under `facet` of a profile about `origin` (as `_facet_piece`), `STEP_FILLER_LENGTH_M`
+    long toward `into` (a horizontal unit vector) from 5 mm before the boundary through
+    `origin`, `thickness_m` thick, turned about its uphill edge on the boundary so that its face
+    toward -`into` leans back by `STEP_FACE_LEAN_RAD`."""
+    d0, d1, h0, h1 = facet
+    n = np.array([math.cos(normal_angle), math.sin(normal_angle)])
+    uphill = np.array([n[0] * (d1 - d0), n[1] * (d1 - d0), h1 - h0])
+    width = float(np.linalg.norm(uphill))
+    up = np.array([-n[0] * (h1 - h0), -n[1] * (h1 - h0), d1 - d0])
+    up /= np.linalg.norm(up)
+    x = np.array([into[0], into[1], 0.0])
+    lean = STEP_FACE_LEAN_RAD
+    x_lean, z_lean = math.cos(lean) * x - math.sin(lean) * up, math.sin(lean) * x + math.cos(lean) * up
+    R = np.column_stack([x_lean, np.cross(z_lean, x_lean), z_lean])
+    edge = np.array([*(origin + n * (d0 + d1) / 2), (h0 + h1) / 2]) - 0.005 * x
+    center = edge + x_lean * STEP_FILLER_LENGTH_M / 2 - z_lean * thickness_m / 2
+    return BoxPiece(np.array([STEP_FILLER_LENGTH_M, width, thickness_m]), R, center, "wall")
+
+
 def _distance_to_segments(xy: np.ndarray, starts: np.ndarray, ends: np.ndarray, half: np.ndarray) -> np.ndarray:
     """Distance (N,) from points (N, 2) to the nearest of the segments' thick bodies (0 inside)."""
     vec = ends - starts
@@ -736,4 +1079,44 @@ def _revolved_sections(center, start_angle, sweep, step, facets, thickness_m) ->
         # Each slab spans the chord at its outer radius, so that neighbours leave no gap.
         sections.append([_facet_piece(np.asarray(center), angle, facet, 2 * facet[1] * math.tan(width / 2) + 0.01,
                                       thickness_m) for facet in facets])
+    return sections
+
+
+def _revolved_beside_step(center, start_angle, sweep, step, facets, thickness_m,
+                          step_at_start: bool) -> list[list[BoxPiece]]:
+    """`_revolved_sections`, with no piece reaching past the ray at the sweep's start
+    (`step_at_start`) or end, where the wall steps down to a gentler profile.
+
+    A revolved slab spans its step's chord at its outer distance, so it reaches past its step's
+    rays nearer the centre: harmless between steps of one profile, but past a step it would
+    stand above the gentler side. The step next to the ray gets slabs whose side toward it
+    meets the ray at their inner distance and keeps inside beyond; the sliver left between
+    them and the ray, at most (d1 - d0) tan(width / 2) wide, is covered by a slab along the
+    ray (its own section, so that a convex section's hull stays in one step)."""
+    count = max(1, math.ceil(sweep / step - 1e-9))
+    width = sweep / count
+    sections = []
+    for k in range(count):
+        angle = start_angle + (k + 0.5) * width
+        if k != (0 if step_at_start else count - 1):
+            sections.append([_facet_piece(np.asarray(center), angle, facet, 2 * facet[1] * math.tan(width / 2) + 0.01,
+                                          thickness_m) for facet in facets])
+            continue
+        line_angle = start_angle if step_at_start else start_angle + sweep
+        ray = np.array([math.cos(angle), math.sin(angle)])
+        line = np.array([math.cos(line_angle), math.sin(line_angle)])
+        toward_line = line - (line @ ray) * ray
+        toward_line /= np.linalg.norm(toward_line)
+        into_step = ray - (ray @ line) * line
+        into_step /= np.linalg.norm(into_step)
+        slabs, strips = [], []
+        for facet in facets:
+            d0, d1 = facet[0], facet[1]
+            far, near = d1 * math.tan(width / 2) + 0.005, max(d0, 0.0) * math.tan(width / 2)
+            slabs.append(_facet_piece(np.asarray(center) + toward_line * (near - far) / 2, angle, facet, near + far,
+                                      thickness_m))
+            strip = (d1 - max(d0, 0.0)) * math.tan(width / 2) + 0.005
+            strips.append(_facet_piece(np.asarray(center) + into_step * strip / 2, line_angle, facet, strip,
+                                       thickness_m))
+        sections += [slabs, strips]
     return sections
