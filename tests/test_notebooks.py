@@ -22,7 +22,9 @@ def test_notebooks_are_committed_without_outputs(path):
     assert code and all(not cell.outputs and cell.execution_count is None for cell in code)
 
 
-@pytest.mark.parametrize("path", NOTEBOOKS, ids=lambda path: path.stem)
+# The training notebook takes about 40 s on 2 cores: it runs with `-m slow`, the others by default.
+@pytest.mark.parametrize("path", [pytest.param(path, marks=pytest.mark.slow) if path.stem == "04_train_and_evaluate"
+                                  else path for path in NOTEBOOKS], ids=lambda path: path.stem)
 def test_notebook_runs_top_to_bottom(path, tmp_path, monkeypatch):
     # The kernel inherits this environment: short mode; Drake deprecations are errors in its first cell.
     monkeypatch.setenv("DITCH_DRAKE_NOTEBOOK_SHORT", "1")
