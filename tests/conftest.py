@@ -2,10 +2,13 @@
 
 from pathlib import Path
 
+import numpy as np
 import pytest
 
+from ditch_drake.demos.dataset import Demonstration, standard_metadata
 from ditch_drake.diagrams.ditch_scene import MakeDitchDiagram, SceneConfig
 from ditch_drake.evaluation import batch, rollout_worker
+from ditch_drake.spec import actions
 
 
 @pytest.fixture(scope="session")
@@ -50,3 +53,28 @@ def _session_processes(session: int) -> list[str]:
         if int(fields[3]) == session and fields[0] != "Z":
             alive.append(f"{entry.name} {command[:80]}")
     return alive
+
+
+def _random_demonstration(seed: int, steps: int) -> Demonstration:
+    rng = np.random.default_rng(seed)
+    labels = np.where(rng.random(steps) < 0.6, actions.STRAIGHT_LABEL, rng.integers(0, actions.NUM_LABELS, steps))
+    arrays = {
+        "image": rng.integers(0, 256, (steps, 128, 128), dtype=np.uint8),
+        "imu_stack": rng.normal(size=(steps, 8)).astype(np.float32),
+        "distance_stack": rng.uniform(0, 20, (steps, 4)).astype(np.float32),
+        "bearing_stack": rng.uniform(-3, 3, (steps, 4)).astype(np.float32),
+        "label": labels.astype(np.int16),
+        "time_s": np.arange(steps) * 0.1,
+        "pose": rng.normal(size=(steps, 6)).astype(np.float32),
+        "raw_command": rng.normal(size=(steps, 2)).astype(np.float32),
+    }
+    metadata = standard_metadata(environment="wide", task={"index": seed % 3, "name": "t"}, seed=seed,
+                                 outcome={"status": "reached_goal"}, control_period_s=0.1)
+    return Demonstration(arrays, metadata)
+
+
+@pytest.fixture
+def random_demonstration():
+    """`random_demonstration(seed, steps)`: a seeded Demonstration of `steps` random frames and
+    scalars, 60 % of its labels straight ahead, for the training and dataset tests."""
+    return _random_demonstration

@@ -10,7 +10,6 @@ import torch
 
 from ditch_drake.cli import main
 from ditch_drake.common.errors import CheckpointError, ConfigError
-from ditch_drake.demos.dataset import Demonstration, standard_metadata
 from ditch_drake.demos.store import DatasetStore
 from ditch_drake.demos.training_set import dataset_episodes, training_set
 from ditch_drake.learning import ensemble_training
@@ -147,29 +146,11 @@ def test_bad_ensembles_are_refused_naming_the_member_and_the_key(tmp_path):
         load_ensemble(write([{**good[0], "schema": "ditch_drake.training_state"}, good[1]]))
 
 
-def _demonstration(seed: int, steps: int) -> Demonstration:
-    rng = np.random.default_rng(seed)
-    labels = np.where(rng.random(steps) < 0.6, actions.STRAIGHT_LABEL, rng.integers(0, actions.NUM_LABELS, steps))
-    arrays = {
-        "image": rng.integers(0, 256, (steps, 128, 128), dtype=np.uint8),
-        "imu_stack": rng.normal(size=(steps, 8)).astype(np.float32),
-        "distance_stack": rng.uniform(0, 20, (steps, 4)).astype(np.float32),
-        "bearing_stack": rng.uniform(-3, 3, (steps, 4)).astype(np.float32),
-        "label": labels.astype(np.int16),
-        "time_s": np.arange(steps) * 0.1,
-        "pose": rng.normal(size=(steps, 6)).astype(np.float32),
-        "raw_command": rng.normal(size=(steps, 2)).astype(np.float32),
-    }
-    metadata = standard_metadata(environment="wide", task={"index": seed % 3, "name": "t"}, seed=seed,
-                                 outcome={"status": "reached_goal"}, control_period_s=0.1)
-    return Demonstration(arrays, metadata)
-
-
 @pytest.fixture
-def store_path(tmp_path):
+def store_path(tmp_path, random_demonstration):
     store = DatasetStore.create(tmp_path / "store")
     for index, steps in enumerate((9, 6, 11, 5, 8)):
-        store.append(_demonstration(index, steps))
+        store.append(random_demonstration(index, steps))
     return tmp_path / "store"
 
 

@@ -10,10 +10,8 @@ import torch
 
 from ditch_drake.common.errors import ConfigError, DatasetError
 from ditch_drake.demos.dataset import (
-    Demonstration,
     reflected,
     restack_images,
-    standard_metadata,
     to_array_set,
 )
 from ditch_drake.demos.store import DatasetStore, load_demonstrations
@@ -30,7 +28,6 @@ from ditch_drake.learning.data import ArraySet, InputStats
 from ditch_drake.learning.mirror import mirror_left_right
 from ditch_drake.learning.stream import LazyImageStack, NpyRows, TrainingSamples, batch_loader, epoch_batches
 from ditch_drake.learning.train import train
-from ditch_drake.spec import actions
 
 STEPS = (9, 6, 11, 5)
 # A small and fast training configuration.
@@ -38,29 +35,11 @@ TINY = TrainConfig(epochs=1, batch_size=8, max_batches_per_epoch=2, num_threads=
                    eval_batch_size=16)
 
 
-def _demonstration(seed: int, steps: int) -> Demonstration:
-    rng = np.random.default_rng(seed)
-    labels = np.where(rng.random(steps) < 0.6, actions.STRAIGHT_LABEL, rng.integers(0, actions.NUM_LABELS, steps))
-    arrays = {
-        "image": rng.integers(0, 256, (steps, 128, 128), dtype=np.uint8),
-        "imu_stack": rng.normal(size=(steps, 8)).astype(np.float32),
-        "distance_stack": rng.uniform(0, 20, (steps, 4)).astype(np.float32),
-        "bearing_stack": rng.uniform(-3, 3, (steps, 4)).astype(np.float32),
-        "label": labels.astype(np.int16),
-        "time_s": np.arange(steps) * 0.1,
-        "pose": rng.normal(size=(steps, 6)).astype(np.float32),
-        "raw_command": rng.normal(size=(steps, 2)).astype(np.float32),
-    }
-    metadata = standard_metadata(environment="wide", task={"index": seed % 3, "name": "t"}, seed=seed,
-                                 outcome={"status": "reached_goal"}, control_period_s=0.1)
-    return Demonstration(arrays, metadata)
-
-
 @pytest.fixture
-def store_path(tmp_path):
+def store_path(tmp_path, random_demonstration):
     store = DatasetStore.create(tmp_path / "store")
     for index, steps in enumerate(STEPS):
-        store.append(_demonstration(index, steps))
+        store.append(random_demonstration(index, steps))
     return tmp_path / "store"
 
 
@@ -277,7 +256,7 @@ def test_the_bench_measures_streaming_memory_at_two_sizes():
 
 
 @pytest.mark.parametrize("recipe", [{"mirror": True}, {"canonical_side": True}])
-def test_the_generalists_samples_from_a_store_equal_those_from_npz_files(tmp_path, recipe):
+def test_the_generalists_samples_from_a_store_equal_those_from_npz_files(tmp_path, recipe, random_demonstration):
     from importlib import resources
 
     from ditch_drake.demos.dataset import save_demonstration
@@ -288,7 +267,7 @@ def test_the_generalists_samples_from_a_store_equal_those_from_npz_files(tmp_pat
     # facing +y the goal at x = -8 lies to the left (reflected with the canonical side), at +8 right.
     for folder, seed in (("demos", 0), ("dagger1", 10)):
         for index, (task, goal_x) in enumerate(((1, -8.0), (0, 8.0), (1, 8.0))):
-            demonstration = _demonstration(seed + index, 5 + index)
+            demonstration = random_demonstration(seed + index, 5 + index)
             demonstration.arrays["pose"][:, :2] = [0.0, -8.0]
             demonstration.metadata.update(task={"index": task, "name": "t", "goal": [goal_x, 11.0]},
                                           expert_style={"driver": {"straight_across_deg": 15.0,

@@ -46,6 +46,7 @@ from ditch_drake.learning.checkpoint import (
     to_plain,
 )
 from ditch_drake.learning.ensemble_network import EnsembleNetwork
+from ditch_drake.learning.model import set_torch_threads
 
 SCHEMA = "ditch_drake.policy_ensemble"
 SCHEMA_VERSION = 1
@@ -217,10 +218,7 @@ class EnsembleInference:
         Raises:
             ValueError: a thread count < 1.
         """
-        if num_threads is not None:
-            if num_threads < 1:
-                raise ValueError(f"num_threads={num_threads} must be >= 1 or None")
-            torch.set_num_threads(num_threads)
+        set_torch_threads(num_threads)
         self.members = ensemble.size
         self.model_config = ensemble.model_config
         self.action_commands = ensemble.action_commands

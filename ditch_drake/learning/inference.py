@@ -33,6 +33,7 @@ from ditch_drake.common.errors import CheckpointError, ConfigError
 from ditch_drake.learning.checkpoint import PolicyCheckpoint, load_checkpoint, resolve_checkpoint_path
 from ditch_drake.learning.config import ModelConfig
 from ditch_drake.learning.ensemble import EnsembleInference, is_ensemble_checkpoint, load_ensemble
+from ditch_drake.learning.model import set_torch_threads
 from ditch_drake.learning.onnx_policy import (
     INPUT_NAMES,
     INSTALL_HINT,
@@ -85,10 +86,7 @@ class TorchInference:
         Raises:
             ValueError: a thread count < 1.
         """
-        if num_threads is not None:
-            if num_threads < 1:
-                raise ValueError(f"num_threads={num_threads} must be >= 1 or None")
-            torch.set_num_threads(num_threads)
+        set_torch_threads(num_threads)
         self.model_config = checkpoint.model_config
         self.action_commands = np.asarray(checkpoint.action_commands, dtype=float)
         self._model = checkpoint.build_model()

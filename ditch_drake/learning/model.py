@@ -137,6 +137,19 @@ class FourInputClassifier(nn.Module):
         return self.head(torch.cat(features, dim=1))
 
 
+def set_torch_threads(num_threads: int | None) -> None:
+    """Sets torch's intra-op threads for the whole process (`torch.set_num_threads` is
+    process-wide) before a network runs; None leaves torch's setting.
+
+    Raises:
+        ValueError: a thread count < 1.
+    """
+    if num_threads is not None:
+        if num_threads < 1:
+            raise ValueError(f"num_threads={num_threads} must be >= 1 or None")
+        torch.set_num_threads(num_threads)
+
+
 def parameter_count(model: nn.Module) -> int:
     """Number of trainable parameters."""
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
