@@ -138,11 +138,7 @@ def prove_ways_in_and_out(environment: Environment, terrain: DitchTerrain | None
     terrain = terrain or DitchTerrain(environment.terrain)
     if terrain.sectioned:
         grid = traversable_grid(terrain)
-        for task in environment.tasks:
-            try:
-                check_ways_in_and_out(terrain, task.start[:2], task.goal, grid)
-            except ConfigError as error:
-                raise ConfigError(f"task {task.name!r}: {error}") from error
+        _check_each_task(environment, lambda task: check_ways_in_and_out(terrain, task.start[:2], task.goal, grid))
 
 
 def prove_no_bypass(environment: Environment, terrain: DitchTerrain | None = None) -> None:
@@ -154,11 +150,16 @@ def prove_no_bypass(environment: Environment, terrain: DitchTerrain | None = Non
     terrain = terrain or DitchTerrain(environment.terrain)
     if terrain.walled:
         grid = rasterize_field(terrain)
-        for task in environment.tasks:
-            try:
-                check_no_bypass(terrain, task.start[:2], task.goal, grid)
-            except ConfigError as error:
-                raise ConfigError(f"task {task.name!r}: {error}") from error
+        _check_each_task(environment, lambda task: check_no_bypass(terrain, task.start[:2], task.goal, grid))
+
+
+def _check_each_task(environment: Environment, check) -> None:
+    """Runs `check(task)` for each task, naming the task in the ConfigError of the first that fails."""
+    for task in environment.tasks:
+        try:
+            check(task)
+        except ConfigError as error:
+            raise ConfigError(f"task {task.name!r}: {error}") from error
 
 
 def crosses_ditch(terrain: DitchTerrain, start_xy, goal_xy) -> bool:
