@@ -52,7 +52,7 @@ def default_gate() -> SharedControlConfig:
     with a lower one of 2.3 handed over in one of the six sequences (8 % of its steps), 1.4 %
     of all steps: rarely. It does not foresee the one failure among them (seed 0 rolled over
     at 8.4 s; its largest value was 2.05). Provisional until the signals are measured against
-    failures on validation rollouts (issue 41), which will also set thresholds from a budget.
+    failures on validation rollouts, which will also set thresholds from a budget.
     """
     return SharedControlConfig(signal="mean_softmax_entropy", upper_threshold=2.55, lower_threshold=2.3,
                                calm_steps=5, fallback="expert")
