@@ -17,6 +17,7 @@ from ditch_drake.cli.options import (
     print_table,
     scenario_from_options,
 )
+from ditch_drake.cli.shared_options import add_gate_options, shared_config_from_options
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.seeds import check_seed
 
@@ -135,14 +136,24 @@ def add_teleop(commands: Commands) -> None:
     add_environments_file(teleop)
     add_out(teleop, "dataset folder (made if missing); the demonstration is appended as its next episode")
     teleop.add_argument("--realtime-rate", type=float, default=1.0, help="simulated seconds per wall-clock second")
+    teleop.add_argument("--shared", action="store_true",
+                        help="the learned policy drives and hands over to you where it is unsure (the page turns "
+                             "red and says so); the steps you drove are stored as interventions")
+    add_checkpoint(teleop, "the environment's shipped model; with --shared")
+    add_gate_options(teleop, ["teleop"])
     teleop.set_defaults(run=cmd_teleop)
 
 
 def cmd_teleop(args) -> int:
-    """A person drives (arrow keys or gamepad in the meshcat page); a success is kept."""
+    """A person drives (arrow keys or gamepad in the meshcat page); a success is kept. With
+    --shared the gated policy drives and the person only where it hands over; every episode is
+    kept, its steps flagged by who drove them."""
     check_task(args.env, args.task, args.environments)
     check_seed(args.seed)
     check_realtime_rate(args.realtime_rate)
+    if args.checkpoint is not None and not args.shared:
+        raise ConfigError(f"--checkpoint {args.checkpoint}: a policy drives only with --shared")
+    shared = shared_config_from_options(args, args.checkpoint, "teleop") if args.shared else None
     from pydrake.geometry import StartMeshcat
 
     from ditch_drake.demos.collect import record_person_demonstration
@@ -150,10 +161,18 @@ def cmd_teleop(args) -> int:
 
     store = DatasetStore.create(args.out)  # A bad --out fails before a person drives.
     meshcat = StartMeshcat()
-    print(f"meshcat: open {meshcat.web_url()} and steer with the arrow keys (or a gamepad) in that tab", flush=True)
+    if shared is None:
+        print(f"meshcat: open {meshcat.web_url()} and steer with the arrow keys (or a gamepad) in that tab", flush=True)
+    else:
+        print(f"meshcat: open {meshcat.web_url()}; the policy drives, and where it is unsure the page turns red and "
+              "you steer with the arrow keys (or a gamepad) in that tab", flush=True)
     demonstration = record_person_demonstration(args.env, args.task, meshcat, args.seed, args.realtime_rate,
-                                                args.environments or "")
+                                                args.environments or "", shared)
     status = demonstration.metadata["outcome"]["status"]
+    if shared is not None:
+        print(f"outcome: {status}; you drove {demonstration.metadata['intervened_steps']} of {len(demonstration)} "
+              f"steps ({demonstration.metadata['switches']} switches); saved {store.append(demonstration).path}")
+        return 0 if status == "reached_goal" else 1
     if status != "reached_goal":
         print(f"outcome: {status}; not kept")
         return 1

@@ -13,6 +13,7 @@ from ditch_drake.cli.options import (
     add_workers,
     print_table,
 )
+from ditch_drake.cli.shared_options import add_gate_options, shared_config_from_options
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.parallel import check_workers, interrupt_exit_code
 from ditch_drake.common.seeds import check_seed
@@ -42,6 +43,19 @@ def add_collect(commands: Commands) -> None:
     collect.add_argument("--lead-in", action="store_true",
                          help="the expert first makes room along the ditch when the crossing would not fit "
                               "before the ditch's end (EdgeAngleDriverConfig.lead_in)")
+    collect.add_argument("--shared", action="store_true",
+                         help="the learned policy (--checkpoint) drives, gated by its uncertainty, and --fallback "
+                              "takes over where it is unsure; every rollout is kept (--demos rollouts, one per "
+                              "seed), each step flagged as an intervention where the fallback drove")
+    collect.add_argument("--checkpoint", default=None,
+                         help="with --shared: the gated policy, a shipped name, a .pt file or an ensemble file "
+                              "(default: the environment's shipped model)")
+    collect.add_argument("--shared-labels", choices=["executed", "expert"], default=ConfigDefault(COLLECT,
+                                                                                                  "shared_labels"),
+                         help="with --shared: the label stored for each step: the executed one (the policy's or "
+                              "the fallback's) or the expert fallback's at every step (DAgger's labels) "
+                              "(default %(default)s)")
+    add_gate_options(collect, ["expert", "mppi"])
     add_backend(collect, COLLECT)
     collect.set_defaults(run=cmd_collect)
 
@@ -51,6 +65,11 @@ def cmd_collect(args) -> int:
     check_seed(args.seed, args.demos if args.demos > 0 else 1)
     if args.learner is None and args.labeller != "latched":
         raise ConfigError(f"--labeller {args.labeller}: a labeller needs --learner (a DAgger round)")
+    if args.shared and args.learner is not None:
+        raise ConfigError(f"--learner {args.learner} with --shared: the gated policy is --checkpoint; expected one "
+                          "of --learner (DAgger) and --shared")
+    if not args.shared and args.checkpoint is not None:
+        raise ConfigError(f"--checkpoint {args.checkpoint}: a gated policy drives only with --shared")
     from dataclasses import replace
 
     from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect
@@ -61,6 +80,12 @@ def cmd_collect(args) -> int:
     if args.learner is not None:
         config = replace(config, learner=args.learner, variation=replace(
             LABELLER_VARIATION, replan_each_step=args.labeller == "replanning", lead_in=args.lead_in))
+    if args.shared:
+        # The expert fallback takes over as a DAgger labeller labels: its middle style, no delay, no noise.
+        shared = shared_config_from_options(args, args.checkpoint)
+        shared = replace(shared, expert=replace(shared.expert, variation=replace(LABELLER_VARIATION,
+                                                                                 lead_in=args.lead_in)))
+        config = replace(config, shared=shared, shared_labels=args.shared_labels)
     report = collect(config)
     print(json.dumps(report, indent=2))
     if report["interrupted"]:
@@ -129,6 +154,10 @@ def add_train(commands: Commands) -> None:
                           help="class balancing of the training split (ditch_drake/learning/balance.py)")
     training.add_argument("--loader-workers", type=int, default=ConfigDefault(TRAIN, "num_workers"),
                           help="processes reading the batches (default 0: read in the training process)")
+    training.add_argument("--intervention-weight", type=float, default=ConfigDefault(TRAIN, "intervention_weight"),
+                          help="loss weight of the steps a supervisor took over (the dataset's intervention flag: "
+                               "collect --shared, teleop --shared), relative to 1 for the others (Sirius); "
+                               "1: uniform (default %(default)s)")
     training.add_argument("--resume", action="store_true",
                           help="continue an interrupted run from its .resume file beside --out")
     training.add_argument("--ensemble", type=int, nargs="?", const=ConfigDefault(ENSEMBLE, "members"), default=None,
@@ -147,10 +176,12 @@ def cmd_train(args) -> int:
     config = TrainConfig.from_options(
         epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
         max_batches_per_epoch=args.batches_per_epoch, synthetic_fraction=args.synthetic_fraction,
-        num_threads=args.threads, balancing=args.balancing, num_workers=args.loader_workers)
+        num_threads=args.threads, balancing=args.balancing, num_workers=args.loader_workers,
+        intervention_weight=args.intervention_weight)
     if args.max_demos is not None and args.max_demos < 1:
         raise ConfigError(f"--max-demos {args.max_demos}: expected >= 1 demonstrations per directory")
-    from ditch_drake.demos.training_set import load_training_set
+    from ditch_drake.demos.interventions import episode_interventions
+    from ditch_drake.demos.training_set import dataset_episodes, training_set
     from ditch_drake.learning.train import train
     from ditch_drake.pipelines.stages import training_device, training_precision
 
@@ -160,8 +191,10 @@ def cmd_train(args) -> int:
     if args.ensemble is not None:
         return _train_ensemble(args, config)
     # Several directories train the amalgam model; a dataset folder's images stay on disk.
-    arrays = load_training_set(args.data, max_demos=args.max_demos)
-    result = train(arrays, config, output_path=args.out, resume=args.resume)
+    episodes = [episode for directory in args.data for episode in dataset_episodes(directory, args.max_demos)]
+    intervention = episode_interventions(episodes) if config.intervention_weight != 1.0 else None
+    result = train(training_set(episodes), config, output_path=args.out, resume=args.resume,
+                   intervention=intervention)
     best = next((record for record in result.history if record["epoch"] == result.best_epoch), {})
     print(json.dumps({"out": str(result.output_path) if result.output_path else None,
                       "resume_file": str(result.resume_file) if result.resume_file else None,
@@ -177,6 +210,7 @@ def cmd_train(args) -> int:
 
 def _train_ensemble(args, config) -> int:
     """`train --ensemble K`: K clones on bootstrap resamples of the demonstrations, one file."""
+    from ditch_drake.demos.interventions import episode_interventions
     from ditch_drake.demos.training_set import dataset_episodes, training_set
     from ditch_drake.learning.bootstrap import check_member_count
     from ditch_drake.learning.ensemble_training import train_ensemble
@@ -187,8 +221,10 @@ def _train_ensemble(args, config) -> int:
         found = dataset_episodes(directory, args.max_demos)
         episodes += found
         names += [f"{directory}[{index}]" for index in range(len(found))]
+    weighted = config.intervention_weight != 1.0
     result = train_ensemble(lambda indices: training_set([episodes[i] for i in indices]), names, args.out, config,
-                            members)
+                            members, interventions_of=(lambda indices: episode_interventions(
+                                [episodes[i] for i in indices])) if weighted else None)
     print(json.dumps({"out": str(result.output_path) if result.output_path else None,
                       "members_folder": str(result.members_folder), "trained": result.trained,
                       "skipped": result.skipped, "interrupted": result.interrupted,

@@ -9,6 +9,7 @@ says how many were kept, so the same command run again records only the missing 
 """
 
 import collections
+import dataclasses
 import time
 from concurrent.futures import as_completed
 from dataclasses import asdict, dataclass, field, replace
@@ -36,11 +37,20 @@ from ditch_drake.diagrams.controllers import get_controller
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, SceneConfig
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
 from ditch_drake.diagrams.rollout import AddLearnedPolicy, ExpertConfig, RunEpisode
-from ditch_drake.learning.checkpoint import checkpoint_digest, load_checkpoint, resolve_checkpoint_path
+from ditch_drake.diagrams.shared_controller import AddSharedControl, SharedControlControllerConfig
+from ditch_drake.learning.checkpoint import (
+    checkpoint_digest,
+    environment_model,
+    load_checkpoint,
+    resolve_checkpoint_path,
+)
+from ditch_drake.learning.inference import load_policy
 from ditch_drake.spec import robot
 from ditch_drake.systems.demo_recorder import DemoRecorder
+from ditch_drake.systems.driver_recorder import DriverRecorder
 from ditch_drake.systems.expert import ExpertVariation, draw_expert_style
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
+from ditch_drake.systems.shared_control import FALLBACK, SharedControl
 from ditch_drake.systems.teleop import ActionQuantizer
 from ditch_drake.world.environments import get_environment
 
@@ -50,6 +60,9 @@ LABELLER_VARIATION = ExpertVariation(wall_angle_deg=[20.0, 20.0], climb_angle_de
                                      approach_margin_m=[2.5, 2.5], reaction_delay_steps=0, steering_noise_radps=0.0)
 """The expert as a DAgger labeller: the middle of the demonstrators' style, with no delay
 and no noise, so that a label is the expert's answer to exactly the recorded observation."""
+
+SHARED_LABELS = ("executed", "expert")
+"""What a shared collection records as a step's label (`CollectConfig.shared_labels`)."""
 
 ROLLOVER_TRIM_S = 1.0
 """Dropped from the end of a learner's rollout that rolled over: by then the chassis is
@@ -88,6 +101,16 @@ class CollectConfig:
             checkpoint as an absolute path (a relative one is looked up in each worker's
             folder, which on a local Ray is this process's).
         address: the Ray cluster's address (None or "local": start Ray on this machine).
+        shared: None, or the shared controller (`SharedControlControllerConfig`: the gated
+            policy's checkpoint, the gate's thresholds, the fallback, "expert" or "mppi") that
+            drives every rollout, kept one per seed whatever its outcome, as a DAgger round's
+            (a rollover's last `ROLLOVER_TRIM_S` dropped). Each step is stored with its driver:
+            `intervention` is true where the fallback drove. Not with `learner`.
+        shared_labels: with `shared`, the label stored for each step, one of `SHARED_LABELS`:
+            "executed" (the label the robot executed: the policy's where it drove, the
+            fallback's where it took over; what Sirius and ThriftyDAgger aggregate) or
+            "expert" (the expert fallback's label at every step, as a DAgger labeller gives it
+            for the learner's states; needs fallback "expert").
     """
 
     environment: str = "wide"
@@ -102,6 +125,12 @@ class CollectConfig:
     environments: list[str] = field(default_factory=list)
     backend: str = "local"
     address: str | None = None
+    shared: SharedControlControllerConfig | None = None
+    shared_labels: str = "executed"
+
+    def expert_variation(self) -> ExpertVariation:
+        """The variation the expert's style is drawn from: the shared fallback's, or `variation`."""
+        return self.shared.expert.variation if self.shared is not None else self.variation
 
 
 @dataclass
@@ -111,20 +140,27 @@ class DemonstrationRig:
     diagram: Diagram
     scene: DitchScene
     observation: Observation
-    source: System  # The raw-command source: an `ExpertDriver` or a `MeshcatTeleop`.
+    source: System | None  # The raw-command source: an `ExpertDriver`, a `MeshcatTeleop` (None: MPPI).
     recorder: DemoRecorder
+    gate: SharedControl | None = None  # A shared rig's gate, and who drove each step:
+    drivers: DriverRecorder | None = None
 
 
 def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
                              observation_config: ObservationConfig | None = None,
                              variation: ExpertVariation | None = None, meshcat: Meshcat | None = None,
-                             person_drives: bool = False, learner: str | None = None) -> DemonstrationRig:
+                             person_drives: bool = False, learner: str | None = None,
+                             shared: SharedControlControllerConfig | None = None,
+                             shared_labels: str = "executed") -> DemonstrationRig:
     """The expert (or, with `person_drives`, a person through `meshcat`) drives through
     `ActionQuantizer`, whose label the recorder stores.
 
     With `learner` (a checkpoint name or path) the learned policy drives instead, on the
     same observation blocks the recorder reads, and the expert's quantized command is only
     recorded: the labels of a DAgger round.
+
+    With `shared` the shared controller drives (`_add_shared`): its policy on the recorder's
+    observation blocks, its gate's choice executed and recorded, and who drove each step.
     """
     if person_drives and meshcat is None:
         raise ConfigError("a person drives through meshcat: pass a Meshcat")
@@ -133,6 +169,8 @@ def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
     schedule = scene.schedule
     observation = AddObservation(builder, scene, observation_config)
     chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    if shared is not None:
+        return _add_shared(builder, scene, observation, shared, style_seed, shared_labels, meshcat)
     if person_drives:
         source = builder.AddNamedSystem("meshcat_teleop", MeshcatTeleop(
             meshcat, period_s=schedule.control_period_s, offset_s=schedule.controller_offset_s))
@@ -149,15 +187,67 @@ def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
     else:
         policy = AddLearnedPolicy(builder, scene, observation, learner)
         builder.Connect(policy.GetOutputPort("command"), scene.drive.GetInputPort("command"))
-    recorder = builder.AddNamedSystem("demo_recorder", DemoRecorder(
-        chassis.index(), period_s=schedule.control_period_s, offset_s=schedule.recorder_offset_s))
-    ConnectObservation(builder, observation, recorder)
-    builder.Connect(quantizer.GetOutputPort("label"), recorder.GetInputPort("label"))
-    builder.Connect(source.GetOutputPort("raw_command"), recorder.GetInputPort("raw_command"))
-    builder.Connect(scene.plant.get_body_poses_output_port(), recorder.GetInputPort("body_poses"))
+    recorder = _add_recorder(builder, scene, observation, quantizer.GetOutputPort("label"),
+                             source.GetOutputPort("raw_command"))
     diagram = builder.Build()
     diagram.set_name(f"demonstration_{scene_config.environment}")
     return DemonstrationRig(diagram, scene, observation, source, recorder)
+
+
+def _add_recorder(builder: DiagramBuilder, scene: DitchScene, observation: Observation, label, raw_command
+                  ) -> DemoRecorder:
+    """The "demo_recorder" on `observation`, storing the `label` and `raw_command` ports' values."""
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    schedule = scene.schedule
+    recorder = builder.AddNamedSystem("demo_recorder", DemoRecorder(
+        chassis.index(), period_s=schedule.control_period_s, offset_s=schedule.recorder_offset_s))
+    ConnectObservation(builder, observation, recorder)
+    builder.Connect(label, recorder.GetInputPort("label"))
+    builder.Connect(raw_command, recorder.GetInputPort("raw_command"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), recorder.GetInputPort("body_poses"))
+    return recorder
+
+
+def check_shared_collection(shared: SharedControlControllerConfig, shared_labels: str,
+                            meshcat: Meshcat | None = None) -> None:
+    """Raises ConfigError naming the first bad value of a shared collection's settings."""
+    shared.validate(meshcat)
+    if shared_labels not in SHARED_LABELS:
+        raise ConfigError(f"shared_labels {shared_labels!r}: expected one of {list(SHARED_LABELS)}")
+    if shared_labels == "expert" and shared.gate.fallback != "expert":
+        raise ConfigError(f"shared_labels 'expert' with fallback {shared.gate.fallback!r}: the expert's labels come "
+                          "from the expert fallback; expected fallback 'expert' or shared_labels 'executed'")
+
+
+def _add_shared(builder: DiagramBuilder, scene: DitchScene, observation: Observation,
+                shared: SharedControlControllerConfig, style_seed: int, shared_labels: str,
+                meshcat: Meshcat | None) -> DemonstrationRig:
+    """The rest of a shared rig: the gate's command drives; the recorder stores its executed
+    label ("executed") or the expert fallback's ("expert") with the executed command, and a
+    "driver_recorder" who drove each step (the demonstration's `intervention`)."""
+    check_shared_collection(shared, shared_labels, meshcat)
+    if shared.gate.fallback == "expert" and shared.expert.style_seed is None:
+        shared = dataclasses.replace(shared, expert=dataclasses.replace(shared.expert, style_seed=style_seed))
+    gate = AddSharedControl(builder, scene, shared, observation, meshcat)
+    command = gate.GetOutputPort("command")
+    builder.Connect(command, scene.drive.GetInputPort("command"))
+    if shared_labels == "expert":
+        label = builder.GetSubsystemByName("action_quantizer").GetOutputPort("label")
+    else:  # The policy's commands are the table's own and the fallbacks' quantized: snapping leaves them as they are.
+        label = builder.AddNamedSystem("executed_label", ActionQuantizer()).GetOutputPort("label")
+        builder.Connect(command, label.get_system().GetInputPort("raw_command"))
+    recorder = _add_recorder(builder, scene, observation, label, command)
+    schedule = scene.schedule
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    drivers = builder.AddNamedSystem("driver_recorder", DriverRecorder(
+        chassis.index(), period_s=schedule.control_period_s, offset_s=schedule.recorder_offset_s))
+    builder.Connect(gate.GetOutputPort("who_drives"), drivers.GetInputPort("who_drives"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), drivers.GetInputPort("body_poses"))
+    source = next((builder.GetSubsystemByName(name) for name in ("expert", "meshcat_teleop")
+                   if builder.HasSubsystemNamed(name)), None)
+    diagram = builder.Build()
+    diagram.set_name(f"shared_demonstration_{scene.environment_name}")
+    return DemonstrationRig(diagram, scene, observation, source, recorder, gate, drivers)
 
 
 def _run_and_record(rig: DemonstrationRig, environment: str, task: int, seed: int, realtime_rate: float = 0.0,
@@ -176,9 +266,18 @@ def _run_and_record(rig: DemonstrationRig, environment: str, task: int, seed: in
     outcome = RunEpisode(simulator, rig.diagram, rig.scene, seed, before_start=None if style is None else set_style)
     if style is not None:
         metadata["expert_style"] = asdict(style)
-    log = rig.recorder.log(rig.recorder.GetMyContextFromRoot(simulator.get_context()))
+    root = simulator.get_context()
+    arrays = log_to_arrays(rig.recorder.log(rig.recorder.GetMyContextFromRoot(root)))
+    if rig.drivers is not None:
+        drivers = rig.drivers.log(rig.drivers.GetMyContextFromRoot(root)).drivers()
+        if len(drivers) != len(arrays["label"]):  # Both tick at the recorder's offset.
+            raise RuntimeError(f"{len(drivers)} drivers recorded for {len(arrays['label'])} steps")
+        arrays["intervention"] = drivers == FALLBACK
+        switches = rig.gate.GetOutputPort("switches").Eval(rig.gate.GetMyContextFromRoot(root))[0]
+        metadata["intervened_steps"] = int(arrays["intervention"].sum())
+        metadata["switches"] = int(switches)
     task_info = {"index": task, "name": rig.scene.task.name, "start": rig.scene.task.start, "goal": rig.scene.task.goal}
-    return Demonstration(log_to_arrays(log), standard_metadata(
+    return Demonstration(arrays, standard_metadata(
         environment=environment, task=task_info, seed=seed, outcome=asdict(outcome),
         control_period_s=rig.scene.schedule.control_period_s, **metadata))
 
@@ -201,9 +300,45 @@ def record_demonstration(environment: str, task: int, seed: int,
     return _run_and_record(rig, environment, task, seed, expert_style=draw_expert_style(seed, variation), **driver)
 
 
+def record_shared_demonstration(environment: str, task: int, seed: int, shared: SharedControlControllerConfig,
+                                shared_labels: str = "executed", observation_config: ObservationConfig | None = None,
+                                rig: DemonstrationRig | None = None, environments_file: str = "",
+                                meshcat: Meshcat | None = None, realtime_rate: float = 0.0) -> Demonstration:
+    """Runs one episode of the shared controller; returns it with each step's driver in its
+    `intervention` array (true where the fallback drove) and the gate in its metadata.
+
+    `rig` reuses a diagram built by `MakeDemonstrationDiagram` with the same `shared` (its
+    expert fallback's reaction delay that of the seed's style); None builds one (on `meshcat`,
+    which a "teleop" fallback needs).
+    """
+    if rig is None:
+        rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task,
+                                                   environments_file=environments_file),
+                                       seed, observation_config, meshcat=meshcat, shared=shared,
+                                       shared_labels=shared_labels)
+    fallback = shared.gate.fallback
+    policy = shared.policy.checkpoint or environment_model(get_environment(
+        environment, environments_file or None).based_on or environment)
+    metadata = {"driver": f"shared: the policy gated by its {shared.gate.signal}, fallback {fallback}",
+                "learner": policy, "learner_sha256": checkpoint_digest(policy),
+                "shared_gate": asdict(shared.gate), "shared_labels": shared_labels}
+    if fallback == "expert":
+        metadata["expert_style"] = draw_expert_style(seed, shared.expert.variation)
+    return _run_and_record(rig, environment, task, seed, realtime_rate, **metadata)
+
+
 def record_person_demonstration(environment: str, task: int, meshcat: Meshcat, seed: int = 0,
-                                realtime_rate: float = 1.0, environments_file: str = "") -> Demonstration:
-    """A person steers with the arrow keys or a gamepad in the meshcat page, in real time."""
+                                realtime_rate: float = 1.0, environments_file: str = "",
+                                shared: SharedControlControllerConfig | None = None) -> Demonstration:
+    """A person steers with the arrow keys or a gamepad in the meshcat page, in real time.
+
+    With `shared` (its fallback "teleop") the gated policy drives and the person steers only
+    while the gate hands over: the page marks those steps (`DriverIndicator`), and the
+    demonstration stores them as interventions (`record_shared_demonstration`).
+    """
+    if shared is not None:
+        return record_shared_demonstration(environment, task, seed, shared, environments_file=environments_file,
+                                           meshcat=meshcat, realtime_rate=realtime_rate)
     rig = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task, environments_file=environments_file),
                                    seed, meshcat=meshcat, person_drives=True)
     return _run_and_record(rig, environment, task, seed, realtime_rate, driver="person (meshcat teleop)")
@@ -230,19 +365,21 @@ def slot_pairs(config: CollectConfig) -> list[tuple[str, int]]:
 
 def _worker_rig(config: CollectConfig, environment: str, task: int, reaction_delay_steps: int) -> DemonstrationRig:
     key = (environment, task, reaction_delay_steps, repr(config.observation), repr(config.variation),
-           config.learner, config.environments_file)
+           config.learner, config.environments_file, repr(config.shared), config.shared_labels)
     if key in _WORKER_RIGS:
         _WORKER_RIGS.move_to_end(key)
         return _WORKER_RIGS[key]
     while len(_WORKER_RIGS) >= MAX_WORKER_RIGS:
         _WORKER_RIGS.popitem(last=False)
     # Any seed with this delay builds the same diagram; each demonstration sets its own style.
+    variation = config.expert_variation()
     style_seed = next(seed for seed in range(10_000)
-                      if draw_expert_style(seed, config.variation).reaction_delay_steps == reaction_delay_steps)
+                      if draw_expert_style(seed, variation).reaction_delay_steps == reaction_delay_steps)
     _WORKER_RIGS[key] = MakeDemonstrationDiagram(SceneConfig(environment=environment, task=task,
                                                              environments_file=config.environments_file),
                                                  style_seed, config.observation, config.variation,
-                                                 learner=config.learner)
+                                                 learner=config.learner, shared=config.shared,
+                                                 shared_labels=config.shared_labels)
     return _WORKER_RIGS[key]
 
 
@@ -261,11 +398,17 @@ def _record_slot(config: CollectConfig, index: int) -> tuple[dict, Demonstration
     A Ray task's whole work: the demonstration comes back to the process that writes the store."""
     pairs = slot_pairs(config)
     environment, task = pairs[index % len(pairs)]
-    if config.learner is not None:
+    if config.learner is not None or config.shared is not None:
         seed = config.seed + index
-        rig = _worker_rig(config, environment, task, draw_expert_style(seed, config.variation).reaction_delay_steps)
-        demonstration = trim_rollover(record_demonstration(environment, task, seed, config.observation,
-                                                           config.variation, rig, config.learner))
+        delay = draw_expert_style(seed, config.expert_variation()).reaction_delay_steps
+        rig = _worker_rig(config, environment, task, delay)
+        if config.shared is not None:
+            recorded = record_shared_demonstration(environment, task, seed, config.shared, config.shared_labels,
+                                                   config.observation, rig, config.environments_file)
+        else:
+            recorded = record_demonstration(environment, task, seed, config.observation, config.variation, rig,
+                                            config.learner)
+        demonstration = trim_rollover(recorded)
         return ({"index": index, "seed": seed, "steps": len(demonstration), "failures": [],
                  "status": demonstration.metadata["outcome"]["status"]}, demonstration)
     failures = []
@@ -375,7 +518,15 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
                           f"folder: convert it with `ditch-drake dataset convert {out} NEW_FOLDER`, then collect "
                           "into NEW_FOLDER")
     if config.learner is not None:
+        if config.shared is not None:
+            raise ConfigError(f"learner {config.learner!r} with shared: the shared controller's policy drives "
+                              "(shared.policy.checkpoint); expected one of the two")
         load_checkpoint(resolve_checkpoint_path(config.learner))  # A bad checkpoint fails here, not in a worker.
+    if config.shared is not None:
+        check_shared_collection(config.shared, config.shared_labels)
+        if config.shared.policy.checkpoint:
+            # A bad checkpoint fails here, not in a worker.
+            load_policy(config.shared.policy.checkpoint, num_threads=None)
     try:
         store = DatasetStore.create(out)
     except DatasetError as error:
@@ -392,7 +543,7 @@ def collect(config: CollectConfig, progress: bool = True) -> dict:
     def keep(result: dict) -> None:
         results.append(result)
         bar.update(1)
-        if config.learner is None:
+        if config.learner is None and config.shared is None:
             bar.set_postfix(failed=sum(len(r["failures"]) for r in results))
         else:
             bar.set_postfix(learner_reached_goal=sum(r["status"] == "reached_goal" for r in results))

@@ -8,6 +8,10 @@ legend (inline HTML and CSS, nothing fetched) that say what was run and how it e
 environment, task, seed, controller (and checkpoint), outcome, simulated time, path length,
 and the colours of the path and the lidar returns.
 
+A `shared` rollout's path is drawn from the chassis's position at every control step, in two
+colours: where the policy drove and where the fallback did (a `DriverRecorder` reads the gate's
+`who_drives` at each tick); `ReplayResult.drivers` holds the driver of each step.
+
 Meshcat animations carry transforms and properties, not geometry, so the lidar is shown as
 one point-cloud object per snapshot (every `snapshot_period_s`, in the world frame), each
 made visible only during its own interval of the animation.
@@ -38,13 +42,19 @@ from ditch_drake.diagrams.rollout import (
     RolloutConfig,
     RunEpisode,
 )
+from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
 from ditch_drake.perception.lidar_model import LidarConfig
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
+from ditch_drake.systems.driver_recorder import DriverRecorder
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
+from ditch_drake.systems.shared_control import FALLBACK, POLICY
 
 _PREFIX = "/replay"
 _LIDAR_RGBA = Rgba(1.0, 0.35, 0.0, 1.0)
 _PATH_RGBA = Rgba(0.1, 0.3, 1.0, 1.0)
+# A shared rollout's path: the policy's steps in the usual path colour, the fallback's in red.
+_DRIVER_RGBA = {POLICY: _PATH_RGBA, FALLBACK: Rgba(0.9, 0.1, 0.1, 1.0)}
+_DRIVER_NAMES = {POLICY: "policy", FALLBACK: "fallback"}
 
 
 class ReplayOutputError(OSError):
@@ -88,6 +98,7 @@ class ReplayResult:
     html_path: Path
     html_bytes: int
     snapshots: int
+    drivers: list[int] | None = None  # A shared rollout's driver of each control step (0 policy, 1 fallback).
 
 
 def _recording_meshcat() -> Meshcat:
@@ -125,15 +136,31 @@ def record_replay(config: ReplayConfig, meshcat: Meshcat | None = None, progress
     scene = AddDitchScene(builder, config.rollout.scene, meshcat)
     AddController(builder, scene, config.rollout.controller)
     lidar = AddLidar(builder, scene, config.lidar, name="replay_lidar")
+    drivers = _add_driver_recorder(builder, scene)
     diagram = builder.Build()
     # After the builders (which validate the environment and controller) and before minutes of
     # simulation: an unwritable path fails fast, and a bad config leaves no file behind.
     remove_stale_temporaries(out.parent)
     with _output(out) as file:
-        outcome, snapshots = _record_episode(config, meshcat, diagram, scene, lidar, progress)
+        outcome, snapshots, driven = _record_episode(config, meshcat, diagram, scene, lidar, progress, drivers)
         file.write(with_legend(meshcat.StaticHtml(), replay_title(config, outcome),
-                               replay_fields(config, scene, outcome)).encode("utf-8"))
-    return ReplayResult(outcome=outcome, html_path=out, html_bytes=out.stat().st_size, snapshots=snapshots)
+                               replay_fields(config, scene, outcome), shared=drivers is not None).encode("utf-8"))
+    return ReplayResult(outcome=outcome, html_path=out, html_bytes=out.stat().st_size, snapshots=snapshots,
+                        drivers=driven)
+
+
+def _add_driver_recorder(builder: DiagramBuilder, scene: DitchScene) -> DriverRecorder | None:
+    """A "replay_drivers" recorder on the shared controller's gate, if the diagram has one;
+    ticking at offset 0, a time every rollout already stops at, it changes nothing else."""
+    if not builder.HasSubsystemNamed("shared_control"):
+        return None
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
+    drivers = builder.AddNamedSystem("replay_drivers", DriverRecorder(
+        chassis.index(), period_s=scene.schedule.control_period_s, offset_s=0.0))
+    builder.Connect(builder.GetSubsystemByName("shared_control").GetOutputPort("who_drives"),
+                    drivers.GetInputPort("who_drives"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), drivers.GetInputPort("body_poses"))
+    return drivers
 
 
 def controller_description(config) -> str:
@@ -154,6 +181,11 @@ def controller_description(config) -> str:
         return f"constant command {config.command} [m/s, rad/s]"
     if isinstance(config, EdgeAngleDriverConfig):
         return f"edge-angle driver (wall angle {config.wall_angle_deg:g} deg)"
+    if isinstance(config, SharedControlControllerConfig):
+        gate = config.gate
+        return (f"shared control: {controller_description(config.policy)}; the {gate.fallback} takes over where "
+                f"its {gate.signal} > {gate.upper_threshold:g}, hands back after {gate.calm_steps} steps "
+                f"< {gate.lower_threshold:g}")
     return f"{entry_for_config(config).name} ({type(config).__name__})"  # A controller registered by a user.
 
 
@@ -199,14 +231,17 @@ def _legend_rows(fields: list[tuple[str, str]]) -> str:
     return "".join(f"<tr>{row}</tr>" for row in rows)
 
 
-def with_legend(page: str, title: str, fields: list[tuple[str, str]]) -> str:
+def with_legend(page: str, title: str, fields: list[tuple[str, str]], shared: bool = False) -> str:
     """Meshcat's static page with `title` as its title, and a legend over the scene's top left
     corner (above where the camera puts the robot's start): the `fields` and the colour keys of
-    the path and the lidar returns. Inline HTML and CSS only, so the page still opens offline;
-    the legend lets mouse events through to the scene."""
-    keys = (f'<span class="key" style="background:{_css(_PATH_RGBA)};height:4px"></span>driven path '
-            f'<span class="key" style="background:{_css(_LIDAR_RGBA)};border-radius:50%"></span>'
-            "lidar returns (each snapshot shown until the next)")
+    the path (with `shared`, one per driver) and the lidar returns. Inline HTML and CSS only, so
+    the page still opens offline; the legend lets mouse events through to the scene."""
+    paths = [(_PATH_RGBA, "driven path")] if not shared else [
+        (_DRIVER_RGBA[POLICY], "path the policy drove"), (_DRIVER_RGBA[FALLBACK], "path the fallback drove")]
+    keys = "".join(f'<span class="key" style="background:{_css(rgba)};height:4px"></span>{text} '
+                   for rgba, text in paths)
+    keys += (f'<span class="key" style="background:{_css(_LIDAR_RGBA)};border-radius:50%"></span>'
+             "lidar returns (each snapshot shown until the next)")
     legend = f"""
   <div id="replay-legend">
     <h1>{html.escape(title)}</h1>
@@ -259,11 +294,14 @@ def _output(out: Path):
 
 
 def _record_episode(config: ReplayConfig, meshcat: Meshcat, diagram: Diagram, scene: DitchScene,
-                    lidar: LidarHandles, progress: str | None = None) -> tuple[EpisodeOutcome, int]:
-    """Runs the seeded episode while meshcat records; returns its outcome and the snapshot count.
+                    lidar: LidarHandles, progress: str | None = None, drivers: DriverRecorder | None = None
+                    ) -> tuple[EpisodeOutcome, int, list[int] | None]:
+    """Runs the seeded episode while meshcat records; returns its outcome, the snapshot count
+    and, with `drivers`, the driver of each control step.
 
     Every `snapshot_period_s` of simulated time (`RunEpisode`'s watch) adds a path point and
-    a lidar snapshot, shown from the previous snapshot's time to this one's.
+    a lidar snapshot, shown from the previous snapshot's time to this one's. With `drivers`
+    the path is drawn from its per-step positions instead, by driver (`_draw_driven_path`).
     """
     _frame_the_task(meshcat, scene)
     chassis = scene.plant.GetBodyByName("chassis", scene.husky)
@@ -282,12 +320,40 @@ def _record_episode(config: ReplayConfig, meshcat: Meshcat, diagram: Diagram, sc
     def start_recording(root_context) -> None:
         meshcat.StartRecording(frames_per_second=config.frames_per_second, set_visualizations_while_recording=False)
 
-    outcome = RunEpisode(Simulator(diagram), diagram, scene, config.seed, progress, after_start=start_recording,
+    simulator = Simulator(diagram)
+    outcome = RunEpisode(simulator, diagram, scene, config.seed, progress, after_start=start_recording,
                          watch=snapshot, watch_period_s=config.snapshot_period_s)
     meshcat.StopRecording()
-    meshcat.SetLine(f"{_PREFIX}/path", np.asfortranarray(np.array(path_W).T), line_width=3.0, rgba=_PATH_RGBA)
+    driven = None
+    if drivers is None:
+        meshcat.SetLine(f"{_PREFIX}/path", np.asfortranarray(np.array(path_W).T), line_width=3.0, rgba=_PATH_RGBA)
+    else:
+        log = drivers.log(drivers.GetMyContextFromRoot(simulator.get_context()))
+        driven = log.drivers()[1:].tolist()  # Entry 0 is the start, before the gate's first decision.
+        _draw_driven_path(meshcat, log.positions(), driven)
     meshcat.PublishRecording()
-    return outcome, len(path_W)
+    return outcome, len(path_W), driven
+
+
+def driven_segments(drivers: list[int]) -> list[tuple[int, int, int]]:
+    """The runs of one driver among the control steps: (driver, first point, last point) over
+    the per-step positions, where step k goes from point k to point k + 1, so consecutive runs
+    share their end point and the path has no gaps."""
+    segments = []
+    for step, driver in enumerate(drivers):
+        if segments and segments[-1][0] == driver:
+            segments[-1] = (driver, segments[-1][1], step + 1)
+        else:
+            segments.append((driver, step, step + 1))
+    return segments
+
+
+def _draw_driven_path(meshcat: Meshcat, p_W: np.ndarray, drivers: list[int]) -> None:
+    """The path through the per-step positions `p_W` (T + 1, 3) as one line per run of a driver,
+    `/replay/path/<NNN>_<policy|fallback>`, coloured by who drove it."""
+    for index, (driver, first, last) in enumerate(driven_segments(drivers)):
+        meshcat.SetLine(f"{_PREFIX}/path/{index:03d}_{_DRIVER_NAMES[driver]}",
+                        np.asfortranarray(p_W[first:last + 1].T), line_width=3.0, rgba=_DRIVER_RGBA[driver])
 
 
 def _frame_the_task(meshcat: Meshcat, scene: DitchScene) -> None:

@@ -36,9 +36,13 @@ from ditch_drake.diagrams.rollout import (
 from ditch_drake.learning.checkpoint import environment_model
 from ditch_drake.learning.inference import is_ensemble
 from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS
+from ditch_drake.systems.driver_indicator import DriverIndicator
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
 from ditch_drake.systems.shared_control import SharedControl, SharedControlConfig
 from ditch_drake.systems.teleop import ActionQuantizer
+
+# Where the scene's Meshcat visualizer draws the chassis: the help marker is its child.
+CHASSIS_MESHCAT_PATH = "/drake/illustration/husky/chassis"
 
 
 def default_gate() -> SharedControlConfig:
@@ -151,8 +155,23 @@ def AddSharedController(builder: DiagramBuilder, scene: DitchScene, config: Shar
         CheckpointError: the checkpoint does not load.
     """
     config.validate(meshcat)
-    checkpoint = config.policy.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
     observation = AddObservation(builder, scene, config.policy.observation)
+    return AddSharedControl(builder, scene, config, observation, meshcat).GetOutputPort("command")
+
+
+def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedControlControllerConfig,
+                     observation: Observation, meshcat: Meshcat | None = None) -> SharedControl:
+    """`AddSharedController` on an observation the caller made (a demonstration's recorder reads
+    the same one): the policy, the fallback and the "shared_control" gate, whose `command` and
+    `who_drives` are connected to nothing. With fallback "teleop" a "driver_indicator"
+    (`DriverIndicator`) marks the robot and the page while the person is asked to steer.
+
+    Raises:
+        ConfigError: a bad config, naming the value.
+        CheckpointError: the checkpoint does not load.
+    """
+    config.validate(meshcat)
+    checkpoint = config.policy.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
     policy = AddLearnedPolicy(builder, scene, observation, checkpoint, config.policy.crossing_side,
                               config.policy.runtime, uncertainty_signal=config.gate.signal)
     fallback = _add_fallback(builder, scene, config, observation, meshcat)
@@ -163,7 +182,11 @@ def AddSharedController(builder: DiagramBuilder, scene: DitchScene, config: Shar
     builder.Connect(policy.GetOutputPort("command"), gate.GetInputPort("policy_command"))
     builder.Connect(policy.GetOutputPort("uncertainty"), gate.GetInputPort("uncertainty"))
     builder.Connect(fallback, gate.GetInputPort("fallback_command"))
-    return gate.GetOutputPort("command")
+    if config.gate.fallback == "teleop":
+        indicator = builder.AddNamedSystem("driver_indicator", DriverIndicator(
+            meshcat, CHASSIS_MESHCAT_PATH, period_s=schedule.control_period_s, offset_s=schedule.recorder_offset_s))
+        builder.Connect(gate.GetOutputPort("who_drives"), indicator.GetInputPort("who_drives"))
+    return gate
 
 
 def _add_fallback(builder: DiagramBuilder, scene: DitchScene, config: SharedControlControllerConfig,

@@ -144,6 +144,7 @@ _OPTIONS = {
     "precision": "--precision",
     "balancing": "--balancing",
     "num_workers": "--loader-workers",
+    "intervention_weight": "--intervention-weight",
 }
 # Torch device strings a training run can use ("cuda:1" picks a GPU).
 _DEVICE_PATTERN = re.compile(r"(cpu|cuda|mps|xpu)(:\d+)?")
@@ -207,6 +208,14 @@ class TrainConfig:
             capped epoch is a random 96 x 64 = 6,144-sample subset; the defaults (8 such
             epochs, SMOTE up to half the real samples) fit one environment's 40
             demonstrations into the 15-minute training budget on 2 CPU cores (docs/concepts/learning.md).
+        intervention_weight: the weight of a sample whose step a supervisor took over (the
+            dataset's `intervention` flag: the fallback of a shared rollout, a person at
+            `teleop --shared`) in the training loss, relative to 1 for every other sample
+            (Sirius, Liu et al. RSS 2023, weighs the interventions up). Each batch's loss is
+            the weighted mean, sum(w_i l_i) / sum(w_i) (with class weights, w_i times the
+            class's weight, as torch's weighted cross-entropy). 1 (the default) is uniform
+            aggregation: training is exactly as without the field, and a checkpoint's
+            `train_config` does not list it. Validation loss stays unweighted.
         model: the network's shape.
     """
 
@@ -229,6 +238,7 @@ class TrainConfig:
     eval_batch_size: int = 256
     max_batches_per_epoch: int | None = 96
     model: ModelConfig = field(default_factory=ModelConfig)
+    intervention_weight: float = 1.0
 
     def __post_init__(self):
         """Checks every field, so a bad setting fails when the config is made, before any data loads.
@@ -275,6 +285,9 @@ class TrainConfig:
             raise _bad_field("device", self.device, "a torch device: 'cpu', 'cuda' or 'cuda:N'")
         if not isinstance(self.model, ModelConfig):
             raise _bad_field("model", self.model, "a ModelConfig")
+        if not (_is_number(self.intervention_weight) and self.intervention_weight > 0):
+            raise _bad_field("intervention_weight", self.intervention_weight,
+                             "a finite number > 0 (the loss weight of an intervention sample; 1: uniform)")
 
     @classmethod
     def from_options(cls, synthetic_fraction: float | None = None, **fields) -> "TrainConfig":

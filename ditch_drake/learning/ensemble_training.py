@@ -121,6 +121,7 @@ def train_ensemble(
     config: TrainConfig | None = None,
     members: int = 5,
     progress: bool = True,
+    interventions_of: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> EnsembleTrainResult:
     """Trains `members` clones on bootstrap resamples of the demonstrations and writes one ensemble.
 
@@ -138,6 +139,8 @@ def train_ensemble(
         config: the training settings of every member (default `TrainConfig()`).
         members: K >= 2.
         progress: print which member trains, and `train`'s own progress.
+        interventions_of: the intervention flag of each of `samples_of`'s samples for the same
+            indices (`train`'s `intervention`, which `config.intervention_weight` weighs); None: none.
 
     Raises:
         ConfigError: K < 2, or a members' folder of another ensemble.
@@ -161,7 +164,8 @@ def train_ensemble(
                                f"{len(draw.distinct())} distinct of {bootstrap.count} demonstrations")
         arrays = samples_of(draw.indices)
         arrays = dataclasses.replace(arrays, demo_id=draw.indices[arrays.demo_id])
-        trained = train(arrays, dataclasses.replace(config, seed=draw.seed), progress, path, resume=True)
+        weighted = {} if interventions_of is None else {"intervention": interventions_of(draw.indices)}
+        trained = train(arrays, dataclasses.replace(config, seed=draw.seed), progress, path, resume=True, **weighted)
         result.trained.append(draw.member)
         if trained.interrupted:
             result.interrupted, result.exit_code = True, trained.exit_code

@@ -224,7 +224,10 @@ def _is_better(candidate: tuple[float, float], best: tuple[float, float] | None)
 
 
 def _config_dict(config: TrainConfig) -> dict:
-    return to_plain(asdict(config), "train_config")
+    values = asdict(config)
+    if values["intervention_weight"] == 1.0:  # Uniform: recorded as before the field existed.
+        del values["intervention_weight"]
+    return to_plain(values, "train_config")
 
 
 def loader_workers(config: TrainConfig) -> int:
@@ -244,6 +247,7 @@ def train(
     progress: bool = True,
     output_path: str | os.PathLike | None = None,
     resume: bool = False,
+    intervention: np.ndarray | None = None,
 ) -> TrainResult:
     """Trains the paper's classifier on `arrays` (see the module docstring for the protocol).
 
@@ -258,6 +262,9 @@ def train(
         resume: continue from `resume_path(output_path)` if it exists (the data and every
             config field but epochs, patience, num_threads, device and precision must be
             the same).
+        intervention: (N,) bool over the rows of `arrays`, the steps a supervisor took over
+            (the store's `intervention` field; `ditch_drake.demos.interventions`), whose loss
+            `config.intervention_weight` weighs; None: none. Unused at weight 1.
 
     Returns:
         The kept model, its checkpoint, the per-epoch history and where it was saved.
@@ -283,6 +290,9 @@ def train(
         raise ConfigError(str(error)) from error
     if len(train_rows) < 2:
         raise ConfigError(f"{len(train_rows)} training sample(s) after the validation split; expected at least 2")
+    if intervention is not None and np.shape(intervention) != (len(arrays),):
+        raise ConfigError(f"intervention has shape {np.shape(intervention)}; expected ({len(arrays)},), a flag per "
+                          "sample")
     stats = InputStats.fit(arrays, train_rows)
     # SMOTE's new images go to disk when the set's own images are there: in memory they would
     # grow with the data (64 KiB a sample).
@@ -313,6 +323,13 @@ def train(
             # Kept for the readers of older checkpoints' key: SMOTE's time, 0 for another method.
             "smote_seconds": balancing.seconds if config.balancing == "smote" else 0.0,
         }
+        sample_weights = None
+        if config.intervention_weight != 1.0:  # At 1, nothing changes: not even the summary's keys.
+            flags = np.zeros(len(arrays), np.bool_) if intervention is None else np.asarray(intervention, np.bool_)
+            sample_weights = position_weights(flags, balancing, config.intervention_weight)
+            summary["intervention_train_samples"] = int(flags[train_rows].sum())
+            log_progress(progress, f"{summary['intervention_train_samples']} intervention samples weigh "
+                                   f"{config.intervention_weight:g} in the loss")
 
         previous_threads = torch.get_num_threads()
         previous_deterministic = torch.are_deterministic_algorithms_enabled()
@@ -322,7 +339,8 @@ def train(
                 torch.set_num_threads(config.num_threads)
             torch.use_deterministic_algorithms(True, warn_only=True)
             with torch.random.fork_rng(devices=[]):
-                return _run(arrays, config, progress, output_path, resume, val_rows, stats, balancing, summary)
+                return _run(arrays, config, progress, output_path, resume, val_rows, stats, balancing, summary,
+                            sample_weights)
         finally:
             torch.set_num_threads(previous_threads)
             torch.use_deterministic_algorithms(previous_deterministic, warn_only=previous_warn_only)
@@ -345,6 +363,27 @@ def available_precision(device: str) -> str:
     return "bf16" if any(getattr(torch.cpu, probe, lambda: False)() for probe in probes) else "fp32"
 
 
+def position_weights(intervention: np.ndarray, balancing: Balancing, weight: float) -> np.ndarray:
+    """(positions,) float32: the loss weight of each position an epoch draws from, `weight` where
+    the row is an intervention and 1 elsewhere; a synthetic (SMOTE) sample, interpolated within
+    its class from rows of either kind, weighs 1."""
+    weights = np.where(intervention[balancing.rows], np.float32(weight), np.float32(1.0)).astype(np.float32)
+    extra = len(balancing) - len(balancing.rows)
+    return np.concatenate([weights, np.ones(extra, np.float32)])
+
+
+def intervention_weighted_loss(logits: torch.Tensor, labels: torch.Tensor, sample_weights: torch.Tensor,
+                               class_weights: torch.Tensor | None = None,
+                               soft_targets: torch.Tensor | None = None) -> torch.Tensor:
+    """The batch's cross-entropy with per-sample weights: sum(w_i c_i l_i) / sum(w_i c_i), where
+    l_i is sample i's cross-entropy (against `soft_targets[label]` when given), w_i its
+    `sample_weights` entry and c_i its class's `class_weights` entry (1 without)."""
+    targets = labels if soft_targets is None else soft_targets[labels]
+    losses = nn.functional.cross_entropy(logits, targets, weight=class_weights, reduction="none")
+    weights = sample_weights if class_weights is None else sample_weights * class_weights[labels]
+    return (sample_weights * losses).sum() / weights.sum()
+
+
 def _loss_function(balancing: Balancing, device: str):
     """The training loss of a balancing: cross-entropy, class-weighted or against soft targets."""
     if balancing.soft_targets is not None:
@@ -354,13 +393,30 @@ def _loss_function(balancing: Balancing, device: str):
     return nn.CrossEntropyLoss(weight=weights)
 
 
-def _run(arrays, config, progress, output_path, resume, val_rows, stats, balancing, summary) -> TrainResult:
+def _weighted_loss_function(balancing: Balancing, device: str, sample_weights: np.ndarray):
+    """The training loss of a balancing with `sample_weights[position]` per sample
+    (`intervention_weighted_loss`): called with the batch's logits, labels and positions."""
+    weights = torch.from_numpy(sample_weights).to(device)
+    class_weights = None if balancing.class_weights is None else torch.from_numpy(balancing.class_weights).to(device)
+    soft_targets = None if balancing.soft_targets is None else torch.from_numpy(balancing.soft_targets).to(device)
+
+    def loss(logits, labels, positions):
+        return intervention_weighted_loss(logits, labels, weights[torch.from_numpy(positions).to(device)],
+                                          class_weights, soft_targets)
+
+    return loss
+
+
+def _run(arrays, config, progress, output_path, resume, val_rows, stats, balancing, summary,
+         sample_weights=None) -> TrainResult:
     torch.manual_seed(_torch_seed(config.seed, 0))
     model = FourInputClassifier(config.model)
     model.set_input_stats(stats.to_dict())
     model.to(config.device)
     optimizer = torch.optim.Adam(parameter_groups(model, config.lr, config.scalar_lr_factor))
     loss_function = _loss_function(balancing, config.device)
+    if sample_weights is not None:
+        loss_function = _weighted_loss_function(balancing, config.device, sample_weights)
     samples = TrainingSamples(arrays, balancing.rows, balancing.synthetic)
     workers = loader_workers(config)
     pin = torch.device(config.device).type == "cuda"
@@ -387,11 +443,12 @@ def _run(arrays, config, progress, output_path, resume, val_rows, stats, balanci
             loss_sum, predicted, true = 0.0, [], []
             bar = tqdm(batch_loader(samples, batches, workers, pin), total=len(batches), desc=f"epoch {epoch}",
                        disable=not progress, leave=False, file=sys.stderr)
-            for batch in bar:
+            for positions, batch in zip(batches, bar, strict=True):
                 inputs, labels = to_device(batch, config.device)
                 with torch.autocast(torch.device(config.device).type, torch.bfloat16, config.precision == "bf16"):
                     logits = model(*inputs)
-                    loss = loss_function(logits, labels)
+                    loss = loss_function(logits, labels) if sample_weights is None else (
+                        loss_function(logits, labels, positions))
                 optimizer.zero_grad(set_to_none=True)
                 loss.backward()
                 optimizer.step()

@@ -1,0 +1,46 @@
+"""The shared controller's options, for the commands that record with it: teleop and collect."""
+
+import argparse
+
+from ditch_drake.cli.options import ConfigDefault
+
+SHARED = "ditch_drake.diagrams.shared_controller:SharedControlControllerConfig"
+
+
+def add_gate_options(sub: argparse.ArgumentParser, fallbacks: list[str]) -> None:
+    """`--signal`, `--upper-threshold`, `--lower-threshold`, `--calm-steps` and `--fallback`:
+    the gate of `SharedControlControllerConfig` (defaults its own: the shipped clones' gate)."""
+    from ditch_drake.learning.uncertainty import UNCERTAINTY_SIGNALS
+
+    gate = sub.add_argument_group("the gate (with --shared)")
+    gate.add_argument("--signal", choices=list(UNCERTAINTY_SIGNALS), default=ConfigDefault(SHARED, "gate.signal"),
+                      help="the policy's uncertainty signal the gate reads (default %(default)s)")
+    gate.add_argument("--upper-threshold", type=float, default=ConfigDefault(SHARED, "gate.upper_threshold"),
+                      help="hand over when the signal is above this, in its unit (default %(default)s)")
+    gate.add_argument("--lower-threshold", type=float, default=ConfigDefault(SHARED, "gate.lower_threshold"),
+                      help="hand back after the signal stayed below this for --calm-steps steps "
+                           "(default %(default)s)")
+    gate.add_argument("--calm-steps", type=int, default=ConfigDefault(SHARED, "gate.calm_steps"),
+                      help="control steps below the lower threshold before handing back (default %(default)s)")
+    if len(fallbacks) > 1:
+        gate.add_argument("--fallback", choices=fallbacks, default=fallbacks[0],
+                          help="who takes over where the policy is unsure (default %(default)s)")
+
+
+def shared_config_from_options(args, checkpoint: str | None, fallback: str | None = None):
+    """The `SharedControlControllerConfig` of the gate options and `checkpoint` (None: the
+    environment's shipped model), with `fallback` (None: `--fallback`).
+
+    Raises:
+        ConfigError: a bad gate value, naming it (`SharedControlConfig.validate`).
+    """
+    import dataclasses
+
+    from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
+
+    config = SharedControlControllerConfig().with_checkpoint(checkpoint or "")
+    gate = dataclasses.replace(config.gate, signal=args.signal, upper_threshold=args.upper_threshold,
+                               lower_threshold=args.lower_threshold, calm_steps=args.calm_steps,
+                               fallback=fallback or args.fallback)
+    gate.validate()
+    return dataclasses.replace(config, gate=gate)
