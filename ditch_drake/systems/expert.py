@@ -9,7 +9,9 @@ from pydrake.systems.primitives import Adder, DiscreteTimeDelay, MatrixGain, Ran
 
 from ditch_drake.spec import robot, schedule
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
+from ditch_drake.systems.window_route import WindowRouteDriver
 from ditch_drake.world.terrain import DitchTerrain
+from ditch_drake.world.windows import has_steep_sections
 
 
 @dataclass
@@ -65,7 +67,8 @@ def draw_expert_style(seed: int, variation: ExpertVariation | None = None) -> Ex
 class ExpertDriver(Diagram):
     """Drives like a careful person who knows the terrain: `EdgeAngleDriver` plus variation.
 
-    Inside: the edge-angle driver with this demonstration's angles and margin,
+    Inside: the edge-angle driver with this demonstration's angles and margin (on a
+    ditch whose walls are too steep in places, `WindowRouteDriver`: through the windows),
     Gaussian steering noise from a Drake `RandomSource` (seeded by
     `diagram.SetRandomContext`, so the same seed gives the same run), and a
     reaction delay of whole control steps. Its output is a *raw* command: wire it
@@ -90,7 +93,10 @@ class ExpertDriver(Diagram):
         super().__init__()
         builder = DiagramBuilder()
         period = period_s
-        driver = builder.AddNamedSystem("edge_angle_driver", EdgeAngleDriver(
+        # Where a wall is too steep in places, the route through its windows (privileged, as
+        # the driver: both read the analytic terrain); elsewhere the plain driver, unchanged.
+        driver_class = WindowRouteDriver if has_steep_sections(terrain) else EdgeAngleDriver
+        driver = builder.AddNamedSystem("edge_angle_driver", driver_class(
             terrain, goal_xy, chassis_body_index, style.driver, period_s=period_s, offset_s=offset_s))
         builder.ExportInput(driver.GetInputPort("body_poses"), "body_poses")
         noise = builder.AddNamedSystem("steering_noise", RandomSource(RandomDistribution.kGaussian, 1, period))

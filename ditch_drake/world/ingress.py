@@ -35,12 +35,7 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.spec import robot
 from ditch_drake.world.bypass import _near_course
 from ditch_drake.world.terrain import WALL_SIDES, DitchTerrain, _distance_to_segments
-
-
-def smallest_tip_angle_deg() -> float:
-    """The robot's smallest static tip-over angle (deg): about its axles, 59.6 deg today
-    (`robot.tip_angle_fore_aft_rad`; 61.6 deg about a wheel line)."""
-    return math.degrees(min(robot.tip_angle_fore_aft_rad(), robot.tip_angle_sideways_rad()))
+from ditch_drake.world.windows import crossable_windows, smallest_tip_angle_deg
 
 
 @dataclass
@@ -192,18 +187,13 @@ def check_windows(terrain: DitchTerrain, config: IngressConfig | None = None) ->
     config = config or IngressConfig()
     width = float(robot.CHASSIS_SIZE_M[1])
     for side in WALL_SIDES:
-        sections = getattr(terrain.params.wall_slopes, side)
-        first = None
-        for index, section in enumerate([*sections, None]):
-            crossable = section is not None and section.slope_deg <= config.max_traversable_slope_deg
-            if crossable and first is None:
-                first = index
-            if not crossable and first is not None:
-                begin, end = sections[first].from_m, sections[index - 1].to_m
-                if end - begin < width:
-                    keys = f"[{first}]" if index - 1 == first else f"[{first}..{index - 1}]"
-                    raise ConfigError(f"terrain.wall_slopes.{side}{keys}: a window (no steeper than "
-                                      f"max_traversable_slope_deg={config.max_traversable_slope_deg:.1f} deg) from "
-                                      f"{begin:g} to {end:g} m is {end - begin:.2f} m wide; expected at least the "
-                                      f"robot's width, {width:.2f} m")
-                first = None
+        if not getattr(terrain.params.wall_slopes, side):
+            continue
+        for window in crossable_windows(terrain, side, config.max_traversable_slope_deg):
+            if window.width_m < width:
+                first, last = window.first_section, window.last_section
+                keys = f"[{first}]" if last == first else f"[{first}..{last}]"
+                raise ConfigError(f"terrain.wall_slopes.{side}{keys}: a window (no steeper than "
+                                  f"max_traversable_slope_deg={config.max_traversable_slope_deg:.1f} deg) from "
+                                  f"{window.from_m:g} to {window.to_m:g} m is {window.width_m:.2f} m wide; expected "
+                                  f"at least the robot's width, {width:.2f} m")
