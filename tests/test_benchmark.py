@@ -108,7 +108,8 @@ def test_bad_ranges_name_the_key_and_the_allowed_values(field, value, message):
 def test_the_cli_refuses_a_bad_split_or_ranges_file_with_exit_2(tmp_path, capsys):
     out = str(tmp_path / "b.jsonl")
     assert main(["benchmark", "--split", "holdout", "--out", out]) == 2
-    assert "unknown split 'holdout': expected one of ['train', 'val', 'test', 'stress', 'paper']" in capsys.readouterr().err
+    assert ("unknown split 'holdout': expected one of "
+            "['train', 'val', 'test', 'stress', 'search', 'search_val', 'paper']") in capsys.readouterr().err
     ranges = tmp_path / "ranges.yaml"
     ranges.write_text("slope_deg: [50.0, 40.0]\n")
     assert main(["benchmark", "--split", "val", "--ranges", str(ranges), "--out", out]) == 2

@@ -10,23 +10,44 @@ goal on opposite sides, on the straight line through the crossing point, a drawn
 distance beyond the ditch's edge (from the nearest part of the course: on a curved course the
 line goes on until it is that far).
 
+Ranges with windows (`BenchmarkRanges.windows`, the search splits') draw a straight ditch whose
+walls stand at the drawn steep `slope_deg` except in windows (`TerrainParams.wall_slopes`):
+after the terrain, each wall's count of windows and their slopes; the field, the end walls
+(sealing against the steep rounded ends) and the tasks laid out on the ditch at its widest
+(its gentlest window's); then each window's width and place, drawn among the places that keep
+`end_margin_m` from the course's ends, `line_margin_m` from where each task's straight line
+crosses that wall, and `WINDOW_GAP_M` from the wall's other windows, its width below the
+longest stretch left. A draw with no stretch as long as the narrowest window fails like any
+other. Ranges without windows draw none of these, so their ditches are the draws they always
+were.
+
 Each draw is checked the way the packaged walled environments are
 (`ditch_drake.world.environments.validate_environment`: the terrain family's limits, the
-tasks' clearances and the planar proof that no route bypasses the ditch). A draw that fails
-is replaced by the next draw of the same seed (`SampledDitch.draw` records which one was
-kept); a seed whose `MAX_DRAWS` draws all fail is refused with its seed named. The same seed
-and ranges always give the same ditch: draw k of seed s uses `numpy.random.default_rng([s, k])`.
+tasks' clearances, the planar proof that no route bypasses the ditch and, for walls with
+windows, the proof of a way in and a way out for each task, `ditch_drake.world.ingress`).
+A draw that fails is replaced by the next draw of the same seed (`SampledDitch.draw` records
+which one was kept); a seed whose `MAX_DRAWS` draws all fail is refused with its seed named.
+The same seed and ranges always give the same ditch: draw k of seed s uses
+`numpy.random.default_rng([s, k])`.
 """
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ditch_drake.benchmark.ranges import BenchmarkRanges
+from ditch_drake.benchmark.ranges import BenchmarkRanges, WindowRanges
 from ditch_drake.common.errors import ConfigError, TerrainError
 from ditch_drake.world.environments import TASK_CLEARANCE_M, Environment, Task, validate_environment
-from ditch_drake.world.terrain import DitchTerrain, TerrainParams, Wall, min_bend_radius_m
+from ditch_drake.world.terrain import (
+    WALL_SIDES,
+    DitchTerrain,
+    SlopeSection,
+    TerrainParams,
+    Wall,
+    WallSlopes,
+    min_bend_radius_m,
+)
 
 MAX_DRAWS = 20
 TASKS_PER_DITCH = 3
@@ -43,6 +64,8 @@ _EDGE_STEPS = 20
 _EDGE_TOLERANCE_M = 0.01
 # How far an end wall reaches into the ditch's rounded end (the packaged walled ditches' 1 m).
 _WALL_INTO_SLOPE_M = 1.0
+# Steep wall (m) kept between two windows of one wall, so that they stay two windows.
+WINDOW_GAP_M = 2.0
 
 
 @dataclass
@@ -125,22 +148,107 @@ def _draw_terrain(rng: np.random.Generator, ranges: BenchmarkRanges) -> TerrainP
     return params
 
 
+def _draw_window_slopes(rng: np.random.Generator, windows: WindowRanges) -> dict[str, list[float]]:
+    """Each wall's windows' slopes (deg), as many as its drawn count."""
+    low, high = windows.per_wall
+    return {side: [_uniform(rng, windows.slope_deg) for _ in range(int(rng.integers(low, high + 1)))]
+            for side in WALL_SIDES}
+
+
 def _draw_environment(rng: np.random.Generator, ranges: BenchmarkRanges) -> Environment:
     params = _draw_terrain(rng, ranges)
-    terrain = DitchTerrain(params)
+    window_slopes = _draw_window_slopes(rng, ranges.windows) if ranges.windows else None
+    # The field and the tasks are laid out on the ditch at its widest: with windows, the
+    # gentlest window's slope all along (its hinge is the windowed ditch's edge).
+    layout = params if window_slopes is None else replace(
+        params, slope_deg=min(slope for slopes in window_slopes.values() for slope in slopes))
+    terrain = DitchTerrain(layout)
     reach = terrain.half_width_m + ranges.approach_m[1] + _FENCE_GAP_M
     low, high = terrain.course_xy.min(axis=0) - reach, terrain.course_xy.max(axis=0) + reach
     corners = [[low[0], low[1]], [high[0], low[1]], [high[0], high[1]], [low[0], high[1]], [low[0], low[1]]]
-    params.walls = [Wall(points=[[round(float(v), 3) for v in corner] for corner in corners])]
+    walls = [Wall(points=[[round(float(v), 3) for v in corner] for corner in corners])]
     if params.course == "point":
-        params.walls += _crater_walls(rng, terrain, low, high)
+        walls += _crater_walls(rng, terrain, low, high)
     else:
-        params.walls += _end_walls(terrain, low, high)
-    terrain = DitchTerrain(params)
+        # With windows the rounded ends are steep: the end walls seal against the steep slope.
+        walls += _end_walls(terrain if window_slopes is None else DitchTerrain(params), low, high)
+    params.walls = layout.walls = walls
+    terrain = DitchTerrain(layout)
     tasks = [_draw_task(rng, ranges, terrain, index, low, high) for index in range(TASKS_PER_DITCH)]
     description = (f"{params.course}, slope {params.slope_deg:.1f} deg, bottom {params.bottom_width_m:.2f} m, "
                    f"depth {params.depth_m:.2f} m")
+    if window_slopes is not None:
+        params.wall_slopes = _place_windows(rng, ranges.windows, window_slopes, params.slope_deg, terrain, tasks)
+        description += "; windows " + "; ".join(
+            f"{side} " + ", ".join(f"{s.from_m:.1f}-{s.to_m:.1f} m at {s.slope_deg:.1f} deg"
+                                   for s in getattr(params.wall_slopes, side) if s.slope_deg != params.slope_deg)
+            for side in WALL_SIDES)
     return Environment(description=description, terrain=params, tasks=tasks)
+
+
+def _place_windows(rng: np.random.Generator, windows: WindowRanges, window_slopes: dict[str, list[float]],
+                   steep_deg: float, terrain: DitchTerrain, tasks: list[Task]) -> WallSlopes:
+    """Each wall's sections: its windows at drawn widths and places (see the module docstring),
+    steep wall (`steep_deg`) between them. `terrain`: the straight ditch at its widest.
+
+    Raises:
+        ConfigError: no place left on a wall for a window of the narrowest width.
+    """
+    length = terrain.params.length_m
+    wall_slopes = WallSlopes()
+    for side in WALL_SIDES:
+        taken = [_line_band(terrain, task, side, windows.line_margin_m) for task in tasks]
+        placed = []
+        for slope in window_slopes[side]:
+            runs = _free_runs(windows.end_margin_m, length - windows.end_margin_m, taken)
+            # Drawn below the widest that fits (as a sine's amplitude is), so that a wide draw is
+            # not redrawn as a whole new ditch.
+            widest = math.floor(max((b - a for a, b in runs), default=0.0) * 1000.0) / 1000.0
+            if widest < windows.width_m[0]:
+                raise ConfigError(f"wall_slopes.{side}: no place for a {windows.width_m[0]:g} m window "
+                                  f"{windows.end_margin_m:g} m from the ends, {windows.line_margin_m:g} m from the "
+                                  f"tasks' lines and {WINDOW_GAP_M:g} m from the wall's other windows")
+            width = _uniform(rng, [windows.width_m[0], min(windows.width_m[1], widest)])
+            begin = _draw_place(rng, width, runs)
+            end = round(begin + width, 3)
+            placed.append(SlopeSection(begin, end, slope))
+            taken.append((begin - WINDOW_GAP_M, end + WINDOW_GAP_M))
+        sections, reached = [], 0.0
+        for window in sorted(placed, key=lambda section: section.from_m):
+            sections += [SlopeSection(reached, window.from_m, steep_deg), window]
+            reached = window.to_m
+        setattr(wall_slopes, side, [*sections, SlopeSection(reached, length, steep_deg)])
+    return wall_slopes
+
+
+def _line_band(terrain: DitchTerrain, task: Task, side: str, margin_m: float) -> tuple[float, float]:
+    """Where along a straight course (m from its start) a task's straight line from start to
+    goal crosses the wall on `side`, between the toe and the hinge, widened by `margin_m`."""
+    (x0, y0), (x1, y1) = task.start[:2], task.goal
+    sign = -1.0 if side == "right" else 1.0
+    along = [x0 + (x1 - x0) * (sign * distance - y0) / (y1 - y0) + terrain.params.length_m / 2
+             for distance in (terrain.toe_distance_m, terrain.hinge_distance_m)]
+    return min(along) - margin_m, max(along) + margin_m
+
+
+def _free_runs(low: float, high: float, taken: list[tuple[float, float]]) -> list[tuple[float, float]]:
+    """The stretches of [low, high] off every `taken` interval."""
+    runs = [(low, high)]
+    for start, stop in taken:
+        runs = [run for a, b in runs for run in ((a, min(b, start)), (max(a, stop), b)) if run[0] < run[1]]
+    return runs
+
+
+def _draw_place(rng: np.random.Generator, width: float, runs: list[tuple[float, float]]) -> float:
+    """A window's beginning (m, to the mm), uniform over those that keep [begin, begin + width]
+    within one of `runs` (one at least as long as `width`)."""
+    starts = [(a, b - width) for a, b in runs if b - a >= width]
+    offset = float(rng.uniform(0.0, sum(b - a for a, b in starts)))
+    for a, b in starts:
+        if offset <= b - a:
+            return round(a + offset, 3)
+        offset -= b - a
+    return round(starts[-1][1], 3)
 
 
 def _ray_to_box(origin: np.ndarray, direction: np.ndarray, low: np.ndarray, high: np.ndarray) -> float:

@@ -6,6 +6,8 @@
 | val | seeds 1000-1049 | every choice: checkpoints, recipes, ranges |
 | test | seeds 2000-2099 | the reported result only: never a choice |
 | stress | seeds 3000-3099, drawn from `stress_ranges.yaml` | reported beside test, never a choice: ditches beyond the train ranges, how far a controller extrapolates |
+| search | seeds 4000-4099, drawn from `search_ranges.yaml` | the reported result only, never a choice: ditches crossable only through windows in their steep walls |
+| search_val | seeds 4100-4149, drawn from `search_ranges.yaml` | every choice for the search ditches |
 | paper | the four packaged environments | the paper's ditches, beside the generated ones |
 
 The seed ranges are disjoint, so a seed names its split. Each generated split draws from its
@@ -35,7 +37,7 @@ from ditch_drake.world.ditch_splits import (  # noqa: F401 (the benchmark's name
 from ditch_drake.world.environments import Environment, EnvironmentLibrary, environment_names, load_environments
 
 # The packaged ranges file of each generated split that does not draw from `ranges.yaml`.
-SPLIT_RANGES = {"stress": "stress_ranges.yaml"}
+SPLIT_RANGES = {"stress": "stress_ranges.yaml", "search": "search_ranges.yaml", "search_val": "search_ranges.yaml"}
 
 
 def check_split(split: str) -> None:

@@ -8,7 +8,7 @@ ditches (`ditch_drake.benchmark.splits`); demonstrations record the split of the
 from ditch_drake.world.environments import environment_names
 
 SEED_SPLITS = {"train": range(200), "val": range(1000, 1050), "test": range(2000, 2100),
-               "stress": range(3000, 3100)}
+               "stress": range(3000, 3100), "search": range(4000, 4100), "search_val": range(4100, 4150)}
 PAPER_SPLIT = "paper"
 SPLITS = (*SEED_SPLITS, PAPER_SPLIT)
 
