@@ -14,6 +14,7 @@ from pydrake.systems.analysis import Simulator, SimulatorStatus
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder, EventStatus, OutputPort, System
 from tqdm import tqdm
 
+from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, ReleaseSceneGraphModelCache, SceneConfig
 from ditch_drake.diagrams.lidar_rig import AddLidar, LidarHandles
@@ -38,6 +39,7 @@ from ditch_drake.systems.perceived_crossing_side import PerceivedCrossingSide, P
 from ditch_drake.systems.policy import DEFAULT_UNCERTAINTY_SIGNAL, LearnedPolicy
 from ditch_drake.systems.skid_steer_drive import ConstantCommand
 from ditch_drake.systems.teleop import ActionQuantizer
+from ditch_drake.systems.window_search import WindowSearch, WindowSearchConfig
 
 
 @dataclass
@@ -145,12 +147,15 @@ class MppiBaselineConfig:
         elevation_map: the rolling elevation grid fused from the lidar.
         goal_tolerance_m: it stops for good within this planar distance of the goal (m).
         lidar: the lidar feeding the map (the same sensor the learned policy sees).
+        search: with it, a `WindowSearch` on the map gives the planner its target in place of
+            the goal (a way in and out of a ditch crossable only in places); None: the goal.
     """
 
     planner: MppiPlannerConfig = field(default_factory=MppiPlannerConfig)
     elevation_map: ElevationMapConfig = field(default_factory=ElevationMapConfig)
     goal_tolerance_m: float = 1.0
     lidar: LidarConfig = field(default_factory=LidarConfig)
+    search: WindowSearchConfig | None = field(default=None, metadata=WRITTEN_WHEN_SET)
 
     def validate(self) -> None:
         """Raises ConfigError naming the first value out of range (`MppiController` checks these when built)."""
@@ -320,9 +325,16 @@ def AddMppiController(builder: DiagramBuilder, scene: DitchScene, config: MppiBa
     controller = builder.AddNamedSystem("mppi", MppiController(
         scene.task.goal, chassis.index(), lidar.X_BL, config.planner, config.elevation_map,
         goal_tolerance_m=config.goal_tolerance_m, period_s=scene.schedule.control_period_s,
-        offset_s=scene.schedule.controller_offset_s))
+        offset_s=scene.schedule.controller_offset_s, target_input=config.search is not None))
     builder.Connect(lidar.converter.GetOutputPort("organized_points"), controller.GetInputPort("point_cloud"))
     builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
+    if config.search is not None:
+        search = builder.AddNamedSystem("window_search", WindowSearch(
+            scene.task.goal, chassis.index(), controller.grid, config.search,
+            period_s=scene.schedule.control_period_s, offset_s=scene.schedule.controller_offset_s))
+        builder.Connect(controller.GetOutputPort("elevation_map"), search.GetInputPort("elevation_map"))
+        builder.Connect(scene.plant.get_body_poses_output_port(), search.GetInputPort("body_poses"))
+        builder.Connect(search.GetOutputPort("target_xy"), controller.GetInputPort("target_xy"))
     return controller.GetOutputPort("command")
 
 

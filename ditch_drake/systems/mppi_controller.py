@@ -55,6 +55,7 @@ class MppiController(LeafSystem):
         input_ports:
         - point_cloud
         - body_poses
+        - target_xy (optional)
         output_ports:
         - command
         - elevation_map
@@ -63,6 +64,8 @@ class MppiController(LeafSystem):
     Ports:
         point_cloud: a `pydrake.perception.PointCloud` in the lidar frame L (no return: non-finite).
         body_poses: the plant's body poses X_WB (vector of RigidTransform).
+        target_xy: (only with `target_input`) the planar point (m, W) to drive toward instead of
+            the goal: a route-level target such as `WindowSearch`'s.
         command: [v (m/s), w (rad/s)], zero until the first update.
         elevation_map: [origin_x (m), origin_y (m), h_0, ..., h_{n-1}]: heights (m, NaN unknown) of
             `map_shape` row-major; see `unpack_map`.
@@ -71,8 +74,9 @@ class MppiController(LeafSystem):
 
     def __init__(self, goal_xy, chassis_body_index, X_BL: RigidTransform, planner: MppiPlannerConfig | None = None,
                  elevation_map: ElevationMapConfig | None = None, goal_tolerance_m: float = 1.0,
-                 period_s: float = robot.CONTROL_PERIOD_S, offset_s: float = 0.0):
-        """Declares the ports, the state and the periodic update.
+                 period_s: float = robot.CONTROL_PERIOD_S, offset_s: float = 0.0, target_input: bool = False):
+        """Declares the ports, the state and the periodic update; with `target_input`, a `target_xy`
+        input that the planner drives toward in place of the goal (the goal still ends the run).
 
         Raises:
             ConfigError: a planner, map or goal tolerance value out of range (naming the key).
@@ -89,6 +93,7 @@ class MppiController(LeafSystem):
         self._on_robot_B = within_chassis_in_plan(_SELF_MARGIN_M)
         self._cloud_port = self.DeclareAbstractInputPort("point_cloud", Value(PointCloud()))
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
+        self._target_port = self.DeclareVectorInputPort("target_xy", 2) if target_input else None
         self._command_index = self.DeclareDiscreteState(2)
         self._map_index = self.DeclareDiscreteState(self._grid.empty().reshape(-1))
         self._nominal_index = self.DeclareDiscreteState(self._planner.initial_nominal())
@@ -165,7 +170,8 @@ class MppiController(LeafSystem):
             status[_MODE] = MppiMode.NO_DATA
         else:
             rng = np.random.default_rng([self._planner.config.seed, update])
-            result = self._planner.plan(grid, heights, origin, pose, self._goal_xy, nominal, status[_LAST_W], rng)
+            target_xy = self._goal_xy if self._target_port is None else self._target_port.Eval(context)
+            result = self._planner.plan(grid, heights, origin, pose, target_xy, nominal, status[_LAST_W], rng)
             nominal = result.next_nominal
             if result.admissible:
                 command = result.command

@@ -1,0 +1,291 @@
+"""Searching a ditch's edge for a way in, and its floor for a way out, in the elevation map."""
+
+import enum
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.common.value import Value
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.planning import crossing_windows as windows
+from ditch_drake.planning.elevation_map import ElevationGrid
+from ditch_drake.spec import robot
+from ditch_drake.spec.planar import planar_yaw
+
+
+class SearchPhase(enum.IntEnum):
+    """The `phase` output."""
+
+    APPROACH = 0  # Toward the goal until an edge is seen ahead.
+    SEARCH_IN = 1  # Along the edge, off it by a standoff, until a crossable section is seen.
+    GOING_IN = 2  # Committed to a way in (or, with none found, the goal: the controller's own way).
+    SEARCH_OUT = 3  # On the floor, along it, until a crossable section of the far wall is seen.
+    GOING_OUT = 4  # Committed to a way out (or, with none found, the goal).
+    OUT = 5  # Back at the top's height beyond the far wall's foot: the goal.
+
+
+@dataclass
+class WindowSearchConfig:
+    """The search for a way in and out (m, deg, s).
+
+    Attributes:
+        crossable_slope_deg: a wall no steeper than this is crossable: below the robot's
+            smallest static tip-over angle (59.6 deg about the axles,
+            `ditch_drake.world.ingress.smallest_tip_angle_deg`) by a margin for the fit's error
+            and for the roll of an oblique crossing.
+        min_window_m: the shortest crossable section taken: the robot's width and a margin.
+        bin_m: the wall's slope is estimated in bins this long along the edge.
+        memory_m: the bins remembered span this much along the edge each side of where it was found.
+        edge_standoff_m: the search drives this far short of the edge line.
+        lookahead_m: a search's target lies this far ahead along the edge (or the floor).
+        max_search_m: one way along, the search turns back after this; the other way after
+            twice this (past where it started); then it gives up and heads for the goal.
+        stall_s: it turns back (or gives up) after this long without `stall_progress_m` of
+            progress along (a fence, the ditch's end).
+        stall_progress_m: see `stall_s`.
+        entry_across_m: a way in aims this far across the edge line (into the ditch).
+        descent_lead_m: a way in aims this far ahead along (an oblique descent travels along).
+        ascent_lead_m: a way out aims this far ahead along.
+        window_margin_m: a crossing aims this far inside a window's ends.
+        floor_drop_m: on the floor: this far below the top and ...
+        floor_tilt_deg: ... tilted less than this.
+        floor_drift_m: on the floor, while the far wall is unseen, the target lies this far
+            across from the robot (toward the far wall).
+        far_band_m: the far wall is read within this across beyond the robot.
+        far_standoff_m: the floor search keeps this far short of the far wall's foot.
+        exit_across_m: a way out aims this far across beyond the far wall's foot.
+        out_rise_m: out once within this of the top's height beyond the far wall's foot.
+        near_band_m: the near wall is read within this each side of the edge line (a gentle
+            wall's hinge lies set back from a steep one's).
+    """
+
+    crossable_slope_deg: float = 55.0
+    min_window_m: float = 1.5
+    bin_m: float = 0.5
+    memory_m: float = 50.0
+    edge_standoff_m: float = 0.8
+    lookahead_m: float = 3.0
+    max_search_m: float = 30.0
+    stall_s: float = 10.0
+    stall_progress_m: float = 0.5
+    entry_across_m: float = 4.0
+    descent_lead_m: float = 5.0
+    ascent_lead_m: float = 3.0
+    window_margin_m: float = 0.5
+    floor_drop_m: float = 2.0
+    floor_tilt_deg: float = 12.0
+    floor_drift_m: float = 2.0
+    far_band_m: float = 5.0
+    far_standoff_m: float = 1.0
+    exit_across_m: float = 6.0
+    out_rise_m: float = 0.5
+    near_band_m: float = 3.0
+
+    def validate(self) -> None:
+        """Raises ConfigError naming the first key out of range."""
+        for name, value in vars(self).items():
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+                raise ConfigError(f"window search {name}={value!r}: expected a positive number")
+        if not self.crossable_slope_deg < 90:
+            raise ConfigError(f"window search crossable_slope_deg={self.crossable_slope_deg!r}: expected < 90")
+
+
+# Layout of the bookkeeping state.
+(_PHASE, _DIRECTION, _FRAME_X, _FRAME_Y, _FRAME_ANGLE, _TOP_Z, _FLOOR_Z, _LEG_START, _TURNED, _BEST, _STALL,
+ _WINDOW_FROM, _WINDOW_TO, _FAR_FOOT) = range(14)
+_STATE_SIZE = 14
+
+
+class WindowSearch(LeafSystem):
+    """The route-level target for a crossing controller: where to go in, where to come out.
+
+    Every period one discrete update reads the elevation map (the `mppi` controller's
+    `elevation_map` output: fused from the lidar) and the pose, and runs the phases of
+    `SearchPhase`: toward the goal until an edge is seen ahead (`crossing_windows.find_edge`);
+    then along the edge, `edge_standoff_m` short of it, toward the goal's side along it (to the
+    left facing the ditch when the goal lies square across), estimating the near wall's slope
+    in bins along the edge (`crossing_windows.wall_slopes`), remembered in the state while the
+    map's window moves on; once a section no steeper than `crossable_slope_deg` and at least
+    `min_window_m` long is seen, the target lies across the edge inside it; on the floor, the
+    same along the floor for the far wall; up it, the target lies beyond the far wall's foot
+    inside its window; back at the top's height, the goal. A search turns back after
+    `max_search_m` or a stall, and gives up for the goal after the other way. It reads the
+    robot's sensors (the map), its pose and the goal: nothing privileged.
+
+    .. pydrake_system::
+
+        name: WindowSearch
+        input_ports:
+        - elevation_map
+        - body_poses
+        output_ports:
+        - target_xy
+        - phase
+
+    Ports:
+        elevation_map: [origin_x (m), origin_y (m), heights (m, NaN unknown) row-major] of `grid`.
+        body_poses: the plant's body poses X_WB (vector of RigidTransform).
+        target_xy: the planar point (m, W) to drive toward; the goal until the first update.
+        phase: [`SearchPhase`].
+    """
+
+    def __init__(self, goal_xy, chassis_body_index, grid: ElevationGrid, config: WindowSearchConfig | None = None,
+                 period_s: float = robot.CONTROL_PERIOD_S, offset_s: float = 0.0):
+        super().__init__()
+        self._config = config or WindowSearchConfig()
+        self._config.validate()
+        self._goal_xy = np.asarray(goal_xy, dtype=float)[:2]
+        self._chassis_index = int(chassis_body_index)
+        self._grid = grid
+        half = math.ceil(self._config.memory_m / self._config.bin_m)
+        self._bin_edges_m = np.arange(-half, half + 1) * self._config.bin_m
+        bins = len(self._bin_edges_m) - 1
+        self._map_port = self.DeclareVectorInputPort("elevation_map", 2 + grid.size)
+        self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
+        self._target_index = self.DeclareDiscreteState(self._goal_xy.copy())
+        state = np.full(_STATE_SIZE, np.nan)
+        state[[_PHASE, _DIRECTION, _TURNED, _STALL]] = [SearchPhase.APPROACH, 1.0, 0.0, 0.0]
+        self._state_index = self.DeclareDiscreteState(state)
+        self._near_index = self.DeclareDiscreteState(np.full(bins, np.nan))
+        self._far_index = self.DeclareDiscreteState(np.full(bins, np.nan))
+        self.DeclareStateOutputPort("target_xy", self._target_index)
+        self.DeclareVectorOutputPort("phase", BasicVector(1), self._calc_phase,
+                                     prerequisites_of_calc={self.discrete_state_ticket(self._state_index)})
+        self._period_s = float(period_s)
+        self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._update)
+
+    @property
+    def bin_edges_m(self) -> np.ndarray:
+        """The bins' bounds along the edge (m, from where the edge was found)."""
+        return self._bin_edges_m
+
+    def wall_memory(self, context) -> tuple[np.ndarray, np.ndarray]:
+        """The near and far walls' slopes (deg, NaN unseen) per bin remembered in `context`."""
+        return (context.get_discrete_state(self._near_index).get_value().copy(),
+                context.get_discrete_state(self._far_index).get_value().copy())
+
+    def _calc_phase(self, context, output) -> None:
+        output.SetFromVector([context.get_discrete_state(self._state_index).get_value()[_PHASE]])
+
+    def _update(self, context, discrete_state) -> None:
+        c = self._config
+        state = context.get_discrete_state(self._state_index).get_value().copy()
+        near = context.get_discrete_state(self._near_index).get_value().copy()
+        far = context.get_discrete_state(self._far_index).get_value().copy()
+        target = context.get_discrete_state(self._target_index).get_value().copy()
+        X_WB = self._poses_port.Eval(context)[self._chassis_index]
+        xy, yaw = X_WB.translation()[:2], planar_yaw(X_WB)
+        tilt_deg = math.degrees(math.acos(np.clip(X_WB.rotation().matrix()[2, 2], -1.0, 1.0)))
+        origin_xy, heights = self._grid.unpack(self._map_port.Eval(context))
+        ground_z = windows.ground_height(heights, origin_xy, self._grid.resolution, xy)
+        phase = SearchPhase(int(state[_PHASE]))
+        if math.isnan(ground_z):  # No map yet.
+            return
+        if phase == SearchPhase.APPROACH:
+            target = self._goal_xy
+            frame = windows.find_edge(heights, origin_xy, self._grid.resolution, xy, yaw, ground_z)
+            if frame is not None:
+                s_robot, _ = frame.coordinates(xy)
+                s_goal, _ = frame.coordinates(self._goal_xy)
+                state[_FRAME_X:_FRAME_ANGLE + 1] = frame.to_vector()
+                state[_TOP_Z] = ground_z
+                state[_DIRECTION] = 1.0 if abs(s_goal - s_robot) <= 1.0 else math.copysign(1.0, s_goal - s_robot)
+                self._start_leg(state, s_robot)
+                phase = SearchPhase.SEARCH_IN
+        if phase != SearchPhase.APPROACH:
+            frame = windows.EdgeFrame.from_vector(state[_FRAME_X:_FRAME_ANGLE + 1])
+            s_robot, c_robot = frame.coordinates(xy)
+            bin_args = (heights, origin_xy, self._grid.resolution, frame, self._bin_edges_m)
+        if phase in (SearchPhase.SEARCH_IN, SearchPhase.GOING_IN):
+            seen = windows.wall_slopes(*bin_args, state[_TOP_Z], (-c.near_band_m, c.near_band_m), rising=False)
+            near = np.where(np.isfinite(seen), seen, near)
+            searching, window = self._search_step(near, state, s_robot, phase == SearchPhase.SEARCH_IN)
+            if searching:
+                target = frame.point(s_robot + state[_DIRECTION] * c.lookahead_m, -c.edge_standoff_m)
+            else:
+                phase = SearchPhase.GOING_IN
+                target = self._goal_xy if window is None else frame.point(
+                    windows.along_target(window, s_robot, state[_DIRECTION], c.descent_lead_m, c.window_margin_m),
+                    c.entry_across_m)
+                on_floor = ground_z < state[_TOP_Z] - c.floor_drop_m and tilt_deg < c.floor_tilt_deg
+                if on_floor:
+                    state[_FLOOR_Z] = ground_z
+                    state[_TURNED] = 0.0
+                    self._start_leg(state, s_robot)
+                    phase = SearchPhase.SEARCH_OUT
+        if phase in (SearchPhase.SEARCH_OUT, SearchPhase.GOING_OUT) and ground_z < state[_FLOOR_Z] + c.out_rise_m:
+            # Read from the floor only: from up the wall, the top beyond would pass for more wall.
+            band = (c_robot + 0.5, c_robot + c.far_band_m)
+            seen = windows.wall_slopes(*bin_args, state[_FLOOR_Z], band, rising=True)
+            far = np.where(np.isfinite(seen), seen, far)
+            foot = windows.nearest_rise(heights, origin_xy, self._grid.resolution, frame, state[_FLOOR_Z], band)
+            if np.isfinite(foot):
+                state[_FAR_FOOT] = foot
+        if phase in (SearchPhase.SEARCH_OUT, SearchPhase.GOING_OUT):
+            searching, window = self._search_step(far, state, s_robot, phase == SearchPhase.SEARCH_OUT)
+            if searching:
+                across = (state[_FAR_FOOT] - c.far_standoff_m if np.isfinite(state[_FAR_FOOT])
+                          else c_robot + c.floor_drift_m)
+                target = frame.point(s_robot + state[_DIRECTION] * c.lookahead_m, across)
+            else:
+                phase = SearchPhase.GOING_OUT
+                target = self._goal_xy if window is None else frame.point(
+                    windows.along_target(window, s_robot, state[_DIRECTION], c.ascent_lead_m, c.window_margin_m),
+                    state[_FAR_FOOT] + c.exit_across_m)
+                if ground_z > state[_TOP_Z] - c.out_rise_m and c_robot > state[_FAR_FOOT]:
+                    phase = SearchPhase.OUT
+        if phase == SearchPhase.OUT:
+            target = self._goal_xy
+        state[_PHASE] = phase
+        discrete_state.set_value(self._target_index, np.asarray(target, dtype=float))
+        discrete_state.set_value(self._state_index, state)
+        discrete_state.set_value(self._near_index, near)
+        discrete_state.set_value(self._far_index, far)
+
+    def _search_step(self, slopes: np.ndarray, state: np.ndarray, s_robot: float,
+                     searching: bool) -> tuple[bool, tuple[float, float] | None]:
+        """(still searching, the window to cross by: None where none is seen or the search gave up);
+        a window found is stored as the committed one."""
+        window = self._window(slopes, state, s_robot, committed=not searching)
+        if searching and window is None:
+            if self._continue_search(state, s_robot):
+                return True, None
+        state[_WINDOW_FROM:_WINDOW_TO + 1] = window if window is not None else (np.nan, np.nan)
+        return False, window
+
+    def _window(self, slopes: np.ndarray, state: np.ndarray, s_robot: float,
+                committed: bool) -> tuple[float, float] | None:
+        """The window to cross by: the one overlapping the committed one, else the nearest seen."""
+        found = windows.crossable_windows(self._bin_edges_m, slopes, self._config.crossable_slope_deg,
+                                          self._config.min_window_m)
+        if committed:
+            if not np.isfinite(state[_WINDOW_FROM]):
+                return None
+            overlapping = [w for w in found if w[0] < state[_WINDOW_TO] and w[1] > state[_WINDOW_FROM]]
+            return overlapping[0] if overlapping else (float(state[_WINDOW_FROM]), float(state[_WINDOW_TO]))
+        return windows.nearest_window(found, s_robot)
+
+    def _start_leg(self, state: np.ndarray, s_robot: float) -> None:
+        state[_LEG_START] = s_robot
+        state[_BEST] = state[_DIRECTION] * s_robot
+        state[_STALL] = 0.0
+
+    def _continue_search(self, state: np.ndarray, s_robot: float) -> bool:
+        """Books the progress along; turns back at the leg's end or a stall. False: given up."""
+        c = self._config
+        progress = state[_DIRECTION] * s_robot
+        if progress > state[_BEST] + c.stall_progress_m:
+            state[_BEST], state[_STALL] = progress, 0.0
+        else:
+            state[_STALL] += self._period_s
+        leg_m = c.max_search_m * (2.0 if state[_TURNED] else 1.0)
+        if abs(s_robot - state[_LEG_START]) < leg_m and state[_STALL] < c.stall_s:
+            return True
+        if state[_TURNED]:
+            return False
+        state[_DIRECTION], state[_TURNED] = -state[_DIRECTION], 1.0
+        self._start_leg(state, s_robot)
+        return True

@@ -1,0 +1,200 @@
+"""The search for a way in and out of a ditch crossable only in places: the map logic on synthetic
+and analytic walls, the block's ports, and the block wired into the mppi baseline."""
+
+import math
+
+import numpy as np
+import pytest
+from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.systems.analysis import Simulator
+
+from ditch_drake.common.config_yaml import config_to_yaml
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import MakeRolloutDiagram, MppiBaselineConfig, RolloutConfig
+from ditch_drake.planning import crossing_windows as windows
+from ditch_drake.planning.elevation_map import ElevationGrid
+from ditch_drake.systems.window_search import SearchPhase, WindowSearch, WindowSearchConfig
+from ditch_drake.world.environments import get_environment
+from ditch_drake.world.terrain import DitchTerrain
+
+RESOLUTION_M = 0.1
+STEEP_HINGE_Y = -2.0  # The steep wall's hinge; the ditch lies at larger y.
+WINDOW_DEG = 50.0
+WINDOW_SET_BACK_M = 1.5  # The window's hinge lies this much further from the ditch.
+SEEN_DEPTH_M = 1.5  # The lidar sees the window's wall down to this depth; the rest is in shadow.
+
+
+def _map_of_a_ditch(window_x: tuple[float, float], robot_xy=(0.0, -4.0), size_m: float = 16.0):
+    """What the lidar leaves of a straight ditch (along x, the robot's side at y below it) in a
+    map: the top known, the steep wall in shadow (unknown), a window's gentle wall between x
+    `window_x` set back and seen down to `SEEN_DEPTH_M`. Returns (origin_xy, heights)."""
+    n = round(size_m / RESOLUTION_M)
+    origin = np.asarray(robot_xy) - size_m / 2
+    xs, ys = windows.cell_centres(np.zeros((n, n)), origin, RESOLUTION_M)
+    in_window = (xs >= window_x[0]) & (xs <= window_x[1])
+    hinge_y = np.where(in_window, STEEP_HINGE_Y - WINDOW_SET_BACK_M, STEEP_HINGE_Y)
+    depth = np.where(ys > hinge_y, (ys - hinge_y) * math.tan(math.radians(WINDOW_DEG)), 0.0)
+    heights = np.where(ys <= hinge_y, 0.0, np.where(in_window & (depth <= SEEN_DEPTH_M), -depth, np.nan))
+    return origin, heights
+
+
+def _search_window(window_x):
+    origin, heights = _map_of_a_ditch(window_x)
+    robot_xy = np.array([0.0, -4.0])
+    frame = windows.find_edge(heights, origin, RESOLUTION_M, robot_xy, math.pi / 2, 0.0)
+    assert frame is not None
+    np.testing.assert_allclose(np.abs(frame.along), [1.0, 0.0], atol=0.02)
+    np.testing.assert_allclose(frame.across, [0.0, 1.0], atol=0.02)  # Into the ditch.
+    assert frame.origin_xy[1] == pytest.approx(STEEP_HINGE_Y, abs=0.15)
+    edges = np.arange(-40, 41) * 0.5
+    slopes = windows.wall_slopes(heights, origin, RESOLUTION_M, frame, edges, 0.0, (-3.0, 3.0), rising=False)
+    found = windows.crossable_windows(edges, slopes, 55.0, 1.5)
+    assert len(found) == 1
+    s_robot, _ = frame.coordinates(robot_xy)
+    window = windows.nearest_window(found, s_robot)
+    direction = math.copysign(1.0, (window[0] + window[1]) / 2 - s_robot)
+    target = frame.point(windows.along_target(window, s_robot, direction, 5.0, 0.5), 4.0)
+    return frame, slopes, edges, window, target
+
+
+@pytest.mark.parametrize("window_x", [(-7.0, -3.0), (3.0, 7.0)], ids=["window_left", "window_right"])
+def test_the_map_logic_finds_the_window_and_aims_inside_it(window_x):
+    frame, slopes, edges, window, target = _search_window(window_x)
+    x_ends = sorted(frame.point(s, 0.0)[0] for s in window)
+    assert x_ends[0] == pytest.approx(window_x[0], abs=0.6)
+    assert x_ends[1] == pytest.approx(window_x[1], abs=0.6)
+    assert window_x[0] < target[0] < window_x[1]
+    assert target[1] > STEEP_HINGE_Y  # Across the edge: into the ditch.
+    inside = np.isfinite(slopes)
+    assert np.all(np.abs(slopes[inside] - WINDOW_DEG) < 2.0)  # Only the window is seen, at its slope.
+
+
+def test_an_unseen_wall_is_no_window_and_nothing_is_no_edge():
+    origin, heights = _map_of_a_ditch((30.0, 31.0))  # The window out of the map.
+    frame = windows.find_edge(heights, origin, RESOLUTION_M, (0.0, -4.0), math.pi / 2, 0.0)
+    edges = np.arange(-20, 21) * 0.5
+    slopes = windows.wall_slopes(heights, origin, RESOLUTION_M, frame, edges, 0.0, (-3.0, 3.0), rising=False)
+    assert np.isnan(slopes).all()
+    assert windows.crossable_windows(edges, slopes, 55.0, 1.5) == []
+    flat = np.zeros_like(heights)
+    assert windows.find_edge(flat, origin, RESOLUTION_M, (0.0, -4.0), math.pi / 2, 0.0) is None
+
+
+def test_crossable_windows_need_length_and_known_slopes():
+    edges = np.arange(11) * 0.5
+    slopes = np.array([70, 50, 50, np.nan, 50, 50, 50, 50, 70, 54, 56.0])
+    assert windows.crossable_windows(edges, slopes, 55.0, 1.5) == [(2.0, 4.0)]
+    assert windows.crossable_windows(edges, slopes, 55.0, 0.5) == [(0.5, 1.5), (2.0, 4.0), (4.5, 5.0)]
+    assert windows.along_target((2.0, 4.0), 0.0, 1.0, 5.0, 0.5) == 3.5
+    assert windows.along_target((2.0, 4.0), 3.0, -1.0, 5.0, 0.5) == 2.5
+
+
+@pytest.mark.parametrize("x, slope_deg", [(-15.0, 50.0), (15.0, 70.0)])
+def test_slope_estimates_of_the_analytic_walls_are_within_two_degrees(x, slope_deg):
+    terrain = DitchTerrain(get_environment("wide_search").terrain)
+    n = 120
+    origin = np.array([x - 6.0, -6.0])
+    xs, ys = windows.cell_centres(np.zeros((n, n)), origin, RESOLUTION_M)
+    heights = terrain.height(np.stack([xs, ys], axis=-1).reshape(-1, 2)).reshape(n, n)
+    top = float(terrain.height(np.array([[x, -11.0]]))[0])
+    floor = float(terrain.height(np.array([[x, 0.0]]))[0])
+    for across, reference, rising, band in ((np.array([0.0, 1.0]), top, False, (-6.0, 0.0)),
+                                            (np.array([0.0, -1.0]), floor, True, (-6.0, 0.0))):
+        # Near wall (y < 0, falling toward the ditch) from the top; the same wall seen as a far
+        # wall from the floor (rising away from it).
+        along = np.array([across[1], -across[0]])
+        frame = windows.EdgeFrame(np.array([x, 0.0]), along, across)
+        edges = np.array([-2.0, -1.0, 0.0, 1.0, 2.0])
+        band_c = band if not rising else (0.0, 6.0)
+        slopes = windows.wall_slopes(heights, origin, RESOLUTION_M, frame, edges, reference, band_c, rising)
+        np.testing.assert_allclose(slopes, slope_deg, atol=2.0)
+
+
+def _search_block(config=None) -> WindowSearch:
+    return WindowSearch([0.0, 11.0], 0, ElevationGrid(), config)
+
+
+def test_window_search_ports_and_its_first_target_is_the_goal():
+    block = _search_block()
+    assert [block.get_input_port(i).get_name() for i in range(block.num_input_ports())] == \
+        ["elevation_map", "body_poses"]
+    assert block.GetInputPort("elevation_map").size() == 2 + 120 * 120
+    assert block.GetOutputPort("target_xy").size() == 2
+    assert block.GetOutputPort("phase").size() == 1
+    context = block.CreateDefaultContext()
+    np.testing.assert_allclose(block.GetOutputPort("target_xy").Eval(context), [0.0, 11.0])
+    assert block.GetOutputPort("phase").Eval(context)[0] == SearchPhase.APPROACH
+
+
+def test_window_search_goes_along_the_edge_then_commits_to_the_window_it_sees():
+    block = _search_block()
+    grid = ElevationGrid()
+    context = block.CreateDefaultContext()
+    origin, heights = _map_of_a_ditch((-30.0, -29.0), size_m=12.0)  # The window out of sight.
+    pose = RigidTransform(RollPitchYaw(0, 0, math.pi / 2), [0.0, -4.0, 0.3])
+    block.GetInputPort("body_poses").FixValue(context, [pose])
+    block.GetInputPort("elevation_map").FixValue(context, grid.pack(origin, heights))
+    simulator = Simulator(block, context)
+    simulator.AdvanceTo(0.15)
+    assert block.GetOutputPort("phase").Eval(context)[0] == SearchPhase.SEARCH_IN
+    target = block.GetOutputPort("target_xy").Eval(context)
+    assert target[0] == pytest.approx(-3.0, abs=0.2)  # To the left facing the ditch: the goal lies square across.
+    assert target[1] == pytest.approx(STEEP_HINGE_Y - WindowSearchConfig().edge_standoff_m, abs=0.2)  # Short of the edge.
+    origin, heights = _map_of_a_ditch((-7.0, -3.0), size_m=12.0)
+    block.GetInputPort("elevation_map").FixValue(context, grid.pack(origin, heights))
+    simulator.AdvanceTo(0.25)
+    assert block.GetOutputPort("phase").Eval(context)[0] == SearchPhase.GOING_IN
+    target = block.GetOutputPort("target_xy").Eval(context)
+    assert -7.0 < target[0] < -3.0 and target[1] > STEEP_HINGE_Y
+
+
+def test_window_search_config_rejects_bad_values():
+    with pytest.raises(ConfigError, match="crossable_slope_deg"):
+        WindowSearchConfig(crossable_slope_deg=95.0).validate()
+    with pytest.raises(ConfigError, match="min_window_m"):
+        WindowSearchConfig(min_window_m=-1.0).validate()
+
+
+def test_mppi_with_search_builds_the_block_in_the_diagram():
+    config = RolloutConfig(SceneConfig(environment="wide_search", task=0),
+                           MppiBaselineConfig(search=WindowSearchConfig()))
+    diagram, _ = MakeRolloutDiagram(config)
+    search = diagram.GetSubsystemByName("window_search")
+    mppi = diagram.GetSubsystemByName("mppi")
+    assert mppi.HasInputPort("target_xy")
+    context = diagram.CreateDefaultContext()
+    np.testing.assert_allclose(search.GetOutputPort("target_xy").Eval(search.GetMyContextFromRoot(context)),
+                               [0.0, 11.0])
+    plain, _ = MakeRolloutDiagram(RolloutConfig(SceneConfig(environment="wide_search", task=0),
+                                                MppiBaselineConfig()))
+    assert not plain.HasSubsystemNamed("window_search")
+    assert "search" not in config_to_yaml(MppiBaselineConfig())  # Recorded rollouts keep their keys.
+    assert not plain.GetSubsystemByName("mppi").HasInputPort("target_xy")
+
+
+@pytest.mark.slow
+def test_mppi_with_search_follows_the_edge_to_the_window_in_wide_search():
+    """Task 0 goes square across; the windows lie west (x from -25 to -5 m): the search goes
+    along the edge to its left, sees the window and aims into it (about 12 s simulated)."""
+    from ditch_drake.diagrams.rollout import RunEpisode
+
+    config = RolloutConfig(SceneConfig(environment="wide_search", task=0),
+                           MppiBaselineConfig(search=WindowSearchConfig()))
+    diagram, scene = MakeRolloutDiagram(config)
+    search = diagram.GetSubsystemByName("window_search")
+    trace = []
+
+    def watch(root):
+        context = search.GetMyContextFromRoot(root)
+        trace.append((int(search.GetOutputPort("phase").Eval(context)[0]),
+                      search.GetOutputPort("target_xy").Eval(context).copy()))
+
+    RunEpisode(Simulator(diagram), diagram, scene, 0, watch=watch, watch_period_s=0.5, end_time_s=12.0)
+    phases = [phase for phase, _ in trace]
+    assert phases == sorted(phases)  # Phases only move on.
+    assert SearchPhase.SEARCH_IN in phases and phases[-1] == SearchPhase.GOING_IN
+    along_edge = [target for phase, target in trace if phase == SearchPhase.SEARCH_IN]
+    assert along_edge[-1][0] < along_edge[0][0] < 0.0  # Along the edge, westward.
+    going_in = [target for phase, target in trace if phase == SearchPhase.GOING_IN]
+    assert all(-25.0 < target[0] < -5.0 and target[1] > -4.5 for target in going_in)  # Into the window.
