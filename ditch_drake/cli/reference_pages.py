@@ -102,18 +102,52 @@ def _options_table(parser: argparse.ArgumentParser) -> list[str]:
     return rows
 
 
-def cli_page(parser: argparse.ArgumentParser) -> str:
-    """The command line: every command's description, usage and options with their defaults."""
+# The command-line pages: one per module of `ditch_drake.cli` that adds commands, so that
+# each stays under the size a page is read at; cli.md is the overview that links to them.
+CLI_GROUPS = {
+    "episode_commands": ("cli_episodes.md", "Episodes: scenarios, the demo, viewing, teleop and replay"),
+    "training_commands": ("cli_training.md", "Demonstrations and training"),
+    "dataset_commands": ("cli_datasets.md", "Datasets"),
+    "export_commands": ("cli_export.md", "Exporting a policy"),
+    "evaluation_commands": ("cli_evaluation.md", "Evaluation, benchmarks, experiments and reports"),
+    "tool_commands": ("cli_tools.md", "Tools: calibration, figures, bench and this reference"),
+}
+
+
+def _command_group(command: argparse.ArgumentParser) -> str:
+    """The `CLI_GROUPS` key of the module whose function runs `command` (a command of actions,
+    `dataset`: its first action's)."""
+    run = command.get_default("run")
+    if run is None:
+        return _command_group(next(iter(_subcommands(command).values())))
+    module = getattr(run, "func", run).__module__.rsplit(".", 1)[-1]
+    if module not in CLI_GROUPS:
+        raise ValueError(f"command {command.prog!r} runs in module {module!r}, which has no reference page: "
+                         f"expected one of {list(CLI_GROUPS)}")
+    return module
+
+
+def cli_pages(parser: argparse.ArgumentParser) -> dict[str, str]:
+    """The command line: an overview (cli.md: usage, global options, exit codes, every command
+    linked) and a page per `CLI_GROUPS` entry with each command's description, usage and
+    options with their defaults."""
     commands = _subcommands(parser)
+    groups = {name: _command_group(command) for name, command in commands.items()}
     lines = ["# Command line", "", GENERATED_BY.format(what="the parser"), "",
              parser.description or "", "", "```", _usage(parser), "```", "", *_options_table(parser), "",
              EXIT_CODES, "", "## Commands", ""]
-    lines += [f"- [`{name}`](#{_anchor('ditch-drake-' + name)}): {_text(command.description or '')}"
-              for name, command in commands.items()]
+    lines += [f"- [`{name}`]({CLI_GROUPS[groups[name]][0]}#{_anchor('ditch-drake-' + name)}): "
+              f"{_text(command.description or '')}" for name, command in commands.items()]
     lines += ["", "```", parser.epilog or "", "```", ""]
-    for name, command in commands.items():
-        lines += _command_section(f"ditch-drake {name}", command)
-    return "\n".join(lines)
+    pages = {"cli.md": "\n".join(lines)}
+    for group, (page, title) in CLI_GROUPS.items():
+        body = [f"# {title}", "", GENERATED_BY.format(what="the parser"), "",
+                "[All commands and the global options](cli.md).", ""]
+        for name, command in commands.items():
+            if groups[name] == group:
+                body += _command_section(f"ditch-drake {name}", command)
+        pages[page] = "\n".join(body)
+    return pages
 
 
 def _command_section(title: str, command: argparse.ArgumentParser) -> list[str]:
@@ -298,14 +332,15 @@ def schema_pages() -> dict[str, str]:
 
 def index_page() -> str:
     lines = ["# Reference", "", GENERATED_BY.format(what="the parser and the config dataclasses"), "",
-             "- [Command line](cli.md): every command, its options and their defaults."]
+             "- [Command line](cli.md): every command, its options and their defaults (a page per group "
+             "of commands)."]
     lines += [f"- [{page.title}]({page.name}): {page.introduction}" for page in SCHEMA_PAGES]
     return "\n".join(lines) + "\n"
 
 
 def reference_pages(parser: argparse.ArgumentParser) -> dict[str, str]:
     """Every reference page's file name and Markdown; `parser` is the command line's (`build_parser()`)."""
-    pages = {"index.md": index_page(), "cli.md": cli_page(parser), **schema_pages()}
+    pages = {"index.md": index_page(), **cli_pages(parser), **schema_pages()}
     return {name: text.rstrip("\n") + "\n" for name, text in pages.items()}
 
 
