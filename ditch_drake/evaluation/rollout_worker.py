@@ -22,7 +22,7 @@ from ditch_drake.diagrams.rollout import CROSSING_SIDE_SOURCES, MakeRolloutDiagr
 from ditch_drake.evaluation.results import RolloutRecord, RolloutSpec
 from ditch_drake.learning.checkpoint import checkpoint_digest
 from ditch_drake.systems.episode_monitor import EpisodeConfig
-from ditch_drake.world.regions import ditch_region
+from ditch_drake.world.regions import failure_region
 
 # A worker process's built rollout diagrams, most recently used last, by everything they are
 # built from. Specs are handed out in order, so a worker meets the same rig for the seeds of
@@ -115,7 +115,7 @@ def outcome_fields(diagram, scene, root_context) -> dict:
     instruments' counts where the diagram has them (side_*, the shared controller's handovers)."""
     outcome = scene.monitor.outcome(scene.monitor.GetMyContextFromRoot(root_context))
     counter = diagram.GetSubsystemByName("halt_counter")
-    region = "" if outcome.success else ditch_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
+    region = "" if outcome.success else failure_region(scene.terrain, scene.task.start[:2], outcome.final_xy)
     return dict(
         status=outcome.status, success=outcome.success, time_s=outcome.time_s, path_length_m=outcome.path_length_m,
         peak_abs_roll_deg=outcome.peak_abs_roll_deg, peak_abs_pitch_deg=outcome.peak_abs_pitch_deg,

@@ -12,6 +12,13 @@ from ditch_drake.world.terrain import DitchTerrain
 # In the order a crossing meets them.
 REGIONS = ("approach", "down_wall", "floor", "up_wall", "beyond")
 
+# Where a failure on a ditch crossable only in places (`DitchTerrain.sectioned`) ended when it
+# ended near the edge on the start's side: a controller looking for a way in along the edge.
+ALONG_EDGE = "along_edge"
+# How far beyond the hinge line (m) "along_edge" reaches: a searching controller keeps a few
+# metres off the edge, and one heading straight for the goal crosses this band in seconds.
+ALONG_EDGE_BAND_M = 4.0
+
 
 def ditch_region(terrain: DitchTerrain, start_xy, xy) -> str:
     """The region of planar point `xy` (m) for a robot that started at `start_xy` (m).
@@ -29,3 +36,15 @@ def ditch_region(terrain: DitchTerrain, start_xy, xy) -> str:
     if distance[1] <= terrain.hinge_distance_m:
         return "down_wall" if same_side else "up_wall"
     return "approach" if same_side else "beyond"
+
+
+def failure_region(terrain: DitchTerrain, start_xy, xy) -> str:
+    """Where a failed rollout ended: `ditch_region`, except that on a ditch whose walls are
+    crossable only in places (`DitchTerrain.sectioned`) the start's side within
+    `ALONG_EDGE_BAND_M` of the hinge line is `ALONG_EDGE` ("searching along the edge")."""
+    region = ditch_region(terrain, start_xy, xy)
+    if region == "approach" and terrain.sectioned:
+        distance = float(terrain.distance_and_away(np.asarray([xy], dtype=float))[0][0])
+        if distance <= terrain.hinge_distance_m + ALONG_EDGE_BAND_M:
+            return ALONG_EDGE
+    return region
