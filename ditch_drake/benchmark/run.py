@@ -47,7 +47,7 @@ class BenchmarkConfig:
     """One benchmark run.
 
     Attributes:
-        split: "train", "val", "test", "stress" or "paper" (`splits.SPLITS`).
+        split: "train", "val", "test", "stress", "search", "search_val" or "paper" (`splits.SPLITS`).
         controller: a registered controller's name.
         checkpoint: the learned policy's ("": `GENERALIST`).
         crossing_side: the learned policy's `LearnedPolicyConfig.crossing_side` ("perceived" or
@@ -57,7 +57,8 @@ class BenchmarkConfig:
         seed: rollout i of each task uses seed + i.
         out: the results file (JSON Lines); its ditches go to `<stem>.ditches.yaml` beside it.
         ranges: a ranges YAML file ("": the split's packaged one, `splits.SPLIT_RANGES`:
-            `stress_ranges.yaml` for "stress", `ranges.yaml` for the others).
+            `stress_ranges.yaml` for "stress", `search_ranges.yaml` for "search" and "search_val",
+            `ranges.yaml` for the others).
         time_limit_s: each episode's limit.
         workers, backend, address: as for `evaluate`.
     """

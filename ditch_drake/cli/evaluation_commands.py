@@ -133,12 +133,14 @@ def cmd_evaluate(args) -> int:
 
 def add_benchmark(commands: Commands) -> None:
     benchmark = commands.add("benchmark", "a controller over the procedural ditches of a split (train, val, test, "
-                                          "stress) or the paper's four, appended to a results file (rerun to resume; Ctrl-C "
+                                          "stress, search, search_val) or the paper's four, appended to a results file (rerun to resume; Ctrl-C "
                                           "keeps what finished)")
     benchmark.add_argument("--split", default=ConfigDefault(BENCHMARK, "split"),
                            help="train (seeds 0-199), val (1000-1049), test (2000-2099; for reporting only, never a "
                                 "choice), stress (3000-3099, beyond the train ranges: stress_ranges.yaml; reporting "
-                                "only) or paper (the four packaged environments)")
+                                "only), search (4000-4099: ditches crossable only through windows in their walls, "
+                                "search_ranges.yaml; reporting only), search_val (4100-4149, for choices) or paper "
+                                "(the four packaged environments)")
     add_controller(benchmark, default=ConfigDefault(BENCHMARK, "controller"))
     add_checkpoint(benchmark, "generalist")
     add_crossing_side(benchmark)
@@ -150,7 +152,8 @@ def add_benchmark(commands: Commands) -> None:
                            help="first rollout seed; rollout i of each task uses seed + i")
     benchmark.add_argument("--ranges", default=ConfigDefault(BENCHMARK, "ranges"),
                            help="a ranges YAML file (default: the split's packaged one, "
-                                "ditch_drake/benchmark/ranges.yaml or, for stress, stress_ranges.yaml)")
+                                "ditch_drake/benchmark/ranges.yaml or, for stress, stress_ranges.yaml and, for search and "
+                                "search_val, search_ranges.yaml)")
     add_time_limit(benchmark, default=ConfigDefault(BENCHMARK, "time_limit_s"))
     add_out(benchmark, "results file (JSON Lines), appended; the ditches go to <stem>.ditches.yaml beside it",
             default=ConfigDefault(BENCHMARK, "out"))

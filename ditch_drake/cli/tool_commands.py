@@ -62,8 +62,10 @@ def cmd_calibrate(args) -> int:
 def add_figure(commands: Commands) -> None:
     figure = commands.add("figure", "figures for docs/: surface-normal images per environment, the diagram, a "
                                     "browser screenshot of a recording, the DWA baseline at the ditch, the DWA "
-                                    "baselines' slope cost, the MPPI baseline at the hinge (task 1)")
-    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot", "dwa", "cost-curves", "mppi"],
+                                    "baselines' slope cost, the MPPI baseline at the hinge (task 1), a search for a way in and out "
+                                    "(the expert and the MPPI with the window search, task 0)")
+    figure.add_argument("kind", choices=["normal-images", "diagram", "screenshot", "dwa", "cost-curves", "mppi",
+                                         "search"],
                         help="which figure")
     figure.add_argument("--html", default=DEMO_HTML, help="screenshot: the recording to open in Chromium")
     add_env(figure, many=True)
@@ -102,6 +104,12 @@ def cmd_figure(args) -> int:
 
         for name in args.env or ["wide_walled"]:
             print(mppi_figure(name, args.out, task=1, seed=args.seed))
+        return 0
+    if args.kind == "search":
+        from ditch_drake.docs_tools.search_figure import search_figure
+
+        for name in args.env or ["wide_search_offset"]:
+            print(search_figure(name, args.out, task=0, seed=args.seed))
         return 0
     for name in args.env or environment_names():
         print(normal_image_figure(name, args.out, args.seed))
