@@ -3,8 +3,8 @@
 import pytest
 
 from ditch_drake.world.environments import get_environment
-from ditch_drake.world.terrain import DitchTerrain
 from ditch_drake.world.regions import ALONG_EDGE, ALONG_EDGE_BAND_M, ditch_region, failure_region
+from ditch_drake.world.terrain import DitchTerrain
 
 
 def _terrain_and_start(name):

@@ -332,8 +332,8 @@ def schema_pages() -> dict[str, str]:
 
 def index_page() -> str:
     lines = ["# Reference", "", GENERATED_BY.format(what="the parser and the config dataclasses"), "",
-             "- [Command line](cli.md): every command, its options and their defaults (a page per group "
-             "of commands)."]
+             ("- [Command line](cli.md): every command, its options and their defaults (a page per group "
+              "of commands).")]
     lines += [f"- [{page.title}]({page.name}): {page.introduction}" for page in SCHEMA_PAGES]
     return "\n".join(lines) + "\n"
 

@@ -168,7 +168,6 @@ def MakeDemonstrationDiagram(scene_config: SceneConfig, style_seed: int,
     scene = AddDitchScene(builder, scene_config, meshcat)
     schedule = scene.schedule
     observation = AddObservation(builder, scene, observation_config)
-    chassis = scene.plant.GetBodyByName("chassis", scene.husky)
     if shared is not None:
         return _add_shared(builder, scene, observation, shared, style_seed, shared_labels, meshcat)
     if person_drives:

@@ -44,8 +44,8 @@ from ditch_drake.diagrams.rollout import (
 )
 from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
 from ditch_drake.perception.lidar_model import LidarConfig
-from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
 from ditch_drake.systems.driver_recorder import DriverRecorder
+from ditch_drake.systems.edge_angle_driver import EdgeAngleDriverConfig
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
 from ditch_drake.systems.shared_control import FALLBACK, POLICY
 
