@@ -1,6 +1,7 @@
 """The windows of a ditch crossable only in places, and the expert's route through them: the
-intervals of the packaged search ditches, the planned route's ends inside the windows, the plain
-driver kept where no wall is too steep, and one rollout that crosses through a window."""
+intervals of the packaged search ditches, the planned route's ends inside the windows, the runs
+steepened in narrow windows only, the climb steered onto its planned exit, the plain driver kept
+where no wall is too steep, and one rollout that crosses through a window."""
 
 import math
 
@@ -93,6 +94,9 @@ def test_the_planned_route_enters_and_leaves_inside_the_windows(name, seed):
             assert route.entry.holds(along, margin)
         for along in (route.climb_toe_m, route.climb_hinge_m):
             assert route.exit.holds(along, margin)
+        # 20 m windows leave room for the style's own angles.
+        assert route.descend_angle_deg == driver.wall_angle_deg
+        assert route.climb_angle_deg == driver.climb_angle_deg
         # The descent at the wall angle spans the wall from the hinge line to the toe.
         wall_along = (route.entry.hinge_distance_m - terrain.toe_distance_m) / math.tan(
             math.radians(driver.wall_angle_deg))
@@ -100,6 +104,63 @@ def test_the_planned_route_enters_and_leaves_inside_the_windows(name, seed):
         # Its approach point lies on the flat beyond the approach zone's edge.
         along, offset = course_frame(terrain).along_and_offset(route.approach_xy)
         assert -offset == pytest.approx(terrain.hinge_distance_m + driver.approach_margin_m)
+
+
+def _narrow_window_terrain(width_m: float) -> DitchTerrain:
+    right = [SlopeSection(0.0, 20.0, 72.0), SlopeSection(20.0, 20.0 + width_m, 50.0),
+             SlopeSection(20.0 + width_m, 60.0, 72.0)]
+    left = [SlopeSection(0.0, 10.0, 72.0), SlopeSection(10.0, 40.0, 50.0), SlopeSection(40.0, 60.0, 72.0)]
+    return DitchTerrain(TerrainParams(length_m=60.0, bottom_width_m=6.0, depth_m=4.0,
+                                      wall_slopes=WallSlopes(right=right, left=left)))
+
+
+@pytest.mark.parametrize("width_m", [8.0, 9.0, 10.0])
+def test_runs_are_steepened_in_narrow_windows_only(width_m):
+    terrain = _narrow_window_terrain(width_m)
+    driver = draw_expert_style(0).driver
+    planner = WindowRoutePlanner(terrain, [0.0, 12.0], driver)
+    config = planner.config
+    (narrow,), (wide,) = planner.windows["right"], planner.windows["left"]
+    assert planner.run_angle_deg(wide, driver.wall_angle_deg) == driver.wall_angle_deg
+    angle = planner.run_angle_deg(narrow, driver.wall_angle_deg)
+    drop = narrow.hinge_distance_m - terrain.toe_distance_m
+    style_along = drop / math.tan(math.radians(driver.wall_angle_deg))
+    room = narrow.width_m - 2.0 * planner.margin_m - config.narrow_room_m
+    assert style_along > room  # the style's descent would not fit
+    assert driver.wall_angle_deg < angle <= config.steepest_run_deg
+    # Steepened until it fits, unless that would take more than the steepest run.
+    assert drop / math.tan(math.radians(angle)) == pytest.approx(room) or angle == config.steepest_run_deg
+    route = planner.plan([-5.0, -12.0], driver.wall_angle_deg, driver.climb_angle_deg, driver.approach_margin_m)
+    assert route.entry == narrow and route.descend_angle_deg == angle
+    assert abs(route.descend_toe_m - route.descend_hinge_m) == pytest.approx(drop / math.tan(math.radians(angle)))
+
+
+def test_the_climb_steers_back_onto_its_planned_exit():
+    environment = get_environment("wide_search")
+    terrain = DitchTerrain(environment.terrain)
+    style = draw_expert_style(0).driver
+    task = environment.tasks[0]
+    driver = WindowRouteDriver(terrain, task.goal, 0, style)
+    planner = WindowRoutePlanner(terrain, task.goal, style)
+    route = planner.plan(task.start[:2], style.wall_angle_deg, style.climb_angle_deg, style.approach_margin_m)
+    frame = course_frame(terrain)
+    far = frame.side_sign(route.exit.side)
+
+    def angle_to_edge(xy):
+        heading = driver._climb_heading(np.asarray(xy), route)
+        forward = np.array([math.cos(heading), math.sin(heading)])
+        return math.degrees(math.atan2(float(forward @ (far * frame.left)),
+                                       float(forward @ (route.climb_sign * frame.tangent))))
+
+    middle = (terrain.toe_distance_m + route.exit.hinge_distance_m) / 2
+    on_line = route.climb_hinge_m - route.climb_sign * (route.exit.hinge_distance_m - middle) / math.tan(
+        math.radians(route.climb_angle_deg))
+    assert angle_to_edge(frame.point(on_line, far * middle)) == pytest.approx(route.climb_angle_deg)
+    # Slipped along the wall, past the line: steeper, toward the planned exit, within the correction.
+    steeper = angle_to_edge(frame.point(on_line + route.climb_sign * 1.0, far * middle))
+    assert route.climb_angle_deg < steeper <= route.climb_angle_deg + planner.config.climb_correction_deg
+    assert angle_to_edge(frame.point(on_line + route.climb_sign * 6.0, far * middle)) == pytest.approx(
+        route.climb_angle_deg + planner.config.climb_correction_deg)
 
 
 def test_no_route_where_the_start_and_the_goal_share_a_side():

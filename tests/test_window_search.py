@@ -60,7 +60,7 @@ def _search_window(window_x):
 
 @pytest.mark.parametrize("window_x", [(-7.0, -3.0), (3.0, 7.0)], ids=["window_left", "window_right"])
 def test_the_map_logic_finds_the_window_and_aims_inside_it(window_x):
-    frame, slopes, edges, window, target = _search_window(window_x)
+    frame, slopes, _, window, target = _search_window(window_x)
     x_ends = sorted(frame.point(s, 0.0)[0] for s in window)
     assert x_ends[0] == pytest.approx(window_x[0], abs=0.6)
     assert x_ends[1] == pytest.approx(window_x[1], abs=0.6)
@@ -90,6 +90,15 @@ def test_crossable_windows_need_length_and_known_slopes():
     assert windows.along_target((2.0, 4.0), 3.0, -1.0, 5.0, 0.5) == 2.5
 
 
+def test_a_crossing_travels_the_way_the_window_has_room_for():
+    window = (0.0, 10.0)
+    assert windows.crossing_direction(window, 2.0, 1.0, 3.5) == 1.0  # Room ahead.
+    assert windows.crossing_direction(window, 8.0, 1.0, 3.5) == -1.0  # Near its end: back along it.
+    assert windows.crossing_direction(window, 12.0, 1.0, 3.5) == -1.0  # Past its end: back into it.
+    assert windows.crossing_direction(window, -3.0, 1.0, 3.5) == 1.0  # Short of it: on into it.
+    assert windows.crossing_direction((0.0, 2.0), 0.5, 1.0, 3.5) == 1.0  # Short both ways: the roomier.
+
+
 @pytest.mark.parametrize("x, slope_deg", [(-15.0, 50.0), (15.0, 70.0)])
 def test_slope_estimates_of_the_analytic_walls_are_within_two_degrees(x, slope_deg):
     terrain = DitchTerrain(get_environment("wide_search").terrain)
@@ -109,6 +118,35 @@ def test_slope_estimates_of_the_analytic_walls_are_within_two_degrees(x, slope_d
         band_c = band if not rising else (0.0, 6.0)
         slopes = windows.wall_slopes(heights, origin, RESOLUTION_M, frame, edges, reference, band_c, rising)
         np.testing.assert_allclose(slopes, slope_deg, atol=2.0)
+
+
+def test_the_ditchs_rounded_end_reads_steep_not_as_a_window():
+    """At wide_search's west end (x about -33 m) the wall turns across the edge line: heights
+    fall along it, and the plane fit reads its steepest slope, the end's 70 deg."""
+    terrain = DitchTerrain(get_environment("wide_search").terrain)
+    n = 120
+    origin = np.array([-37.0, -6.0])
+    xs, ys = windows.cell_centres(np.zeros((n, n)), origin, RESOLUTION_M)
+    heights = terrain.height(np.stack([xs, ys], axis=-1).reshape(-1, 2)).reshape(n, n)
+    frame = windows.EdgeFrame(np.array([0.0, -3.3]), np.array([-1.0, 0.0]), np.array([0.0, 1.0]))
+    edges = np.arange(28, 36) * 1.0  # x from -28 to -36 m.
+    slopes = windows.wall_slopes(heights, origin, RESOLUTION_M, frame, edges, 0.0, (-3.0, 3.0), rising=False)
+    assert windows.crossable_windows(edges, slopes, WindowSearchConfig().crossable_slope_deg, 1.5) == []
+    assert np.nanmin(slopes) > 65.0
+
+
+def test_the_ends_of_the_way_along_are_seen_ahead():
+    origin, heights = _map_of_a_ditch((30.0, 31.0))
+    frame = windows.EdgeFrame(np.array([0.0, STEEP_HINGE_Y]), np.array([-1.0, 0.0]), np.array([0.0, 1.0]))
+    ahead = (1.0, 3.0)
+    assert not windows.edge_ended(heights, origin, RESOLUTION_M, frame, ahead, (0.5, 3.0), 0.0)  # In shadow.
+    level = np.where(np.isfinite(heights), heights, 0.0)  # The ditch ended: level ground beyond the line.
+    assert windows.edge_ended(level, origin, RESOLUTION_M, frame, ahead, (0.5, 3.0), 0.0)
+    floor = np.full_like(heights, -4.0)
+    assert not windows.floor_ended(floor, origin, RESOLUTION_M, frame, ahead, (1.0, 2.0), -4.0)
+    xs, _ = windows.cell_centres(floor, origin, RESOLUTION_M)
+    floor[xs < -2.0] = -3.0  # A wall across the floor 2 m ahead (along is -x).
+    assert windows.floor_ended(floor, origin, RESOLUTION_M, frame, ahead, (1.0, 2.0), -4.0)
 
 
 def _search_block(config=None) -> WindowSearch:
@@ -146,7 +184,35 @@ def test_window_search_goes_along_the_edge_then_commits_to_the_window_it_sees():
     simulator.AdvanceTo(0.25)
     assert block.GetOutputPort("phase").Eval(context)[0] == SearchPhase.GOING_IN
     target = block.GetOutputPort("target_xy").Eval(context)
-    assert -7.0 < target[0] < -3.0 and target[1] > STEEP_HINGE_Y
+    # Still facing the ditch, not along the way in: first turned along the top, toward the window.
+    assert target[0] == pytest.approx(-3.0, abs=0.2) and target[1] < STEEP_HINGE_Y
+    pose = RigidTransform(RollPitchYaw(0, 0, math.pi), [0.0, -4.0, 0.3])
+    block.GetInputPort("body_poses").FixValue(context, [pose])
+    simulator.AdvanceTo(0.35)
+    target = block.GetOutputPort("target_xy").Eval(context)
+    assert -7.0 < target[0] < -3.0 and target[1] > STEEP_HINGE_Y  # Heading along: into the window.
+
+
+def test_window_search_turns_back_twice_as_far_out_each_time():
+    """No window anywhere: the search goes `first_leg_m` (8 m) to its left facing the ditch
+    (the goal lies square across), then back to 16 m the other side of its start, then 32 m."""
+    block = _search_block()
+    grid = ElevationGrid()
+    context = block.CreateDefaultContext()
+    simulator = Simulator(block, context)
+    turns = []
+    for x in [0.0, *np.arange(-1.0, -9.0, -1.0), *np.arange(-8.0, 17.0, 1.0), *np.arange(16.0, -33.0, -2.0)]:
+        origin, heights = _map_of_a_ditch((-90.0, -89.0), robot_xy=(x, -4.0), size_m=12.0)
+        yaw = math.pi / 2 if x == 0.0 else 0.0
+        block.GetInputPort("body_poses").FixValue(context, [RigidTransform(RollPitchYaw(0, 0, yaw), [x, -4.0, 0.3])])
+        block.GetInputPort("elevation_map").FixValue(context, grid.pack(origin, heights))
+        simulator.AdvanceTo(context.get_time() + 0.1)
+        assert block.GetOutputPort("phase").Eval(context)[0] == SearchPhase.SEARCH_IN
+        heading = math.copysign(1.0, block.GetOutputPort("target_xy").Eval(context)[0] - x)
+        if not turns or heading != turns[-1][1]:
+            turns.append((x, heading))
+    assert [heading for _, heading in turns] == [-1.0, 1.0, -1.0, 1.0]
+    assert [x for x, _ in turns[1:]] == [-8.0, 16.0, -32.0]
 
 
 def test_window_search_config_rejects_bad_values():

@@ -60,6 +60,9 @@ class BenchmarkConfig:
             `stress_ranges.yaml` for "stress", `search_ranges.yaml` for "search" and "search_val",
             `ranges.yaml` for the others).
         time_limit_s: each episode's limit.
+        override: YAML in the Scenario schema whose controller replaces the one of `controller`
+            (e.g. "{controller: !LearnedPolicyConfig {search: {}}}"; a learned config naming no
+            checkpoint takes `checkpoint`); "": none.
         workers, backend, address: as for `evaluate`.
     """
 
@@ -73,6 +76,7 @@ class BenchmarkConfig:
     out: str = "results/benchmark/benchmark.jsonl"
     ranges: str = ""
     time_limit_s: float = EpisodeConfig.time_limit_s
+    override: str = ""
     workers: int | None = None
     backend: str = "local"
     address: str | None = None
@@ -111,6 +115,23 @@ def replay_command(record: RolloutRecord, out: str = "") -> str:
         parts += ["--override", f"{{controller: !{record.controller_type.rpartition(':')[2]} {body}}}"]
     parts += ["--out", out or f"{record.environment}_{record.task}_{record.seed}.html"]
     return shlex.join(parts)
+
+
+def overridden_controller(controller, checkpoint: str, override: str):
+    """The controller config of the Scenario YAML `override` over `controller` (a name or a
+    config); a config that takes a checkpoint and names none gets `checkpoint`.
+
+    Raises:
+        ConfigError: YAML that does not load as a Scenario, or a value out of range, named.
+    """
+    from ditch_drake.diagrams.controllers import with_checkpoint
+    from ditch_drake.diagrams.scenario import Scenario, load_scenario
+
+    base = controller_config(controller, checkpoint) if isinstance(controller, str) else controller
+    overridden = load_scenario(override=override, defaults=Scenario(controller=base)).controller
+    if checkpoint and hasattr(overridden, "checkpoint") and not overridden.checkpoint:
+        overridden = with_checkpoint(overridden, checkpoint)
+    return overridden
 
 
 def sample_split(split: str, geometries: int | None, ranges: BenchmarkRanges,
@@ -154,6 +175,8 @@ def benchmark_specs(config: BenchmarkConfig, progress: bool = True) -> list[Roll
         environments_file = str(write_ditches(ditches_file(config.out), ditches))
         names = [ditch.name for ditch in ditches]
     controller = benchmark_controller(config.controller)
+    if config.override:
+        controller = overridden_controller(controller, checkpoint, config.override)
     if config.crossing_side:
         from ditch_drake.diagrams.rollout import with_crossing_side
 

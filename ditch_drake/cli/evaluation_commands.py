@@ -155,6 +155,10 @@ def add_benchmark(commands: Commands) -> None:
                                 "ditch_drake/benchmark/ranges.yaml or, for stress, stress_ranges.yaml and, for search and "
                                 "search_val, search_ranges.yaml)")
     add_time_limit(benchmark, default=ConfigDefault(BENCHMARK, "time_limit_s"))
+    benchmark.add_argument("--override", default=None, metavar="YAML",
+                           help="YAML in the Scenario schema whose controller replaces --controller's, e.g. "
+                                "\"{controller: !LearnedPolicyConfig {search: {}}}\" (a learned config naming no "
+                                "checkpoint takes --checkpoint's; default: none)")
     add_out(benchmark, "results file (JSON Lines), appended; the ditches go to <stem>.ditches.yaml beside it",
             default=ConfigDefault(BENCHMARK, "out"))
     add_workers(benchmark, "rollouts", default=ConfigDefault(BENCHMARK, "workers"))
@@ -175,7 +179,8 @@ def cmd_benchmark(args) -> int:
     check_seed(args.seed, max(1, args.rollouts))
     config = BenchmarkConfig(split=args.split, controller=args.controller, checkpoint=args.checkpoint or "",
                              crossing_side=args.crossing_side or "", geometries=args.geometries, rollouts=args.rollouts, seed=args.seed, out=args.out,
-                             ranges=args.ranges or "", time_limit_s=args.time_limit, workers=args.workers,
+                             ranges=args.ranges or "", time_limit_s=args.time_limit, override=args.override or "",
+                             workers=args.workers,
                              backend=args.backend, address=args.address)
     if args.rollouts < 1:
         raise ConfigError(f"--rollouts {args.rollouts}: expected a positive integer")

@@ -44,8 +44,12 @@ class Observation:
     schedule: ScheduleConfig
 
 
-def AddObservation(builder: DiagramBuilder, scene: DitchScene, config: ObservationConfig | None = None) -> Observation:
+def AddObservation(builder: DiagramBuilder, scene: DitchScene, config: ObservationConfig | None = None,
+                   goal_input: bool = False) -> Observation:
     """Adds lidar, normal-image converter, IMU, goal sensor and frame stacker to a scene.
+
+    The goal sensor reads the distance and bearing to the task's goal, or, with `goal_input`,
+    to the point at its `goal_xy` input (left for the caller to connect: a route-level target).
 
     The stages run in order within each control step (`scene.schedule`, `ditch_drake.spec.schedule`).
     """
@@ -59,7 +63,7 @@ def AddObservation(builder: DiagramBuilder, scene: DitchScene, config: Observati
     builder.Connect(lidar.converter.GetOutputPort("organized_points"), normal_image.GetInputPort("point_cloud"))
     imu = AddImu(builder, plant.get_body_poses_output_port(), chassis.index(), config.imu,
                  noise_period_s=scene.schedule.control_period_s)
-    goal = builder.AddNamedSystem("goal_sensor", GoalSensor(chassis.index(), scene.task.goal))
+    goal = builder.AddNamedSystem("goal_sensor", GoalSensor(chassis.index(), scene.task.goal, goal_input))
     builder.Connect(plant.get_body_poses_output_port(), goal.GetInputPort("body_poses"))
     stacker = builder.AddNamedSystem("frame_stacker", FrameStacker(
         period_s=scene.schedule.control_period_s, offset_s=scene.schedule.stacker_offset_s))

@@ -24,11 +24,12 @@ from ditch_drake.learning.inference import check_runtime, load_policy
 from ditch_drake.learning.onnx_policy import is_onnx_path
 from ditch_drake.perception.lidar_model import LidarConfig
 from ditch_drake.planning.costmap import CostmapConfig
-from ditch_drake.planning.elevation_map import ElevationMapConfig
+from ditch_drake.planning.elevation_map import ElevationGrid, ElevationMapConfig
 from ditch_drake.planning.mppi import MppiPlannerConfig
 from ditch_drake.systems.crossing_side_agreement import CrossingSideAgreement
 from ditch_drake.systems.dwa_controller import DwaConfig, DwaController
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
+from ditch_drake.systems.elevation_mapper import ElevationMapper
 from ditch_drake.systems.episode_monitor import EpisodeOutcome
 from ditch_drake.systems.expert import ExpertDriver, ExpertVariation, draw_expert_style
 from ditch_drake.systems.halt_counter import HaltCounter
@@ -38,6 +39,7 @@ from ditch_drake.systems.oracle_crossing_side import OracleCrossingSide
 from ditch_drake.systems.perceived_crossing_side import PerceivedCrossingSide, PerceivedCrossingSideConfig
 from ditch_drake.systems.policy import DEFAULT_UNCERTAINTY_SIGNAL, LearnedPolicy
 from ditch_drake.systems.skid_steer_drive import ConstantCommand
+from ditch_drake.systems.target_crossing_side import TargetCrossingSide
 from ditch_drake.systems.teleop import ActionQuantizer
 from ditch_drake.systems.window_search import WindowSearch, WindowSearchConfig
 
@@ -72,6 +74,20 @@ CROSSING_SIDE_SOURCES = ("perceived", "oracle")
 
 
 @dataclass
+class LearnedWindowSearchConfig(WindowSearchConfig):
+    """`WindowSearchConfig` with the learned policy's own defaults.
+
+    Attributes:
+        edge_standoff_m: farther from the edge than the `mppi` baseline's: the policy drives at
+            1 m/s and turns at most 0.85 rad/s, so a search that turns back along the edge
+            turns in a circle 2.4 m across, which it may take toward the ditch (at 0.8 m it
+            went over a 70 deg wall there; at 2.5 m it turned on the top).
+    """
+
+    edge_standoff_m: float = 2.5
+
+
+@dataclass
 class LearnedPolicyConfig:
     """The behavioural clone of a checkpoint on the observation blocks.
 
@@ -90,17 +106,28 @@ class LearnedPolicyConfig:
             to ONNX in memory when the diagram is built; needs `pip install -e '.[onnx]'`).
             The softmax, mirror and argmax around it are the same; the labels may differ where
             two logits tie to within the runtimes' float32 rounding (about 1e-5).
+        search: with it, a `WindowSearch` on an elevation map fused from the observation's lidar
+            (`ElevationMapper`, the `mppi` baseline's map) gives the goal sensor its target in
+            place of the goal (a way in and out of a ditch crossable only in places; the goal
+            still ends the run), and a side-conditioned clone is told the side toward that
+            target (`TargetCrossingSide`; needs crossing_side "perceived"); None: the goal.
     """
 
     checkpoint: str = ""
     observation: ObservationConfig = field(default_factory=ObservationConfig)
     crossing_side: str = "perceived"
     runtime: str = "torch"
+    search: LearnedWindowSearchConfig | None = field(default=None, metadata=WRITTEN_WHEN_SET)
 
     def validate(self) -> None:
         if self.crossing_side not in CROSSING_SIDE_SOURCES:
             raise ConfigError(f"learned crossing_side={self.crossing_side!r}: expected one of "
                               f"{list(CROSSING_SIDE_SOURCES)}")
+        if self.search is not None:
+            self.search.validate()
+            if self.crossing_side != "perceived":
+                raise ConfigError(f"learned crossing_side={self.crossing_side!r} with a search: expected 'perceived' "
+                                  "(the side toward the search's target is read from the perceived edge)")
         check_runtime(self.runtime, self.checkpoint)
 
     def with_checkpoint(self, checkpoint: str) -> "LearnedPolicyConfig":
@@ -294,11 +321,39 @@ def AddExpert(builder: DiagramBuilder, scene: DitchScene, config: ExpertConfig) 
 
 
 def AddLearnedController(builder: DiagramBuilder, scene: DitchScene, config: LearnedPolicyConfig) -> OutputPort:
+    """The learned policy on its observation blocks; with `config.search`, an "elevation_mapper"
+    (`ElevationMapper`, on the observation's lidar) and a "window_search" on its map, whose
+    target the goal sensor reads in place of the goal (and the crossing side is told toward)."""
     config.validate()
     checkpoint = config.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
-    observation = AddObservation(builder, scene, config.observation)
+    observation = AddObservation(builder, scene, config.observation, goal_input=config.search is not None)
+    target_xy = None
+    if config.search is not None:
+        schedule = scene.schedule
+        # At the frame stacker's offset, after the lidar's tick: the map fuses this step's cloud.
+        mapper = builder.AddNamedSystem("elevation_mapper", ElevationMapper(
+            scene.plant.GetBodyByName("chassis", scene.husky).index(), observation.lidar.X_BL, ElevationMapConfig(),
+            period_s=schedule.control_period_s, offset_s=schedule.stacker_offset_s))
+        builder.Connect(observation.lidar.converter.GetOutputPort("organized_points"),
+                        mapper.GetInputPort("point_cloud"))
+        builder.Connect(scene.plant.get_body_poses_output_port(), mapper.GetInputPort("body_poses"))
+        target_xy = AddWindowSearch(builder, scene, mapper.grid, mapper.GetOutputPort("elevation_map"), config.search,
+                                    offset_s=schedule.stacker_offset_s)
+        builder.Connect(target_xy, observation.goal.GetInputPort("goal_xy"))
     return AddLearnedPolicy(builder, scene, observation, checkpoint, config.crossing_side,
-                            config.runtime).GetOutputPort("command")
+                            config.runtime, target_xy=target_xy).GetOutputPort("command")
+
+
+def AddWindowSearch(builder: DiagramBuilder, scene: DitchScene, grid: ElevationGrid, elevation_map: OutputPort,
+                    config: WindowSearchConfig, offset_s: float) -> OutputPort:
+    """Adds a "window_search" (`WindowSearch`) on `elevation_map` (of `grid`), updating at
+    `offset_s` in the control step; returns its `target_xy` output."""
+    search = builder.AddNamedSystem("window_search", WindowSearch(
+        scene.task.goal, scene.plant.GetBodyByName("chassis", scene.husky).index(), grid, config,
+        period_s=scene.schedule.control_period_s, offset_s=offset_s))
+    builder.Connect(elevation_map, search.GetInputPort("elevation_map"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), search.GetInputPort("body_poses"))
+    return search.GetOutputPort("target_xy")
 
 
 def AddDwaController(builder: DiagramBuilder, scene: DitchScene, config: DwaBaselineConfig) -> OutputPort:
@@ -329,23 +384,22 @@ def AddMppiController(builder: DiagramBuilder, scene: DitchScene, config: MppiBa
     builder.Connect(lidar.converter.GetOutputPort("organized_points"), controller.GetInputPort("point_cloud"))
     builder.Connect(scene.plant.get_body_poses_output_port(), controller.GetInputPort("body_poses"))
     if config.search is not None:
-        search = builder.AddNamedSystem("window_search", WindowSearch(
-            scene.task.goal, chassis.index(), controller.grid, config.search,
-            period_s=scene.schedule.control_period_s, offset_s=scene.schedule.controller_offset_s))
-        builder.Connect(controller.GetOutputPort("elevation_map"), search.GetInputPort("elevation_map"))
-        builder.Connect(scene.plant.get_body_poses_output_port(), search.GetInputPort("body_poses"))
-        builder.Connect(search.GetOutputPort("target_xy"), controller.GetInputPort("target_xy"))
+        target_xy = AddWindowSearch(builder, scene, controller.grid, controller.GetOutputPort("elevation_map"),
+                                    config.search, offset_s=scene.schedule.controller_offset_s)
+        builder.Connect(target_xy, controller.GetInputPort("target_xy"))
     return controller.GetOutputPort("command")
 
 
 def AddLearnedPolicy(builder: DiagramBuilder, scene: DitchScene, observation: Observation,
                      checkpoint: str, crossing_side: str = "perceived", runtime: str = "torch",
-                     uncertainty_signal: str = DEFAULT_UNCERTAINTY_SIGNAL) -> LearnedPolicy:
+                     uncertainty_signal: str = DEFAULT_UNCERTAINTY_SIGNAL,
+                     target_xy: OutputPort | None = None) -> LearnedPolicy:
     """Adds the behavioural clone of `checkpoint` (a shipped name or a path; an ensemble file runs
     all its members) fed by `observation`, its network run by `runtime`
     (`LearnedPolicyConfig.runtime`), its `uncertainty` output the signal `uncertainty_signal`,
     and, for a clone trained in one side's frame, the block that tells it the side to cross on
-    (`AddCrossingSide` of `crossing_side`: "perceived" or "oracle").
+    (`AddCrossingSide` of `crossing_side`: "perceived" or "oracle"; toward `target_xy` where
+    one is given, a route-level target such as `WindowSearch`'s).
 
     Raises:
         ConfigError: an unknown or uninstalled runtime, or one that does not run the checkpoint;
@@ -365,14 +419,14 @@ def AddLearnedPolicy(builder: DiagramBuilder, scene: DitchScene, observation: Ob
                 f"blocks give {port.size()} (a model trained on another input shape)")
     ConnectObservation(builder, observation, policy)
     if policy.HasInputPort("crossing_side"):
-        side = AddCrossingSide(builder, scene, observation, crossing_side)
+        side = AddCrossingSide(builder, scene, observation, crossing_side, target_xy=target_xy)
         builder.Connect(side.GetOutputPort("crossing_side"), policy.GetInputPort("crossing_side"))
     return policy
 
 
 def AddCrossingSide(builder: DiagramBuilder, scene: DitchScene, observation: Observation,
-                    source: str = "perceived",
-                    config: PerceivedCrossingSideConfig | None = None) -> PerceivedCrossingSide | OracleCrossingSide:
+                    source: str = "perceived", config: PerceivedCrossingSideConfig | None = None,
+                    target_xy: OutputPort | None = None) -> System:
     """Adds the block that tells a side-conditioned clone which side along the edge to cross on,
     named after its source: "perceived_crossing_side" (`PerceivedCrossingSide`, on the
     observation's lidar and the chassis pose) or "oracle_crossing_side" (`OracleCrossingSide`,
@@ -380,9 +434,16 @@ def AddCrossingSide(builder: DiagramBuilder, scene: DitchScene, observation: Obs
     commits, and the controller reads it in the same step. `AddController` measures a perceived
     side against the oracle's (`AddCrossingSideAgreement`).
 
+    With `target_xy` (a route-level target the controller drives toward, such as
+    `WindowSearch`'s), the side is the rule's toward that target on the perceived edge: a
+    "target_crossing_side" (`TargetCrossingSide`) beside the perceived block, returned in its
+    place.
+
     Raises:
-        ConfigError: an unknown source.
+        ConfigError: an unknown source, or a target with the oracle's.
     """
+    if target_xy is not None and source != "perceived":
+        raise ConfigError(f"crossing side source {source!r} with a target: expected 'perceived'")
     schedule = scene.schedule
     chassis = scene.plant.GetBodyByName("chassis", scene.husky).index()
     if source == "perceived":
@@ -398,7 +459,14 @@ def AddCrossingSide(builder: DiagramBuilder, scene: DitchScene, observation: Obs
     else:
         raise ConfigError(f"crossing side source {source!r}: expected one of {list(CROSSING_SIDE_SOURCES)}")
     builder.Connect(scene.plant.get_body_poses_output_port(), side.GetInputPort("body_poses"))
-    return side
+    if target_xy is None:
+        return side
+    toward = builder.AddNamedSystem("target_crossing_side", TargetCrossingSide(
+        chassis, side.config.straight_across_deg))
+    builder.Connect(side.GetOutputPort("edge"), toward.GetInputPort("edge"))
+    builder.Connect(target_xy, toward.GetInputPort("target_xy"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), toward.GetInputPort("body_poses"))
+    return toward
 
 
 def MakeRolloutDiagram(config: RolloutConfig, meshcat: Meshcat | None = None) -> tuple[Diagram, DitchScene]:

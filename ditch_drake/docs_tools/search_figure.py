@@ -60,7 +60,7 @@ def run_search_episode(label: str, controller, environment: str, task: int, seed
         track.append(chassis_pose(diagram, scene, context).translation()[:2].copy())
         if search is not None:
             search_context = search.GetMyContextFromRoot(context)
-            targets.append(np.array(search.GetOutputPort("target").Eval(search_context), dtype=float)[:2])
+            targets.append(np.array(search.GetOutputPort("target_xy").Eval(search_context), dtype=float)[:2])
             phases.append(float(np.asarray(search.GetOutputPort("phase").Eval(search_context)).ravel()[0]))
         return False
 

@@ -8,7 +8,7 @@ first seen: the search is meant for straight ditches.
 
 What a wall's slope is read from. In bins of `bin_m` along the edge, the known cells of the wall
 (below the top for the near wall, above the floor for the far one, within a band across the
-edge) are fitted by a line h = a + b c across the edge; the wall's slope is atan(|b|). A bin with
+edge) are fitted by a plane h = a + b c + d s; the wall's slope is its steepest, atan(hypot(b, d)). A bin with
 too few wall cells, or too small a height span, is unknown (NaN). A wall is seen only where the
 lidar looks into it: from the top, the near wall below a hinge is in the shadow of the hinge, but
 a gentle wall set back from a steep one (a window: the same floor, a wider top) is seen
@@ -128,8 +128,8 @@ def wall_slopes(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: Ed
     `reference_z_m` by more than `min_rise_m`: below it for the near wall seen from the top
     (`rising` False: the ground falls into the ditch), above it for the far wall seen from the
     floor (`rising` True); and, in each bin, more than `min_rise_m` off the bin's other extreme
-    (the floor, or the far top, where the map holds it). A bin's slope is atan(|b|) of the least-squares line h = a + b c
-    through its wall cells; unknown with fewer than `min_cells` or a height span under `min_span_m`.
+    (the floor, or the far top, where the map holds it). A bin's slope is the steepest of the
+    least-squares plane h = a + b c + d s through its wall cells, atan(hypot(b, d)); unknown with fewer than `min_cells` or a height span under `min_span_m`.
     """
     xs, ys = cell_centres(heights, origin_xy_m, resolution_m)
     s, c = frame.coordinates(np.stack([xs, ys], axis=-1))
@@ -147,8 +147,11 @@ def wall_slopes(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: Ed
         in_bin &= np.abs(h - extreme) > min_rise_m
         if in_bin.sum() < min_cells or np.ptp(h[in_bin]) < min_span_m or np.ptp(c[in_bin]) < resolution_m:
             continue
-        gradient = np.polyfit(c[in_bin], h[in_bin], 1)[0]
-        slopes[b] = math.degrees(math.atan(abs(gradient)))
+        # A plane, not a line across: where the wall turns away from the edge line (the ditch's
+        # rounded end), its heights fall along too, and a line across alone would read it gentle.
+        design = np.column_stack([np.ones(in_bin.sum()), c[in_bin], s[in_bin]])
+        _, across_gradient, along_gradient = np.linalg.lstsq(design, h[in_bin], rcond=None)[0]
+        slopes[b] = math.degrees(math.atan(math.hypot(across_gradient, along_gradient)))
     return slopes
 
 
@@ -194,3 +197,46 @@ def nearest_rise(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: E
     rise = np.isfinite(heights) & (np.nan_to_num(heights, nan=-np.inf) - reference_z_m > min_rise_m)
     rise &= (c >= across_band_m[0]) & (c <= across_band_m[1])
     return float(c[rise].min()) if rise.any() else math.nan
+
+
+def patch(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: EdgeFrame, s_range_m: tuple[float, float],
+          c_range_m: tuple[float, float]) -> tuple[float, np.ndarray]:
+    """(the fraction of cells known, their heights (m)) within along `s_range_m` and across
+    `c_range_m` (each from, to; m)."""
+    xs, ys = cell_centres(heights, origin_xy_m, resolution_m)
+    s, c = frame.coordinates(np.stack([xs, ys], axis=-1))
+    inside = (s >= min(s_range_m)) & (s <= max(s_range_m)) & (c >= c_range_m[0]) & (c <= c_range_m[1])
+    if not inside.any():
+        return 0.0, np.zeros(0)
+    known = inside & np.isfinite(heights)
+    return float(known.sum() / inside.sum()), heights[known]
+
+
+def edge_ended(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: EdgeFrame, s_range_m: tuple[float, float],
+               c_range_m: tuple[float, float], top_z_m: float, drop_m: float = 0.3,
+               min_known_fraction: float = 0.7) -> bool:
+    """Whether the ground across the edge line within `s_range_m` along is seen level with the
+    top (most cells known, none lower than `top_z_m` by `drop_m`): the ditch has ended there (its
+    rounded end). A wall beyond the line is either in the hinge's shadow (unknown) or falls away."""
+    known_fraction, h = patch(heights, origin_xy_m, resolution_m, frame, s_range_m, c_range_m)
+    return known_fraction >= min_known_fraction and bool(np.all(np.abs(h - top_z_m) <= drop_m))
+
+
+def floor_ended(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: EdgeFrame, s_range_m: tuple[float, float],
+                c_range_m: tuple[float, float], floor_z_m: float, rise_m: float = 0.5, min_cells: int = 10) -> bool:
+    """Whether the floor within `s_range_m` along and `c_range_m` across rises (at least
+    `min_cells` cells more than `rise_m` above `floor_z_m`): a wall across the way along (the
+    ditch's rounded end)."""
+    _, h = patch(heights, origin_xy_m, resolution_m, frame, s_range_m, c_range_m)
+    return int(np.sum(h - floor_z_m > rise_m)) >= min_cells
+
+
+def crossing_direction(window: tuple[float, float], s_m: float, direction: float, needed_m: float) -> float:
+    """Which way along (+-1) a crossing through `window` should travel from `s_m`: on
+    `direction` while the window leaves `needed_m` ahead, else the way with more of it (back
+    into it, where the robot has passed its end)."""
+    ahead = window[1] - s_m if direction > 0 else s_m - window[0]
+    if ahead >= needed_m:
+        return direction
+    behind = s_m - window[0] if direction > 0 else window[1] - s_m
+    return -direction if behind > ahead else direction

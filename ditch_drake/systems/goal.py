@@ -23,7 +23,8 @@ def distance_bearing(X_WB: RigidTransform, goal_xy) -> tuple[float, float]:
 
 
 class GoalSensor(LeafSystem):
-    """Reads the planar distance and bearing from the chassis origin to a goal.
+    """Reads the planar distance and bearing from the chassis origin to a goal (or to a target
+    given at its `goal_xy` input).
 
     distance = |p_goal - p_WB| in the x-y plane; bearing = atan2 of that
     difference minus the chassis's planar yaw (the heading of its x-axis projected
@@ -39,6 +40,7 @@ class GoalSensor(LeafSystem):
         name: GoalSensor
         input_ports:
         - body_poses
+        - goal_xy (optional)
         output_ports:
         - distance_bearing
         - distance
@@ -46,21 +48,26 @@ class GoalSensor(LeafSystem):
 
     Ports:
         body_poses: the plant's body poses X_WB (vector of RigidTransform).
+        goal_xy: (only with `goal_input`) the planar point (m, W) read in place of the fixed
+            goal: a route-level target such as `WindowSearch`'s.
         distance_bearing: [distance (m), bearing (rad)].
         distance: [distance (m)].
         bearing: [bearing (rad)].
     """
 
-    def __init__(self, chassis_body_index, goal_xy):
+    def __init__(self, chassis_body_index, goal_xy, goal_input: bool = False):
         """Args:
             chassis_body_index: the chassis's BodyIndex in the plant.
             goal_xy: the goal's (x, y) in the world (m).
+            goal_input: with it, a `goal_xy` input that the outputs are read to in place of `goal_xy`.
         """
         super().__init__()
         self._chassis_index = int(chassis_body_index)
         self._goal_xy = (float(goal_xy[0]), float(goal_xy[1]))
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
-        tickets = {self.input_port_ticket(self._poses_port.get_index())}
+        self._goal_port = self.DeclareVectorInputPort("goal_xy", 2) if goal_input else None
+        tickets = {self.input_port_ticket(port.get_index()) for port in (self._poses_port, self._goal_port)
+                   if port is not None}
         self.DeclareVectorOutputPort(
             "distance_bearing", DISTANCE_SIZE + BEARING_SIZE, self._calc_distance_bearing,
             prerequisites_of_calc=tickets)
@@ -69,11 +76,12 @@ class GoalSensor(LeafSystem):
 
     @property
     def goal_xy(self) -> tuple[float, float]:
-        """The goal's (x, y) in the world (m)."""
+        """The fixed goal's (x, y) in the world (m); with a `goal_xy` input, the input is read instead."""
         return self._goal_xy
 
     def _read(self, context) -> tuple[float, float]:
-        return distance_bearing(self._poses_port.Eval(context)[self._chassis_index], self._goal_xy)
+        goal_xy = self._goal_xy if self._goal_port is None else self._goal_port.Eval(context)
+        return distance_bearing(self._poses_port.Eval(context)[self._chassis_index], goal_xy)
 
     def _calc_distance_bearing(self, context, output: BasicVector) -> None:
         output.SetFromVector(np.array(self._read(context)))

@@ -14,6 +14,7 @@ from ditch_drake.planning.elevation_map import ElevationGrid, ElevationMapConfig
 from ditch_drake.planning.mppi import MppiPlanner, MppiPlannerConfig
 from ditch_drake.spec import robot
 from ditch_drake.spec.planar import planar_yaw
+from ditch_drake.systems.elevation_mapper import SELF_MARGIN_M, fuse_scan
 
 
 class MppiMode(enum.IntEnum):
@@ -30,8 +31,6 @@ class MppiMode(enum.IntEnum):
 _MODE, _UPDATES, _HALTS, _NO_DATA, _GOAL_REACHED, _WX, _WY, _WINDOW_VALID, _LAST_W, _FALLBACKS = range(10)
 _STATUS_SIZE = 10
 _STATUS_OUTPUT = (_MODE, _UPDATES, _HALTS, _NO_DATA)
-# Points within this of the chassis box in plan belong to the robot (m).
-_SELF_MARGIN_M = 0.05
 
 
 class MppiController(LeafSystem):
@@ -90,7 +89,7 @@ class MppiController(LeafSystem):
         self._goal_tolerance_m = float(goal_tolerance_m)
         self._chassis_index = int(chassis_body_index)
         self._X_BL = X_BL
-        self._on_robot_B = within_chassis_in_plan(_SELF_MARGIN_M)
+        self._on_robot_B = within_chassis_in_plan(SELF_MARGIN_M)
         self._cloud_port = self.DeclareAbstractInputPort("point_cloud", Value(PointCloud()))
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         self._target_port = self.DeclareVectorInputPort("target_xy", 2) if target_input else None
@@ -149,17 +148,10 @@ class MppiController(LeafSystem):
         status = context.get_discrete_state(self._status_index).get_value().copy()
         heights = context.get_discrete_state(self._map_index).get_value().reshape(grid.shape)
         nominal = context.get_discrete_state(self._nominal_index).get_value().copy()
-        origin = grid.window_origin(pose[:2])
-        if status[_WINDOW_VALID]:
-            heights = grid.roll(heights, status[_WX:_WY + 1].astype(int), origin)
-        status[_WX:_WINDOW_VALID + 1] = [*origin, 1.0]
         points_W = self.cloud_in_world(self._cloud_port.Eval(context), X_WB)
-        if len(points_W):
-            heights = grid.fuse(heights, origin, points_W)
-        # The ground under the wheels, which the lidar never sees: the plane through the contacts.
-        z_W = X_WB.rotation().matrix()[:, 2]
-        half = [robot.WHEELBASE_M / 2 + robot.WHEEL_RADIUS_M, robot.TRACK_M / 2 + 0.05]
-        heights = grid.fill_footprint(heights, origin, pose, half, X_WB.translation() - robot.WHEEL_RADIUS_M * z_W, z_W)
+        window = status[_WX:_WY + 1].astype(int) if status[_WINDOW_VALID] else None
+        heights, origin = fuse_scan(grid, heights, window, X_WB, points_W)
+        status[_WX:_WINDOW_VALID + 1] = [*origin, 1.0]
         command = np.zeros(2)
         update = int(status[_UPDATES])
         status[_UPDATES] += 1

@@ -35,6 +35,12 @@ class WindowRouteConfig:
         lookahead_m: how far ahead along a line the robot aims while joining it.
         max_slope_deg: the steepest wall section a window may hold (None: the robot's smallest
             tip-over angle, `windows.smallest_tip_angle_deg`).
+        narrow_room_m: in a window too narrow for the style's angle to the edge (down the wall
+            at the wall angle the robot travels some 10 m along it), the run down or up the
+            wall is steepened until this much of the window, within the margins, is left over.
+        steepest_run_deg: the steepest angle to the edge a run is steepened to.
+        climb_correction_deg: how far the climb's heading may turn from its angle to the edge
+            to reach the planned exit (`WindowRouteDriver._climb_heading`).
     """
 
     window_margin_m: float = 0.5
@@ -42,6 +48,9 @@ class WindowRouteConfig:
     run_up_m: float = 2.5
     lookahead_m: float = 2.5
     max_slope_deg: float | None = None
+    narrow_room_m: float = 0.5
+    steepest_run_deg: float = 30.0
+    climb_correction_deg: float = 15.0
 
 
 @dataclass(frozen=True)
@@ -53,10 +62,13 @@ class WindowRoute:
         entry: the window on the start's wall.
         exit: the window on the goal's wall.
         descend_sign: the way the descent runs along the course.
+        descend_angle_deg: the descent's angle to the edge: the style's wall angle, steeper in a
+            narrow window (`WindowRouteConfig.narrow_room_m`).
         descend_hinge_m: where the descent leaves the flat (the entry window's hinge line).
         descend_toe_m: where it reaches the toe.
         approach_xy: where it enters the approach zone, from which on it holds the wall angle.
         climb_sign: the way the climb runs along the course.
+        climb_angle_deg: the climb's angle to the edge: the style's, steeper in a narrow window.
         climb_toe_m: where the climb leaves the toe.
         climb_hinge_m: where it reaches the hinge line, on the flat again.
         exit_range_m: where the climb may reach the hinge line (aimed with `exit_slack_m`).
@@ -65,10 +77,12 @@ class WindowRoute:
     entry: Window
     exit: Window
     descend_sign: float
+    descend_angle_deg: float
     descend_hinge_m: float
     descend_toe_m: float
     approach_xy: tuple[float, float]
     climb_sign: float
+    climb_angle_deg: float
     climb_toe_m: float
     climb_hinge_m: float
     exit_range_m: tuple[float, float]
@@ -110,6 +124,17 @@ class WindowRoutePlanner:
         across = max(bottom_end - offset_m, 0.0) / math.tan(math.radians(driver.bottom_angle_deg))
         return across + max(hinge_distance_m - max(offset_m, bottom_end), 0.0) / math.tan(math.radians(climb_angle_deg))
 
+    def run_angle_deg(self, window: Window, angle_deg: float) -> float:
+        """The angle to the edge (deg) of a run down or up `window`'s wall: `angle_deg`, or in a
+        window too narrow for it, the shallowest steeper one that leaves
+        `WindowRouteConfig.narrow_room_m` of the window within the margins (at most
+        `steepest_run_deg`)."""
+        config = self.config
+        room = window.width_m - 2.0 * self.margin_m - config.narrow_room_m
+        drop = window.hinge_distance_m - self.terrain.toe_distance_m
+        fitting = math.degrees(math.atan2(drop, room)) if room > 0.0 else 90.0
+        return max(angle_deg, min(fitting, config.steepest_run_deg))
+
     def plan(self, start_xy, wall_angle_deg: float, climb_angle_deg: float,
              approach_margin_m: float) -> WindowRoute | None:
         """The route from `start_xy`; None where the start and the goal share a side, or a
@@ -120,14 +145,15 @@ class WindowRoutePlanner:
             return None
         terrain, frame = self.terrain, self.frame
         toe = terrain.toe_distance_m
-        wall = math.radians(wall_angle_deg)
         start_along, start_offset = (float(v) for v in frame.along_and_offset(start_xy))
         start_distance = abs(start_offset)
         zone_m = terrain.hinge_distance_m + approach_margin_m
-        # Ahead of the approach point by less than this along the course, the robot has not the run-up to turn.
-        run_up = (self.config.run_up_m - math.sin(wall) * (start_distance - zone_m)) / math.cos(wall)
         best = None
         for window in self.windows[start_side]:
+            angle_deg = self.run_angle_deg(window, wall_angle_deg)
+            wall = math.radians(angle_deg)
+            # Ahead of the approach point by less than this along the course, the robot has not the run-up to turn.
+            run_up = (self.config.run_up_m - math.sin(wall) * (start_distance - zone_m)) / math.cos(wall)
             wall_along = (window.hinge_distance_m - toe) / math.tan(wall)
             flat_along = (zone_m - window.hinge_distance_m) / math.tan(wall)
             for sign in (-1.0, 1.0):
@@ -139,28 +165,28 @@ class WindowRoutePlanner:
                 approach_along = hinge - sign * flat_along
                 cost = 5.0 * short_m + abs(approach_along - start_along)
                 if best is None or cost < best[0]:
-                    best = (cost, window, sign, hinge, approach_along)
-        _, entry, descend_sign, hinge, approach_along = best
-        toe_along = hinge + descend_sign * (entry.hinge_distance_m - toe) / math.tan(wall)
+                    best = (cost, window, sign, angle_deg, hinge, approach_along)
+        _, entry, descend_sign, descend_deg, hinge, approach_along = best
+        toe_along = hinge + descend_sign * (entry.hinge_distance_m - toe) / math.tan(math.radians(descend_deg))
         side_sign = frame.side_sign(start_side)
         approach_xy = frame.point(approach_along, side_sign * zone_m)
-        exit_choice = self._exit(toe_along, climb_angle_deg)
-        exit_window, climb_sign, climb_hinge, exit_range = exit_choice
-        climb_toe = climb_hinge - climb_sign * (exit_window.hinge_distance_m - toe) / math.tan(
-            math.radians(climb_angle_deg))
-        return WindowRoute(entry, exit_window, descend_sign, hinge, toe_along, tuple(approach_xy.tolist()),
-                           climb_sign, climb_toe, climb_hinge, exit_range)
+        exit_window, climb_sign, climb_deg, climb_hinge, exit_range = self._exit(toe_along, climb_angle_deg)
+        climb_toe = climb_hinge - climb_sign * (exit_window.hinge_distance_m - toe) / math.tan(math.radians(climb_deg))
+        return WindowRoute(entry, exit_window, descend_sign, descend_deg, hinge, toe_along,
+                           tuple(approach_xy.tolist()), climb_sign, climb_deg, climb_toe, climb_hinge, exit_range)
 
-    def _exit(self, toe_along_m: float, climb_angle_deg: float) -> tuple[Window, float, float, tuple[float, float]]:
-        """The exit window, the way the climb runs, where it reaches the hinge, and the range it
-        may reach it in: the least driving along the floor and then along the rim to the goal."""
+    def _exit(self, toe_along_m: float, climb_angle_deg: float) -> tuple[Window, float, float, float,
+                                                                          tuple[float, float]]:
+        """The exit window, the way the climb runs, its angle to the edge, where it reaches the
+        hinge, and the range it may reach it in: the least driving along the floor and then
+        along the rim to the goal."""
         toe = self.terrain.toe_distance_m
-        climb = math.radians(climb_angle_deg)
         goal_along = float(self.frame.along_and_offset(self.goal_xy)[0])
         best = None
         for window in self.windows[self.goal_side]:
-            wall_along = (window.hinge_distance_m - toe) / math.tan(climb)
-            straight_on = self.crossing_along_m(window.hinge_distance_m, -toe, climb_angle_deg)
+            angle_deg = self.run_angle_deg(window, climb_angle_deg)
+            wall_along = (window.hinge_distance_m - toe) / math.tan(math.radians(angle_deg))
+            straight_on = self.crossing_along_m(window.hinge_distance_m, -toe, angle_deg)
             for sign in (-1.0, 1.0):
                 low, high = _placements(window, sign, wall_along, self.margin_m)
                 slack = min(self.config.exit_slack_m, (high - low) / 2)
@@ -170,7 +196,7 @@ class WindowRoutePlanner:
                 back = sign * (hinge - natural) < 0.0
                 cost = abs(hinge - natural) + 2.0 * back + abs(hinge - goal_along)
                 if best is None or cost < best[0]:
-                    best = (cost, window, sign, hinge, (low, high))
+                    best = (cost, window, sign, angle_deg, hinge, (low, high))
         return best[1:]
 
 
@@ -183,9 +209,11 @@ class WindowRouteDriver(EdgeAngleDriver):
     the line along which descending at the wall angle stays inside the entry window; holds the
     wall angle down from the approach zone; drives along the floor until crossing at the bottom
     angle and climbing at the climb angle ends inside the exit window (which may lie elsewhere
-    along the ditch); climbs; then goes to the goal as `EdgeAngleDriver` does, along the rim while
+    along the ditch); climbs, steering toward the planned exit against the wheels' sideways slip;
+    then goes to the goal as `EdgeAngleDriver` does, along the rim while
     the straight line is blocked. The angles and the approach margin are the style's
-    (`set_style`); with `replan_each_step` the phase follows from the current pose (the route
+    (`set_style`; a window too narrow for an angle steepens its run there,
+    `WindowRoutePlanner.run_angle_deg`); with `replan_each_step` the phase follows from the current pose (the route
     still from the start).
 
     .. pydrake_system::
@@ -213,8 +241,7 @@ class WindowRouteDriver(EdgeAngleDriver):
                       style: np.ndarray) -> tuple[float, int]:
         """Desired heading (rad) at xy on `route`, and the phase to keep (DESCEND, ALONG_FLOOR,
         CLIMB, EXITED). `style` as `EdgeAngleDriver.desired_heading`'s."""
-        wall_angle_deg, climb_angle_deg, approach_margin_m, replan, _ = np.asarray(style, dtype=float)
-        climb_angle_deg = wall_angle_deg if math.isnan(climb_angle_deg) else climb_angle_deg
+        replan = float(np.asarray(style, dtype=float)[3])
         frame, terrain, driver = self._planner.frame, self._terrain, self._config
         along, offset = (float(v) for v in frame.along_and_offset(xy))
         far = frame.side_sign(route.exit.side)
@@ -227,14 +254,14 @@ class WindowRouteDriver(EdgeAngleDriver):
                      CLIMB if across <= terrain.hinge_distance_m else EXITED)
         if phase == DESCEND and across >= -(toe - driver.bottom_margin_m / 2):
             phase = ALONG_FLOOR
-        if phase == ALONG_FLOOR and self._climb_starts_here(along, across, heading, route, climb_angle_deg):
+        if phase == ALONG_FLOOR and self._climb_starts_here(along, across, heading, route):
             phase = CLIMB
         if phase == CLIMB and across > terrain.hinge_distance_m:
             phase = EXITED
         if phase == EXITED:
             return self.desired_heading(xy, 0.0, EXITED, style, heading)[::2]
         if phase == DESCEND:
-            wall = math.radians(wall_angle_deg)
+            wall = math.radians(route.descend_angle_deg)
             down = math.cos(wall) * route.descend_sign * frame.tangent + math.sin(wall) * toward_far
             # On the flat, even inside the approach zone, keep to the line (a robot that starts near
             # the zone would otherwise enter it early, and descend the whole way too early).
@@ -243,16 +270,35 @@ class WindowRouteDriver(EdgeAngleDriver):
                                                    self._planner.config.lookahead_m)), phase
             return math.atan2(down[1], down[0]), phase
         if phase == ALONG_FLOOR:
-            way = 1.0 if self._predicted_exit_m(along, across, heading, route, climb_angle_deg) < (
+            way = 1.0 if self._predicted_exit_m(along, across, heading, route) < (
                 route.climb_hinge_m) else -1.0
             target = frame.point(along + way * self._planner.config.lookahead_m, 0.0)
             return _heading_to(xy, target), phase
-        angle = math.radians(driver.bottom_angle_deg if across < toe - driver.bottom_margin_m else climb_angle_deg)
-        up = math.cos(angle) * route.climb_sign * frame.tangent + math.sin(angle) * toward_far
-        return math.atan2(up[1], up[0]), phase
+        if across < toe - driver.bottom_margin_m:
+            angle = math.radians(driver.bottom_angle_deg)
+            up = math.cos(angle) * route.climb_sign * frame.tangent + math.sin(angle) * toward_far
+            return math.atan2(up[1], up[0]), phase
+        return self._climb_heading(xy, route), phase
 
-    def _predicted_exit_m(self, along: float, across: float, heading: float, route: WindowRoute,
-                          climb_angle_deg: float) -> float:
+    def _climb_heading(self, xy: np.ndarray, route: WindowRoute) -> float:
+        """Up the exit wall: toward the point `lookahead_m` beyond the planned exit on the climb's
+        line, so that the wheels' sideways slip, which carries the robot further along the wall
+        than its heading, is steered out (held within `climb_correction_deg` of the climb angle)."""
+        frame, config = self._planner.frame, self._planner.config
+        far = frame.side_sign(route.exit.side)
+        angle = math.radians(route.climb_angle_deg)
+        up = math.cos(angle) * route.climb_sign * frame.tangent + math.sin(angle) * far * frame.left
+        aim = frame.point(route.climb_hinge_m, far * route.exit.hinge_distance_m) + config.lookahead_m * up
+        to_aim = aim - xy
+        # The aim's angle to the edge, measured from the climb's way along the course.
+        aim_deg = math.degrees(math.atan2(float(to_aim @ (far * frame.left)),
+                                          float(to_aim @ (route.climb_sign * frame.tangent))))
+        held = math.radians(min(max(aim_deg, route.climb_angle_deg - config.climb_correction_deg),
+                                route.climb_angle_deg + config.climb_correction_deg))
+        heading = math.cos(held) * route.climb_sign * frame.tangent + math.sin(held) * far * frame.left
+        return math.atan2(heading[1], heading[0])
+
+    def _predicted_exit_m(self, along: float, across: float, heading: float, route: WindowRoute) -> float:
         """Where along the course a climb begun now reaches the exit window's hinge line: the
         turn onto the bottom angle at the tightest radius, then the crossing."""
         frame = self._planner.frame
@@ -264,12 +310,11 @@ class WindowRouteDriver(EdgeAngleDriver):
         ahead = TURN_RADIUS_M * turn * (math.sin(then) - math.sin(now))
         aside = TURN_RADIUS_M * turn * (math.cos(now) - math.cos(then))
         return along + route.climb_sign * (ahead + self._planner.crossing_along_m(
-            route.exit.hinge_distance_m, across + aside, climb_angle_deg))
+            route.exit.hinge_distance_m, across + aside, route.climb_angle_deg))
 
-    def _climb_starts_here(self, along: float, across: float, heading: float, route: WindowRoute,
-                           climb_angle_deg: float) -> bool:
+    def _climb_starts_here(self, along: float, across: float, heading: float, route: WindowRoute) -> bool:
         low, high = route.exit_range_m
-        exit_m = self._predicted_exit_m(along, across, heading, route, climb_angle_deg)
+        exit_m = self._predicted_exit_m(along, across, heading, route)
         return low - 0.3 <= exit_m <= high + 0.3
 
     def _route(self, context, xy: np.ndarray, style: np.ndarray) -> WindowRoute | None:

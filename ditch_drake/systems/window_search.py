@@ -34,17 +34,21 @@ class WindowSearchConfig:
     Attributes:
         crossable_slope_deg: a wall no steeper than this is crossable: below the robot's
             smallest static tip-over angle (59.6 deg about the axles,
-            `ditch_drake.world.ingress.smallest_tip_angle_deg`) by a margin for the fit's error
-            and for the roll of an oblique crossing.
+            `ditch_drake.world.ingress.smallest_tip_angle_deg`), and above the steepest
+            window (55 deg) by a margin for the fit's error (a 54 deg window must not read
+            as steep in places).
         min_window_m: the shortest crossable section taken: the robot's width and a margin.
         bin_m: the wall's slope is estimated in bins this long along the edge.
         memory_m: the bins remembered span this much along the edge each side of where it was found.
         edge_standoff_m: the search drives this far short of the edge line.
         lookahead_m: a search's target lies this far ahead along the edge (or the floor).
-        max_search_m: one way along, the search turns back after this; the other way after
-            twice this (past where it started); then it gives up and heads for the goal.
-        stall_s: it turns back (or gives up) after this long without `stall_progress_m` of
-            progress along (a fence, the ditch's end).
+        first_leg_m: the search goes first toward the goal's along and this far beyond it,
+            then turns back and goes twice as far past its start the other way, and so on,
+            each turn twice as far out (a way near either side is found before one far off).
+        max_search_m: a side is done once the search is this far along it from the start;
+            with both sides done it gives up and heads for the goal.
+        stall_s: a side is done (the search turns back, or gives up) after this long without
+            `stall_progress_m` of progress along (a fence, the ditch's end).
         stall_progress_m: see `stall_s`.
         entry_across_m: a way in aims this far across the edge line (into the ditch).
         descent_lead_m: a way in aims this far ahead along (an oblique descent travels along).
@@ -62,13 +66,14 @@ class WindowSearchConfig:
             wall's hinge lies set back from a steep one's).
     """
 
-    crossable_slope_deg: float = 55.0
+    crossable_slope_deg: float = 58.0
     min_window_m: float = 1.5
     bin_m: float = 0.5
     memory_m: float = 50.0
     edge_standoff_m: float = 0.8
     lookahead_m: float = 3.0
-    max_search_m: float = 30.0
+    first_leg_m: float = 8.0
+    max_search_m: float = 60.0
     stall_s: float = 10.0
     stall_progress_m: float = 0.5
     entry_across_m: float = 4.0
@@ -94,9 +99,9 @@ class WindowSearchConfig:
 
 
 # Layout of the bookkeeping state.
-(_PHASE, _DIRECTION, _FRAME_X, _FRAME_Y, _FRAME_ANGLE, _TOP_Z, _FLOOR_Z, _LEG_START, _TURNED, _BEST, _STALL,
- _WINDOW_FROM, _WINDOW_TO, _FAR_FOOT) = range(14)
-_STATE_SIZE = 14
+(_PHASE, _DIRECTION, _FRAME_X, _FRAME_Y, _FRAME_ANGLE, _TOP_Z, _FLOOR_Z, _ORIGIN, _DONE_SIDES, _BEST, _STALL,
+ _WINDOW_FROM, _WINDOW_TO, _FAR_FOOT, _REACH) = range(15)
+_STATE_SIZE = 15
 
 
 class WindowSearch(LeafSystem):
@@ -111,8 +116,10 @@ class WindowSearch(LeafSystem):
     map's window moves on; once a section no steeper than `crossable_slope_deg` and at least
     `min_window_m` long is seen, the target lies across the edge inside it; on the floor, the
     same along the floor for the far wall; up it, the target lies beyond the far wall's foot
-    inside its window; back at the top's height, the goal. A search turns back after
-    `max_search_m` or a stall, and gives up for the goal after the other way. It reads the
+    inside its window; back at the top's height, the goal. A search goes toward the goal's
+    along and `first_leg_m` beyond, then turns back, each turn twice as far from its start; a side is done at
+    `max_search_m`, a stall or where the ditch ends ahead (the ground across the edge seen
+    level, or the floor rising ahead), and with both done it gives up for the goal. It reads the
     robot's sensors (the map), its pose and the goal: nothing privileged.
 
     .. pydrake_system::
@@ -147,7 +154,7 @@ class WindowSearch(LeafSystem):
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         self._target_index = self.DeclareDiscreteState(self._goal_xy.copy())
         state = np.full(_STATE_SIZE, np.nan)
-        state[[_PHASE, _DIRECTION, _TURNED, _STALL]] = [SearchPhase.APPROACH, 1.0, 0.0, 0.0]
+        state[[_PHASE, _DIRECTION, _DONE_SIDES, _STALL]] = [SearchPhase.APPROACH, 1.0, 0.0, 0.0]
         self._state_index = self.DeclareDiscreteState(state)
         self._near_index = self.DeclareDiscreteState(np.full(bins, np.nan))
         self._far_index = self.DeclareDiscreteState(np.full(bins, np.nan))
@@ -192,8 +199,7 @@ class WindowSearch(LeafSystem):
                 s_goal, _ = frame.coordinates(self._goal_xy)
                 state[_FRAME_X:_FRAME_ANGLE + 1] = frame.to_vector()
                 state[_TOP_Z] = ground_z
-                state[_DIRECTION] = 1.0 if abs(s_goal - s_robot) <= 1.0 else math.copysign(1.0, s_goal - s_robot)
-                self._start_leg(state, s_robot)
+                self._start_search(state, s_robot, s_goal)
                 phase = SearchPhase.SEARCH_IN
         if phase != SearchPhase.APPROACH:
             frame = windows.EdgeFrame.from_vector(state[_FRAME_X:_FRAME_ANGLE + 1])
@@ -202,19 +208,19 @@ class WindowSearch(LeafSystem):
         if phase in (SearchPhase.SEARCH_IN, SearchPhase.GOING_IN):
             seen = windows.wall_slopes(*bin_args, state[_TOP_Z], (-c.near_band_m, c.near_band_m), rising=False)
             near = np.where(np.isfinite(seen), seen, near)
-            searching, window = self._search_step(near, state, s_robot, phase == SearchPhase.SEARCH_IN)
+            ended = windows.edge_ended(*bin_args[:4], self._ahead(state, s_robot), (0.5, c.near_band_m), state[_TOP_Z])
+            searching, window = self._search_step(near, state, s_robot, phase == SearchPhase.SEARCH_IN, ended)
             if searching:
                 target = frame.point(s_robot + state[_DIRECTION] * c.lookahead_m, -c.edge_standoff_m)
             else:
                 phase = SearchPhase.GOING_IN
-                target = self._goal_xy if window is None else frame.point(
-                    windows.along_target(window, s_robot, state[_DIRECTION], c.descent_lead_m, c.window_margin_m),
-                    c.entry_across_m)
+                on_top = ground_z > state[_TOP_Z] - c.out_rise_m
+                target = self._goal_xy if window is None else self._crossing_target(
+                    frame, window, state, s_robot, yaw, c.descent_lead_m, c.entry_across_m, on_top, -c.edge_standoff_m)
                 on_floor = ground_z < state[_TOP_Z] - c.floor_drop_m and tilt_deg < c.floor_tilt_deg
                 if on_floor:
                     state[_FLOOR_Z] = ground_z
-                    state[_TURNED] = 0.0
-                    self._start_leg(state, s_robot)
+                    self._start_search(state, s_robot, frame.coordinates(self._goal_xy)[0])
                     phase = SearchPhase.SEARCH_OUT
         if phase in (SearchPhase.SEARCH_OUT, SearchPhase.GOING_OUT) and ground_z < state[_FLOOR_Z] + c.out_rise_m:
             # Read from the floor only: from up the wall, the top beyond would pass for more wall.
@@ -225,16 +231,19 @@ class WindowSearch(LeafSystem):
             if np.isfinite(foot):
                 state[_FAR_FOOT] = foot
         if phase in (SearchPhase.SEARCH_OUT, SearchPhase.GOING_OUT):
-            searching, window = self._search_step(far, state, s_robot, phase == SearchPhase.SEARCH_OUT)
+            ended = windows.floor_ended(*bin_args[:4], self._ahead(state, s_robot), (c_robot - 0.5, c_robot + 0.5),
+                                        state[_FLOOR_Z])
+            searching, window = self._search_step(far, state, s_robot, phase == SearchPhase.SEARCH_OUT, ended)
+            across = (state[_FAR_FOOT] - c.far_standoff_m if np.isfinite(state[_FAR_FOOT])
+                      else c_robot + c.floor_drift_m)
             if searching:
-                across = (state[_FAR_FOOT] - c.far_standoff_m if np.isfinite(state[_FAR_FOOT])
-                          else c_robot + c.floor_drift_m)
                 target = frame.point(s_robot + state[_DIRECTION] * c.lookahead_m, across)
             else:
                 phase = SearchPhase.GOING_OUT
-                target = self._goal_xy if window is None else frame.point(
-                    windows.along_target(window, s_robot, state[_DIRECTION], c.ascent_lead_m, c.window_margin_m),
-                    state[_FAR_FOOT] + c.exit_across_m)
+                on_floor = ground_z < state[_FLOOR_Z] + c.out_rise_m
+                target = self._goal_xy if window is None else self._crossing_target(
+                    frame, window, state, s_robot, yaw, c.ascent_lead_m, state[_FAR_FOOT] + c.exit_across_m, on_floor,
+                    across)
                 if ground_z > state[_TOP_Z] - c.out_rise_m and c_robot > state[_FAR_FOOT]:
                     phase = SearchPhase.OUT
         if phase == SearchPhase.OUT:
@@ -245,47 +254,92 @@ class WindowSearch(LeafSystem):
         discrete_state.set_value(self._near_index, near)
         discrete_state.set_value(self._far_index, far)
 
-    def _search_step(self, slopes: np.ndarray, state: np.ndarray, s_robot: float,
-                     searching: bool) -> tuple[bool, tuple[float, float] | None]:
+    def _crossing_target(self, frame: windows.EdgeFrame, window: tuple[float, float], state: np.ndarray,
+                         s_robot: float, yaw: float, lead_m: float, across_m: float, on_level: bool,
+                         level_across_m: float) -> np.ndarray:
+        """The target of a crossing through `window`: `across_m` across, `lead_m` ahead along on
+        the way with room for it in the window (decided while `on_level`: turned back into the
+        window where the robot has passed its end). While the robot on the level heads off that
+        way by more than 60 deg, the target lies along the level (`level_across_m` across)
+        ahead that way instead: the MPPI climbs or descends toward a target ahead of it, but
+        drives away from one behind it up a wall beside it."""
+        c = self._config
+        if on_level:
+            state[_DIRECTION] = windows.crossing_direction(window, s_robot, state[_DIRECTION], lead_m + c.window_margin_m)
+            heading_along = frame.along @ np.array([math.cos(yaw), math.sin(yaw)])
+            if state[_DIRECTION] * heading_along < 0.5:
+                return frame.point(s_robot + state[_DIRECTION] * c.lookahead_m, level_across_m)
+        return frame.point(windows.along_target(window, s_robot, state[_DIRECTION], lead_m, c.window_margin_m),
+                           across_m)
+
+    def _ahead(self, state: np.ndarray, s_robot: float) -> tuple[float, float]:
+        """The along range (m) where the search looks for the ditch's end: from 1 m to
+        `lookahead_m` ahead."""
+        return s_robot + state[_DIRECTION] * 1.0, s_robot + state[_DIRECTION] * self._config.lookahead_m
+
+    def _search_step(self, slopes: np.ndarray, state: np.ndarray, s_robot: float, searching: bool,
+                     ended: bool) -> tuple[bool, tuple[float, float] | None]:
         """(still searching, the window to cross by: None where none is seen or the search gave up);
-        a window found is stored as the committed one."""
+        a window found is stored as the committed one. `ended`: the way along ends ahead."""
         window = self._window(slopes, state, s_robot, committed=not searching)
-        if searching and window is None:
-            if self._continue_search(state, s_robot):
-                return True, None
+        if searching and window is None and self._continue_search(state, s_robot, ended):
+            return True, None
         state[_WINDOW_FROM:_WINDOW_TO + 1] = window if window is not None else (np.nan, np.nan)
         return False, window
 
     def _window(self, slopes: np.ndarray, state: np.ndarray, s_robot: float,
                 committed: bool) -> tuple[float, float] | None:
-        """The window to cross by: the one overlapping the committed one, else the nearest seen."""
+        """The window to cross by: once committed, the committed one grown by those seen
+        overlapping it (a window seen later from further off, obliquely, may read shorter: it
+        never shrinks); else the nearest seen."""
         found = windows.crossable_windows(self._bin_edges_m, slopes, self._config.crossable_slope_deg,
                                           self._config.min_window_m)
         if committed:
             if not np.isfinite(state[_WINDOW_FROM]):
                 return None
             overlapping = [w for w in found if w[0] < state[_WINDOW_TO] and w[1] > state[_WINDOW_FROM]]
-            return overlapping[0] if overlapping else (float(state[_WINDOW_FROM]), float(state[_WINDOW_TO]))
+            return (min([float(state[_WINDOW_FROM]), *(w[0] for w in overlapping)]),
+                    max([float(state[_WINDOW_TO]), *(w[1] for w in overlapping)]))
         return windows.nearest_window(found, s_robot)
 
-    def _start_leg(self, state: np.ndarray, s_robot: float) -> None:
-        state[_LEG_START] = s_robot
+    def _start_search(self, state: np.ndarray, s_robot: float, s_goal: float) -> None:
+        """A new search from `s_robot`: first toward the goal's side along (the +s side where
+        the goal lies square across), as far as the goal's along and `first_leg_m` beyond: a way
+        short of the goal's along costs no detour."""
+        state[_DIRECTION] = 1.0 if abs(s_goal - s_robot) <= 1.0 else math.copysign(1.0, s_goal - s_robot)
+        state[_ORIGIN], state[_DONE_SIDES] = s_robot, 0.0
+        state[_REACH] = self._config.first_leg_m + abs(s_goal - s_robot)
+        self._start_leg(state, s_robot)
+
+    @staticmethod
+    def _start_leg(state: np.ndarray, s_robot: float) -> None:
         state[_BEST] = state[_DIRECTION] * s_robot
         state[_STALL] = 0.0
 
-    def _continue_search(self, state: np.ndarray, s_robot: float) -> bool:
-        """Books the progress along; turns back at the leg's end or a stall. False: given up."""
+    @staticmethod
+    def _side_bit(direction: float) -> int:
+        return 1 if direction > 0 else 2
+
+    def _continue_search(self, state: np.ndarray, s_robot: float, ended: bool) -> bool:
+        """Books the progress along; turns back at the leg's reach, or at `max_search_m`, a
+        stall or the end of the way along (`ended`: then that side is done), doubling the reach
+        each turn. False: both sides done."""
         c = self._config
         progress = state[_DIRECTION] * s_robot
         if progress > state[_BEST] + c.stall_progress_m:
             state[_BEST], state[_STALL] = progress, 0.0
         else:
             state[_STALL] += self._period_s
-        leg_m = c.max_search_m * (2.0 if state[_TURNED] else 1.0)
-        if abs(s_robot - state[_LEG_START]) < leg_m and state[_STALL] < c.stall_s:
+        out_m = state[_DIRECTION] * (s_robot - state[_ORIGIN])
+        done = int(state[_DONE_SIDES])
+        if ended or state[_STALL] >= c.stall_s or out_m >= c.max_search_m:
+            done |= self._side_bit(state[_DIRECTION])
+        elif out_m < state[_REACH] or done & self._side_bit(-state[_DIRECTION]):
             return True
-        if state[_TURNED]:
+        state[_DONE_SIDES] = done
+        if done & self._side_bit(-state[_DIRECTION]):
             return False
-        state[_DIRECTION], state[_TURNED] = -state[_DIRECTION], 1.0
+        state[_DIRECTION] = -state[_DIRECTION]
+        state[_REACH] = 2.0 * state[_REACH] if done == 0 else c.max_search_m
         self._start_leg(state, s_robot)
         return True
