@@ -34,11 +34,17 @@ class SchemaPage:
     controllers: bool = False  # Also every registered controller's config, and a table of them.
 
 
+# In this order: a dataclass is documented on the first page that reaches it, so the
+# controllers' configs (which the Scenario's controller field names) get a page of their own.
 SCHEMA_PAGES = (
+    SchemaPage("controllers.md", "Controllers", (
+        "Every registered controller and its config: the `controller:` of a Scenario, written with its class as a "
+        "YAML tag."), (), controllers=True),
     SchemaPage("scenario.md", "Scenario", (
         "Everything one run needs: the file that `--scenario FILE` reads and `--override YAML` changes "
-        "(`ditch_drake.diagrams.scenario.load_scenario`), with `!Tag` naming a controller's config."),
-        ("ditch_drake.diagrams.scenario:Scenario",), controllers=True),
+        "(`ditch_drake.diagrams.scenario.load_scenario`), with `!Tag` naming a controller's config "
+        "([Controllers](controllers.md))."),
+        ("ditch_drake.diagrams.scenario:Scenario",)),
     SchemaPage("files.md", "Experiment, ranges and environments files", (
         "The other YAML files a user writes: an experiment (`ditch-drake experiment FILE`), the benchmark's "
         "ranges (`--ranges FILE`) and environments (`--environments FILE`)."),
