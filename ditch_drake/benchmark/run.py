@@ -22,6 +22,7 @@ from ditch_drake.benchmark.splits import (
     ditches_file,
     split_ranges,
     split_seeds,
+    split_time_limit_s,
     write_ditches,
 )
 from ditch_drake.common.checks import check_count, check_finite_positive
@@ -33,7 +34,6 @@ from ditch_drake.diagrams.controllers import controller_config
 from ditch_drake.evaluation.batch import EvaluationReport, evaluate, make_specs
 from ditch_drake.evaluation.results import RolloutRecord, RolloutSpec
 from ditch_drake.learning.checkpoint import GENERALIST_MODEL as GENERALIST
-from ditch_drake.systems.episode_monitor import EpisodeConfig
 from ditch_drake.world.environments import environment_names
 
 # Each generated ditch's rollouts build diagrams of their own, and a worker's memory grows by
@@ -59,7 +59,8 @@ class BenchmarkConfig:
         ranges: a ranges YAML file ("": the split's packaged one, `splits.SPLIT_RANGES`:
             `stress_ranges.yaml` for "stress", `search_ranges.yaml` for "search" and "search_val",
             `ranges.yaml` for the others).
-        time_limit_s: each episode's limit.
+        time_limit_s: each episode's limit (s); None: the split's (`splits.split_time_limit_s`:
+            240 s for the search splits, 120 s for the others).
         override: YAML in the Scenario schema whose controller replaces the one of `controller`
             (e.g. "{controller: !LearnedPolicyConfig {search: {}}}"; a learned config naming no
             checkpoint takes `checkpoint`); "": none.
@@ -75,7 +76,7 @@ class BenchmarkConfig:
     seed: int = 0
     out: str = "results/benchmark/benchmark.jsonl"
     ranges: str = ""
-    time_limit_s: float = EpisodeConfig.time_limit_s
+    time_limit_s: float | None = None
     override: str = ""
     workers: int | None = None
     backend: str = "local"
@@ -150,7 +151,8 @@ def check_benchmark_config(config: BenchmarkConfig) -> None:
         check_count(config.geometries, "geometries")
     check_count(config.rollouts, "rollouts")
     check_seed(config.seed, config.rollouts)
-    check_finite_positive(config.time_limit_s, "time_limit_s")
+    if config.time_limit_s is not None:
+        check_finite_positive(config.time_limit_s, "time_limit_s")
     if config.checkpoint and not hasattr(controller_config(config.controller), "checkpoint"):
         raise ConfigError(f"checkpoint {config.checkpoint!r} with controller {config.controller!r}, which takes "
                           "none; expected a checkpoint only with a controller that takes one, such as 'learned'")
@@ -181,10 +183,11 @@ def benchmark_specs(config: BenchmarkConfig, progress: bool = True) -> list[Roll
         from ditch_drake.diagrams.rollout import with_crossing_side
 
         controller = with_crossing_side(controller_config(controller, checkpoint), config.crossing_side)
+    time_limit_s = split_time_limit_s(config.split) if config.time_limit_s is None else config.time_limit_s
     specs = []
     for name in names:
         specs += make_specs(controller, checkpoint, name, None, config.rollouts, config.seed,
-                            config.time_limit_s, environments_file)
+                            time_limit_s, environments_file)
     return specs
 
 

@@ -154,7 +154,9 @@ def add_benchmark(commands: Commands) -> None:
                            help="a ranges YAML file (default: the split's packaged one, "
                                 "ditch_drake/benchmark/ranges.yaml or, for stress, stress_ranges.yaml and, for search and "
                                 "search_val, search_ranges.yaml)")
-    add_time_limit(benchmark, default=ConfigDefault(BENCHMARK, "time_limit_s"))
+    benchmark.add_argument("--time-limit", type=float, default=ConfigDefault(BENCHMARK, "time_limit_s"),
+                           help="episode timeout in s (default: the split's: 240 for search and search_val, whose "
+                                "ways in and out may lie at opposite ends of a long ditch; 120 for the others)")
     benchmark.add_argument("--override", default=None, metavar="YAML",
                            help="YAML in the Scenario schema whose controller replaces --controller's, e.g. "
                                 "\"{controller: !LearnedPolicyConfig {search: {}}}\" (a learned config naming no "
