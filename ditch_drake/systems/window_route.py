@@ -224,9 +224,7 @@ class WindowRouteDriver(EdgeAngleDriver):
         output_ports:
         - command
 
-    Ports:
-        body_poses: the plant's body poses X_WB (vector of RigidTransform).
-        command: [v (m/s), w (rad/s)], updated at the control rate.
+    Ports: `EdgeAngleDriver`'s.
     """
 
     def __init__(self, terrain: DitchTerrain, goal_xy, chassis_body_index,
