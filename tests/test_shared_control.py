@@ -11,6 +11,7 @@ from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
 from ditch_drake.common.errors import ConfigError
+from ditch_drake.learning.gate_calibration import save_signals
 from ditch_drake.spec import robot
 from ditch_drake.systems.shared_control import FALLBACK, GATE_OFFSET_S, POLICY, SharedControl, SharedControlConfig
 
@@ -96,8 +97,12 @@ def test_bad_configs_are_refused_naming_the_value():
     bad = {
         "lower_threshold 0.6 > upper_threshold 0.5": {"upper_threshold": 0.5, "lower_threshold": 0.6},
         "calm_steps 0: expected an integer >= 1": {"calm_steps": 0},
-        r"budget 1.5: expected a share of control steps in \[0, 1\]": {"budget": 1.5},
-        r"budget -0.1": {"budget": -0.1},
+        r"budget 1.5: expected a share of control steps in \(0, 1\)": {"budget": 1.5, "calibration": "s.npz"},
+        r"budget -0.1": {"budget": -0.1, "calibration": "s.npz"},
+        r"budget 0: expected": {"budget": 0, "calibration": "s.npz"},
+        r"budget 1.0: expected": {"budget": 1.0, "calibration": "s.npz"},
+        "budget 0.05 without a calibration": {"budget": 0.05},
+        "calibration 's.npz' without a budget": {"calibration": "s.npz"},
         "signal 'spread': expected one of": {"signal": "spread"},
         "fallback 'person': expected one of": {"fallback": "person"},
         "upper_threshold nan: expected a number": {"upper_threshold": math.nan},
@@ -109,17 +114,23 @@ def test_bad_configs_are_refused_naming_the_value():
             SharedControl(SharedControlConfig(**fields))
 
 
-def test_a_budget_sets_the_upper_threshold_from_the_signal():
+def test_a_budget_sets_the_thresholds_from_its_calibration_file(tmp_path):
     values = np.linspace(0.0, 1.0, 101)
-    config = SharedControlConfig(budget=0.1, lower_threshold=0.95, upper_threshold=0.0)
-    config.validate()  # The fixed thresholds' order does not matter until the budget has set one.
-    with pytest.raises(ConfigError, match="budget 0.1: its upper threshold comes from"):
-        SharedControl(config)
-    resolved = config.with_budget(values)
-    assert resolved.upper_threshold == pytest.approx(0.9) and resolved.lower_threshold == pytest.approx(0.9)
-    assert resolved.budget is None
-    SharedControl(resolved)
-    never = SharedControlConfig(budget=0.0).with_budget(values)
-    assert never.upper_threshold == math.inf and never.lower_threshold == SharedControlConfig().lower_threshold
+    path = tmp_path / "signals.npz"
+    save_signals(path, "wide", "0" * 16, {"angular_rate_spread": values}, {"time_s": values, "episode": [0] * 101},
+                 {"episode_environment": ["wide"], "episode_task": [1], "episode_seed": [0],
+                  "episode_status": ["timeout"], "episode_end_time_s": [10.0]})
+    config = SharedControlConfig(budget=0.1, calibration=str(path), lower_threshold=0.95, upper_threshold=0.0)
+    config.validate()  # The fixed thresholds' order does not matter: the budget sets both.
+    resolved = config.resolved()
+    assert resolved.upper_threshold == pytest.approx(0.9) and resolved.lower_threshold == pytest.approx(0.8)
+    assert (resolved.budget, resolved.calibration) == (0.1, str(path))  # It says where they came from.
+    assert resolved.resolved() == resolved
+    assert SharedControl(config).config == resolved
     fixed = SharedControlConfig()
-    assert fixed.with_budget(values) is fixed
+    assert fixed.resolved() is fixed
+    with pytest.raises(ConfigError, match="gate.calibration .*missing.npz: cannot read it"):
+        SharedControl(SharedControlConfig(budget=0.05, calibration=str(tmp_path / "missing.npz")))
+    with pytest.raises(ConfigError, match="gate.calibration .* has no signal 'vote_entropy': it recorded "
+                                          r"\['angular_rate_spread'\]"):
+        SharedControlConfig(signal="vote_entropy", budget=0.05, calibration=str(path)).resolved()

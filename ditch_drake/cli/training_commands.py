@@ -1,4 +1,4 @@
-"""Commands of data and training: collect, train, checkpoint-info, train-generalist."""
+"""Commands of data and training: collect, train, checkpoint-info, train-generalist, gate-signals."""
 
 import json
 import sys
@@ -11,6 +11,7 @@ from ditch_drake.cli.options import (
     add_environments_file,
     add_out,
     add_workers,
+    check_task,
     print_table,
 )
 from ditch_drake.cli.shared_options import add_gate_options, shared_config_from_options
@@ -296,4 +297,84 @@ def cmd_train_generalist(args) -> int:
         print("interrupted; finished stages are kept, run the same command again to continue", file=sys.stderr)
         return interrupt_exit_code(error)
     print(json.dumps(summary))
+    return 0
+
+
+GATE_SIGNALS = "ditch_drake.evaluation.gate_signals:record_gate_signals"
+AUC = "ditch_drake.learning.gate_calibration:auc_report"
+
+
+def add_gate_signals(commands: Commands) -> None:
+    signals = commands.add("gate-signals", "the learned policy's uncertainty signals at every control step of its own "
+                                           "validation rollouts, and how well each foresees a rollover (ROC AUC)")
+    signals.add_argument("--checkpoint", required=True,
+                         help="the policy, a shipped name, a .pt file or an ensemble file (an ensemble records the "
+                              "disagreement signals too)")
+    add_env(signals, many=True)
+    add_environments_file(signals)
+    signals.add_argument("--task", type=int, action="append", default=None,
+                         help="task index (repeatable; default None: every task of each environment)")
+    signals.add_argument("--rollouts", type=int, default=ConfigDefault(GATE_SIGNALS, "rollouts"),
+                         help="seeded rollouts per task")
+    signals.add_argument("--seed", type=int, default=ConfigDefault(GATE_SIGNALS, "seed"),
+                         help="first seed; rollout i of each task uses seed + i (validation seeds: keep the test "
+                              "seeds out)")
+    signals.add_argument("--time-limit", type=float, default=ConfigDefault(GATE_SIGNALS, "time_limit_s"),
+                         help="episode timeout in s")
+    signals.add_argument("--horizon", type=float, default=ConfigDefault(AUC, "horizon_s"),
+                         help="a step is labelled a coming failure where its episode rolls over within this many "
+                              "seconds after it")
+    add_out(signals, "the signals file (.npz; refused if it exists); the AUC table is written beside it "
+                     "as <out>.auc.json")
+    signals.set_defaults(run=cmd_gate_signals)
+
+
+def cmd_gate_signals(args) -> int:
+    """Records the signals on the policy's own rollouts, then each signal's AUC of a rollover within --horizon s."""
+    import math
+
+    from ditch_drake.common.checks import check_count, check_finite_positive
+    from ditch_drake.common.files import prepare_output
+
+    out = prepare_output(args.out, "--out")
+    report_path = out.with_suffix(".auc.json")
+    for path in (out, report_path):
+        if path.exists():
+            raise ConfigError(f"--out {args.out}: {path} exists; expected a new path (delete it to record again)")
+    check_count(args.rollouts, "--rollouts")
+    check_seed(args.seed, args.rollouts, "--seed")
+    check_finite_positive(args.time_limit, "--time-limit")
+    check_finite_positive(args.horizon, "--horizon")
+    from ditch_drake.world.environments import environment_names, get_environment, load_environments
+
+    environments_file = args.environments or ""
+    environments = args.env or (list(load_environments(environments_file)) if environments_file
+                                else environment_names())
+    runs = []
+    for environment in environments:
+        tasks = len(get_environment(environment, environments_file or None).tasks)
+        for task in args.task if args.task is not None else range(tasks):
+            check_task(environment, task, environments_file)
+            runs.append((environment, task))
+    import torch
+
+    from ditch_drake.evaluation.batch import check_checkpoint
+    from ditch_drake.evaluation.gate_signals import record_gate_signals
+    from ditch_drake.learning.gate_calibration import auc_report, load_signals, save_signals, write_auc_report
+
+    digest = check_checkpoint(args.checkpoint)
+    torch.set_num_threads(1)  # One forward pass of one sample: as each evaluation worker runs it.
+    recorded = record_gate_signals(args.checkpoint, runs, args.rollouts, args.seed, args.time_limit,
+                                   environments_file)
+    save_signals(out, args.checkpoint, digest, recorded.signals, recorded.steps, recorded.episodes)
+    report = auc_report(load_signals(out), args.horizon, seed=args.seed)
+    write_auc_report(report_path, report)
+
+    def number(value: float) -> str:
+        return "-" if math.isnan(value) else f"{value:.3f}"
+
+    print_table([{**row, "auc": number(row["auc"]), "95% interval": f"[{number(row['ci_low'])}, "
+                  f"{number(row['ci_high'])}]"} for row in report["rows"]],
+                ["signal", "auc", "95% interval", "positive_steps", "steps", "rolled_over_episodes", "episodes"])
+    print(f"signals: {out}\nAUC of a rollover within {args.horizon} s: {report_path}")
     return 0

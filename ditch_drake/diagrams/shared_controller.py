@@ -33,7 +33,8 @@ from ditch_drake.diagrams.rollout import (
     LearnedPolicyConfig,
     MppiBaselineConfig,
 )
-from ditch_drake.learning.checkpoint import environment_model
+from ditch_drake.learning.checkpoint import checkpoint_digest, environment_model
+from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.learning.inference import is_ensemble
 from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS
 from ditch_drake.systems.driver_indicator import DriverIndicator
@@ -56,7 +57,8 @@ def default_gate() -> SharedControlConfig:
     with a lower one of 2.3 handed over in one of the six sequences (8 % of its steps), 1.4 %
     of all steps: rarely. It does not foresee the one failure among them (seed 0 rolled over
     at 8.4 s; its largest value was 2.05). Provisional until the signals are measured against
-    failures on validation rollouts, which will also set thresholds from a budget.
+    failures on validation rollouts (`ditch-drake gate-signals`); a budget with such a file
+    (`SharedControlConfig.budget`, `calibration`) sets them from the policy's own signal.
     """
     return SharedControlConfig(signal="mean_softmax_entropy", upper_threshold=2.55, lower_threshold=2.3,
                                calm_steps=5, fallback="expert")
@@ -72,9 +74,10 @@ class SharedControlControllerConfig:
             observation, crossing side and runtime. Its `uncertainty` output reports
             `gate.signal`.
         gate: when control passes to the fallback and back (`SharedControlConfig`), and who
-            the fallback is (`gate.fallback`: "expert", "mppi" or "teleop"). A `budget` is
-            refused for now: the signal's values over the policy's validation rollouts that
-            it needs are not recorded by any command yet; set the thresholds instead.
+            the fallback is (`gate.fallback`: "expert", "mppi" or "teleop"). With `gate.budget`
+            and `gate.calibration` (a signals file of `ditch-drake gate-signals` for this
+            policy), the thresholds are the budget's quantiles of the signal over the file's
+            steps (`resolved`).
         expert: the scripted expert's config, for `gate.fallback` "expert" (its style drawn
             from the episode's seed unless set).
         mppi: the MPPI planner's config, for `gate.fallback` "mppi" (it reads the policy's
@@ -108,16 +111,27 @@ class SharedControlControllerConfig:
             raise ConfigError("shared control fallback 'teleop' without a Meshcat: a person steers it on the Meshcat "
                               "page, which batch evaluation and the registered builders have none of; expected "
                               "fallback 'expert' or 'mppi'")
-        if self.gate.budget is not None:
-            raise ConfigError(f"shared control budget {self.gate.budget!r}: its upper threshold is the quantile of "
-                              f"the {self.gate.signal} signal over the policy's validation rollouts, and no command "
-                              "records those values yet; expected budget null with upper_threshold and "
-                              "lower_threshold set")
         if self.gate.signal in DISAGREEMENT_SIGNALS and not is_ensemble(self.policy.checkpoint):
             name = self.policy.checkpoint or "the environment's shipped model"
             raise ConfigError(f"shared control signal {self.gate.signal!r} with checkpoint {name!r}, a single clone "
                               "(K = 1): the signal is the members' disagreement; expected an ensemble file "
                               "(ditch-drake train --ensemble) or signal 'mean_softmax_entropy'")
+        self.gate.resolved()  # A budget's calibration file: there, with the signal, before any rollout.
+
+    def resolved(self) -> "SharedControlControllerConfig":
+        """This config with the gate's thresholds set from its budget (`SharedControlConfig.resolved`),
+        so that the config a record keeps says which thresholds ran; without a budget, itself.
+
+        Raises:
+            ConfigError: as `SharedControlConfig.resolved`, or a calibration file of another
+                checkpoint than the policy's (`check_calibration_policy`).
+        """
+        gate = self.gate.resolved()
+        if gate is self.gate:
+            return self
+        if self.policy.checkpoint:
+            check_calibration_policy(gate.calibration, self.policy.checkpoint)
+        return dataclasses.replace(self, gate=gate)
 
 
 def shared_for_seed(config: SharedControlControllerConfig, seed: int) -> SharedControlControllerConfig:
@@ -172,6 +186,8 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     """
     config.validate(meshcat)
     checkpoint = config.policy.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
+    if config.gate.budget is not None:
+        check_calibration_policy(config.gate.calibration, checkpoint)
     policy = AddLearnedPolicy(builder, scene, observation, checkpoint, config.policy.crossing_side,
                               config.policy.runtime, uncertainty_signal=config.gate.signal)
     fallback = _add_fallback(builder, scene, config, observation, meshcat)
@@ -187,6 +203,17 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
             meshcat, CHASSIS_MESHCAT_PATH, period_s=schedule.control_period_s, offset_s=schedule.recorder_offset_s))
         builder.Connect(gate.GetOutputPort("who_drives"), indicator.GetInputPort("who_drives"))
     return gate
+
+
+def check_calibration_policy(calibration: str, checkpoint: str) -> None:
+    """Raises ConfigError unless the signals file `calibration` was recorded with `checkpoint`'s
+    file (by digest): another policy's signal says nothing of this one's."""
+    recorded = load_signals(calibration, "gate.calibration")["checkpoint_sha256"]
+    digest = checkpoint_digest(checkpoint)
+    if recorded != digest:
+        raise ConfigError(f"gate.calibration {calibration}: recorded with checkpoint digest {recorded}, the gated "
+                          f"policy {checkpoint!r} has {digest}; expected a signals file of this policy "
+                          f"(ditch-drake gate-signals --checkpoint {checkpoint})")
 
 
 def _add_fallback(builder: DiagramBuilder, scene: DitchScene, config: SharedControlControllerConfig,

@@ -136,6 +136,8 @@ def make_specs(controller, checkpoint: str, environment: str, tasks: list[int] |
         config = with_checkpoint(config, environment_model(environment, environments_file))
     checkpoint = config_checkpoint(config)
     digest = check_checkpoint(checkpoint)
+    if hasattr(config, "resolved"):  # Values a file sets (the shared gate's budget): the record says what ran.
+        config = config.resolved()
     task_count = len(get_environment(environment, environments_file or None).tasks)
     tasks = list(range(task_count)) if tasks is None else list(tasks)
     bad = [task for task in tasks if not 0 <= task < task_count]

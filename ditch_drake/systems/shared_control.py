@@ -2,13 +2,15 @@
 
 import dataclasses
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.systems.framework import DiscreteValues, LeafSystem
 
+from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.learning.uncertainty import UNCERTAINTY_SIGNALS, check_budget, threshold_for_budget
+from ditch_drake.learning.gate_calibration import budget_thresholds, calibration_values
+from ditch_drake.learning.uncertainty import UNCERTAINTY_SIGNALS
 from ditch_drake.spec import robot
 from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S
 
@@ -28,12 +30,15 @@ class SharedControlConfig:
     Attributes:
         signal: the uncertainty signal the policy reports (`ditch_drake.learning.uncertainty`).
         upper_threshold: hand over when the signal is above this (the signal's unit: rad/s for
-            "angular_rate_spread", nats for the entropies). Set from `budget` when that is given.
+            "angular_rate_spread", nats for the entropies). With a budget, set from it.
         lower_threshold: hand back only after the signal has stayed below this ...
         calm_steps: ... for this many consecutive control steps (hysteresis: fewer switches).
-        budget: the share of control steps the fallback may drive, in [0, 1]; given, the upper
-            threshold is the quantile of the signal over the policy's own validation rollouts that
-            hands over that share (`with_budget`); None keeps the fixed thresholds.
+        budget: the share of control steps the fallback may drive, in (0, 1); given, both
+            thresholds come from the signal's values in `calibration` (`resolved`): the upper
+            one the (1 - budget) quantile, which hands over that share of the recorded steps,
+            the lower one the (1 - 2 budget) quantile. None: the fixed thresholds above.
+        calibration: with a budget, the signals file of the gated policy's own validation
+            rollouts (`ditch-drake gate-signals`) whose values of `signal` set the thresholds.
         fallback: who takes over, one of `FALLBACKS`.
     """
 
@@ -43,12 +48,13 @@ class SharedControlConfig:
     calm_steps: int = 5
     budget: float | None = None
     fallback: str = "expert"
+    calibration: str = field(default="", metadata=WRITTEN_WHEN_SET)
 
     def validate(self) -> None:
         """Raises ConfigError naming the first bad value.
 
-        With a budget, the thresholds' order is checked once the budget has set the upper one
-        (`with_budget`), since until then it is not known.
+        With a budget, the thresholds' order is not checked: the budget sets both (`resolved`),
+        and the file it reads is read only then.
         """
         if self.signal not in UNCERTAINTY_SIGNALS:
             raise ConfigError(f"shared control signal {self.signal!r}: expected one of {list(UNCERTAINTY_SIGNALS)}")
@@ -61,26 +67,36 @@ class SharedControlConfig:
             if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
                 raise ConfigError(f"shared control {key} {value!r}: expected a number")
         if self.budget is not None:
-            check_budget(self.budget, "shared control budget")
+            budget = self.budget
+            if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0.0 < budget < 1.0:
+                raise ConfigError(f"shared control budget {budget!r}: expected a share of control steps in (0, 1)")
+            if not self.calibration:
+                raise ConfigError(f"shared control budget {budget} without a calibration: its thresholds are "
+                                  f"quantiles of the {self.signal} signal over the policy's validation rollouts; "
+                                  "expected calibration: a signals file of ditch-drake gate-signals")
+        elif self.calibration:
+            raise ConfigError(f"shared control calibration {self.calibration!r} without a budget: expected a budget "
+                              "in (0, 1) to set the thresholds from it, or no calibration")
         elif self.lower_threshold > self.upper_threshold:
             raise ConfigError(f"shared control lower_threshold {self.lower_threshold} > upper_threshold "
                               f"{self.upper_threshold}: expected lower <= upper (hand back below, over above)")
 
-    def with_budget(self, signal_values) -> "SharedControlConfig":
-        """This config with the upper threshold its budget sets on `signal_values` (the signal over
-        the policy's own validation rollouts, `threshold_for_budget`) and no budget left to apply;
-        the lower threshold is kept, or lowered to the upper one where it was above it. Without a
-        budget, itself.
+    def resolved(self) -> "SharedControlConfig":
+        """This config with the thresholds its budget sets on its calibration file
+        (`ditch_drake.learning.gate_calibration.budget_thresholds`), the budget and the file
+        kept so that it says where they came from; without a budget, itself. Resolving a
+        resolved config gives the same thresholds (the file read again).
 
         Raises:
-            ConfigError: as `validate`, or from `threshold_for_budget`.
+            ConfigError: as `validate`; a calibration file that does not read, or has no values
+                of the signal (a single clone's has none of the disagreement signals), naming
+                `gate.calibration`.
         """
         self.validate()
         if self.budget is None:
             return self
-        upper = threshold_for_budget(signal_values, self.budget)
-        return dataclasses.replace(self, upper_threshold=upper, lower_threshold=min(self.lower_threshold, upper),
-                                   budget=None)
+        upper, lower = budget_thresholds(calibration_values(self.calibration, self.signal), self.budget)
+        return dataclasses.replace(self, upper_threshold=upper, lower_threshold=lower)
 
 
 class SharedControl(LeafSystem):
@@ -135,22 +151,18 @@ class SharedControl(LeafSystem):
         """Declares the ports, the state and the periodic update.
 
         Args:
-            config: the thresholds and hysteresis, with no budget left to apply (a budget's
-                threshold is set from the policy's validation rollouts by
-                `SharedControlConfig.with_budget`, which gives such a config).
+            config: the thresholds and hysteresis; a budget's are set from its calibration
+                file here (`SharedControlConfig.resolved`).
             period_s: update period (s), the control rate.
             offset_s: time of the first update (s).
 
         Raises:
-            ConfigError: a bad config, or one with a budget (its threshold not set yet).
+            ConfigError: a bad config, or a budget's calibration file that does not give the
+                signal's values.
             ValueError: a non-positive period or a negative offset.
         """
         super().__init__()
-        config.validate()
-        if config.budget is not None:
-            raise ConfigError(f"shared control budget {config.budget}: its upper threshold comes from the signal over "
-                              "the policy's validation rollouts; expected a config with it set "
-                              "(SharedControlConfig.with_budget)")
+        config = config.resolved()
         if not (period_s > 0 and offset_s >= 0):
             raise ValueError(f"period_s={period_s} must be positive and offset_s={offset_s} non-negative")
         self._config = config

@@ -1,0 +1,227 @@
+"""Which uncertainty signal foresees a failure, and the gate's thresholds from a budget.
+
+A signals file (`ditch-drake gate-signals`, `save_signals`) holds, for every control step of
+the learned policy's own validation rollouts (the policy driving, ungated), every uncertainty
+signal its checkpoint has (`ditch_drake.learning.uncertainty`), the step's time, and each
+episode's outcome and end time. From it:
+
+- `failure_labels`: a step is positive where its episode ends rolled over within `horizon_s`
+  after it;
+- `roc_auc`: how well a signal ranks the positive steps above the others (the Mann-Whitney U
+  over the product of the class sizes: 1 a perfect predictor, 0.5 one that knows nothing),
+  with `bootstrap_auc_interval` resampling whole episodes, since the steps of one episode are
+  far from independent;
+- `budget_thresholds`: ThriftyDAgger's rule, the gate's upper threshold the (1 - budget)
+  quantile of the signal over the recorded steps, so that on them the fallback would be handed
+  `budget` of the steps; the lower threshold the (1 - 2 budget) quantile (`LOWER_QUANTILE_RULE`).
+"""
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.files import atomic_output, atomic_write_text
+from ditch_drake.learning.uncertainty import threshold_for_budget
+
+# The episode status that counts as the failure a gate should foresee (`EpisodeStatus`).
+ROLLED_OVER = "rolled_over"
+# A step is labelled a coming failure where its episode rolls over within this long after it:
+# about the last two metres at the policy's speed, when a fallback can still turn away.
+FAILURE_HORIZON_S = 2.0
+# Bootstrap resamples of the episodes for the AUC's interval, and the interval's coverage.
+BOOTSTRAP_RESAMPLES = 2000
+CONFIDENCE = 0.95
+# The schema of a signals file, written into it (`save_signals`).
+SIGNALS_SCHEMA = "ditch_drake.gate_signals"
+SIGNALS_VERSION = 1
+# The arrays of a signals file besides one per signal (named by the signal), N steps and E episodes.
+STEP_ARRAYS = ("time_s", "episode")
+EPISODE_ARRAYS = ("episode_environment", "episode_task", "episode_seed", "episode_status", "episode_end_time_s")
+LOWER_QUANTILE_RULE = ("the (1 - 2 budget) quantile: the fallback hands back once the signal is as low as on all but "
+                       "twice the budget's share of the recorded steps")
+
+
+def failure_labels(time_s, episode, end_time_s, status, horizon_s: float = FAILURE_HORIZON_S) -> np.ndarray:
+    """Whether each step's episode ends rolled over within `horizon_s` after the step.
+
+    Args:
+        time_s: (N,) each step's time (s).
+        episode: (N,) each step's episode index into `end_time_s` and `status`.
+        end_time_s: (E,) when each episode ended (s).
+        status: (E,) each episode's outcome (`EpisodeStatus` names, lower case).
+        horizon_s: how long before the rollover a step counts (s).
+
+    Returns:
+        (N,) bool.
+    """
+    time_s, episode = np.asarray(time_s, dtype=float), np.asarray(episode, dtype=int)
+    end_time_s = np.asarray(end_time_s, dtype=float)
+    rolled = np.asarray(status) == ROLLED_OVER
+    # A nanosecond's slack: step times are sums of periods, and one on the horizon counts.
+    return rolled[episode] & (end_time_s[episode] - time_s <= horizon_s + 1e-9)
+
+
+def roc_auc(scores, labels) -> float:
+    """The ROC AUC of `scores` for the positive `labels`: the chance that a positive step's score
+    is above a negative one's, ties counted half (Mann-Whitney U / (positives x negatives)).
+    NaN where either class is empty."""
+    from scipy.stats import mannwhitneyu  # Here: the gate imports this module, and scipy takes a while.
+
+    scores, labels = np.asarray(scores, dtype=float), np.asarray(labels, dtype=bool)
+    positives, negatives = scores[labels], scores[~labels]
+    if positives.size == 0 or negatives.size == 0:
+        return math.nan
+    statistic = mannwhitneyu(positives, negatives, alternative="two-sided", method="asymptotic").statistic
+    return float(statistic) / (positives.size * negatives.size)
+
+
+def bootstrap_auc_interval(scores, labels, episode, seed: int = 0, resamples: int = BOOTSTRAP_RESAMPLES,
+                           confidence: float = CONFIDENCE) -> tuple[float, float, int]:
+    """A percentile bootstrap interval of `roc_auc`, resampling whole episodes with replacement.
+
+    Returns:
+        (low, high, used): the interval, and how many resamples had both classes (the others
+        have no AUC and are left out); (nan, nan, 0) where none had.
+    """
+    scores, labels = np.asarray(scores, dtype=float), np.asarray(labels, dtype=bool)
+    episode = np.asarray(episode, dtype=int)
+    episodes = np.unique(episode)
+    steps = [np.flatnonzero(episode == e) for e in episodes]
+    generator = np.random.default_rng(seed)
+    values = []
+    for _ in range(resamples):
+        chosen = np.concatenate([steps[i] for i in generator.integers(0, len(episodes), len(episodes))])
+        value = roc_auc(scores[chosen], labels[chosen])
+        if not math.isnan(value):
+            values.append(value)
+    if not values:
+        return math.nan, math.nan, 0
+    tail = 100.0 * (1.0 - confidence) / 2.0
+    low, high = np.percentile(values, [tail, 100.0 - tail])
+    return float(low), float(high), len(values)
+
+
+def signal_aucs(signals: dict, horizon_s: float = FAILURE_HORIZON_S, seed: int = 0,
+                resamples: int = BOOTSTRAP_RESAMPLES) -> list[dict]:
+    """One row per signal of a signals file's contents (`load_signals`): the AUC of "a rollover
+    within `horizon_s`", its bootstrap interval, and the counts it rests on."""
+    labels = failure_labels(signals["time_s"], signals["episode"], signals["episode_end_time_s"],
+                            signals["episode_status"], horizon_s)
+    rolled = int(np.sum(np.asarray(signals["episode_status"]) == ROLLED_OVER))
+    rows = []
+    for name in signals["signals"]:
+        low, high, used = bootstrap_auc_interval(signals[name], labels, signals["episode"], seed, resamples)
+        rows.append({"signal": str(name), "auc": roc_auc(signals[name], labels), "ci_low": low, "ci_high": high,
+                     "bootstrap_resamples": used, "positive_steps": int(labels.sum()), "steps": int(labels.size),
+                     "rolled_over_episodes": rolled, "episodes": len(signals["episode_status"])})
+    return rows
+
+
+def auc_report(signals: dict, horizon_s: float = FAILURE_HORIZON_S, seed: int = 0,
+               resamples: int = BOOTSTRAP_RESAMPLES) -> dict:
+    """The JSON beside a signals file: what was measured (`signal_aucs`) and how."""
+    return {"schema": f"{SIGNALS_SCHEMA}.auc", "version": SIGNALS_VERSION, "checkpoint": str(signals["checkpoint"]),
+            "checkpoint_sha256": str(signals["checkpoint_sha256"]), "horizon_s": horizon_s,
+            "confidence": CONFIDENCE, "bootstrap": "episodes resampled with replacement", "bootstrap_seed": seed,
+            "rows": signal_aucs(signals, horizon_s, seed, resamples)}
+
+
+def budget_thresholds(values, budget: float) -> tuple[float, float]:
+    """The gate's (upper, lower) thresholds that a budget sets on a signal's recorded values.
+
+    Upper: the (1 - budget) quantile (`threshold_for_budget`), above which `budget` of the
+    recorded steps lie. Lower: the (1 - 2 budget) quantile, the smallest value for budgets of
+    0.5 or more. A quantile of the signal's own distribution, not a ratio of the upper
+    threshold, so the band means the same for every signal, unit and model: a single clone's
+    softmax entropy never falls near 0 (the shipped `wide`'s median is about 1 nat), so a fixed
+    ratio would put the lower threshold in the bulk for one model and in the tail for another.
+
+    Raises:
+        ConfigError: a budget outside (0, 1), no values, or values that are not finite.
+    """
+    if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0.0 < budget < 1.0:
+        raise ConfigError(f"budget {budget!r}: expected a share of control steps in (0, 1)")
+    upper = threshold_for_budget(values, budget)
+    lower = float(np.quantile(np.asarray(values, dtype=float).ravel(), max(0.0, 1.0 - 2.0 * budget)))
+    return upper, lower
+
+
+def save_signals(path: str | os.PathLike, checkpoint: str, checkpoint_sha256: str, signals: dict[str, np.ndarray],
+                 steps: dict[str, np.ndarray], episodes: dict[str, list]) -> Path:
+    """Writes a signals file atomically (.npz, no pickled objects).
+
+    Args:
+        signals: each signal's values, (N,) by name.
+        steps: `STEP_ARRAYS`, (N,) each.
+        episodes: `EPISODE_ARRAYS`, (E,) each.
+    """
+    arrays = {"schema": np.array(SIGNALS_SCHEMA), "version": np.array(SIGNALS_VERSION),
+              "checkpoint": np.array(checkpoint), "checkpoint_sha256": np.array(checkpoint_sha256),
+              "signals": np.array(list(signals), dtype=str),
+              "time_s": np.asarray(steps["time_s"], dtype=float), "episode": np.asarray(steps["episode"], dtype=int),
+              "episode_environment": np.array(episodes["episode_environment"], dtype=str),
+              "episode_task": np.asarray(episodes["episode_task"], dtype=int),
+              "episode_seed": np.asarray(episodes["episode_seed"], dtype=np.int64),
+              "episode_status": np.array(episodes["episode_status"], dtype=str),
+              "episode_end_time_s": np.asarray(episodes["episode_end_time_s"], dtype=float),
+              **{name: np.asarray(values, dtype=float) for name, values in signals.items()}}
+    with atomic_output(path) as file:
+        np.savez(file, **arrays)
+    return Path(path)
+
+
+def load_signals(path: str | os.PathLike, what: str = "signals file") -> dict:
+    """A signals file's arrays by name ("signals": the signal names, a list of str; the scalars as
+    Python values).
+
+    Raises:
+        ConfigError: no such file, or not a signals file, naming `what` and the path.
+    """
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: data[name] for name in data.files}
+    except (OSError, ValueError) as error:
+        raise ConfigError(f"{what} {path!s}: cannot read it ({error}); expected a .npz of ditch-drake "
+                          "gate-signals") from error
+    missing = [name for name in ("schema", "signals", *STEP_ARRAYS, *EPISODE_ARRAYS) if name not in arrays]
+    if missing or str(arrays["schema"]) != SIGNALS_SCHEMA:
+        raise ConfigError(f"{what} {path!s}: not a signals file (missing {missing or ['its schema']}); expected a "
+                          ".npz of ditch-drake gate-signals")
+    arrays["signals"] = [str(name) for name in arrays["signals"]]
+    for name in ("schema", "checkpoint", "checkpoint_sha256"):
+        arrays[name] = str(arrays.get(name, ""))
+    return arrays
+
+
+def calibration_values(path: str | os.PathLike, signal: str, what: str = "gate.calibration") -> np.ndarray:
+    """The values of `signal` over the steps a signals file recorded.
+
+    Raises:
+        ConfigError: no such readable signals file, or one without `signal` (naming the ones it
+            has: a single clone's has only "mean_softmax_entropy"), naming `what`.
+    """
+    signals = load_signals(path, what)
+    if signal not in signals["signals"]:
+        raise ConfigError(f"{what} {path!s} has no signal {signal!r}: it recorded {signals['signals']}; expected a "
+                          "file of the gated policy (an ensemble's for the disagreement signals)")
+    return np.asarray(signals[signal], dtype=float)
+
+
+def write_auc_report(path: str | os.PathLike, report: dict) -> Path:
+    """Writes `auc_report`'s JSON atomically (NaN as null)."""
+    return atomic_write_text(path, json.dumps(_nan_as_none(report), indent=2) + "\n")
+
+
+def _nan_as_none(value):
+    if isinstance(value, dict):
+        return {key: _nan_as_none(item) for key, item in value.items()}
+    if isinstance(value, list):
+        return [_nan_as_none(item) for item in value]
+    if isinstance(value, float) and math.isnan(value):
+        return None
+    return value
+

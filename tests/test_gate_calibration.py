@@ -1,0 +1,145 @@
+"""Which signal foresees a rollover, and the gate's thresholds from a budget: the AUC and its
+episode bootstrap on synthetic cases, the labels of the steps before a rollover, a budget's
+thresholds from a signals file (and in a batch's records), and `ditch-drake gate-signals` on a
+short rollout."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import yaml
+
+from ditch_drake.cli import main
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
+from ditch_drake.evaluation.batch import make_specs
+from ditch_drake.learning.checkpoint import checkpoint_digest
+from ditch_drake.learning.gate_calibration import (
+    bootstrap_auc_interval,
+    budget_thresholds,
+    failure_labels,
+    load_signals,
+    roc_auc,
+    save_signals,
+    signal_aucs,
+)
+from ditch_drake.systems.shared_control import SharedControl, SharedControlConfig
+
+
+def _signals_file(path, values, checkpoint="wide", status=("rolled_over", "reached_goal")):
+    """Two episodes of len(values) / 2 steps 0.1 s apart, each ending at its last step."""
+    half = len(values) // 2
+    times = np.tile(np.arange(half) * 0.1, 2)
+    save_signals(path, checkpoint, checkpoint_digest(checkpoint), {"mean_softmax_entropy": values},
+                 {"time_s": times, "episode": np.repeat([0, 1], half)},
+                 {"episode_environment": ["wide", "wide"], "episode_task": [1, 1], "episode_seed": [0, 1],
+                  "episode_status": list(status), "episode_end_time_s": [times[half - 1]] * 2})
+    return path
+
+
+def test_the_auc_of_a_perfect_a_reversed_and_a_constant_predictor():
+    labels = np.array([0, 0, 0, 1, 1, 0, 1], dtype=bool)
+    assert roc_auc(labels.astype(float), labels) == 1.0
+    assert roc_auc(-labels.astype(float), labels) == 0.0
+    assert roc_auc(np.full(labels.size, 2.3), labels) == 0.5
+    assert roc_auc([0.1, 0.4, 0.35, 0.8], [0, 0, 1, 1]) == 0.75  # 3 of the 4 pairs ranked right.
+    assert math.isnan(roc_auc([0.1, 0.2], [0, 0]))  # No positive step: no AUC.
+
+
+def test_the_bootstrap_resamples_whole_episodes_with_a_seed():
+    rng = np.random.default_rng(0)
+    episode = np.repeat(np.arange(10), 20)
+    labels = (episode % 2 == 0) & (np.tile(np.arange(20), 10) >= 15)
+    scores = labels + rng.normal(0.0, 0.6, labels.size)
+    low, high, used = bootstrap_auc_interval(scores, labels, episode, seed=3, resamples=200)
+    assert low < roc_auc(scores, labels) < high and 0.5 < low and high <= 1.0 and 0 < used <= 200
+    assert bootstrap_auc_interval(scores, labels, episode, seed=3, resamples=200) == (low, high, used)
+    assert bootstrap_auc_interval(labels.astype(float), labels, episode, seed=0, resamples=50)[:2] == (1.0, 1.0)
+    nan_low, nan_high, none = bootstrap_auc_interval(scores, np.zeros(labels.size, bool), episode, resamples=5)
+    assert math.isnan(nan_low) and math.isnan(nan_high) and none == 0
+
+
+def test_steps_within_two_seconds_before_a_rollover_are_labelled():
+    time_s = np.array([0.0, 2.9, 3.0, 4.5, 5.0, 0.0, 4.9])
+    episode = np.array([0, 0, 0, 0, 0, 1, 1])
+    labels = failure_labels(time_s, episode, end_time_s=[5.0, 5.0], status=["rolled_over", "timeout"])
+    assert labels.tolist() == [False, False, True, True, True, False, False]
+    assert failure_labels(time_s, episode, [5.0, 5.0], ["rolled_over", "timeout"], horizon_s=0.5).tolist() == [
+        False, False, False, True, True, False, False]
+
+
+def test_a_budget_hands_over_its_share_of_the_recorded_steps(tmp_path):
+    values = np.random.default_rng(1).gamma(4.0, 0.3, 2000)
+    path = _signals_file(tmp_path / "signals.npz", values)
+    for budget in (0.01, 0.05, 0.2):
+        gate = SharedControlConfig(signal="mean_softmax_entropy", budget=budget, calibration=str(path)).resolved()
+        assert np.mean(values > gate.upper_threshold) == pytest.approx(budget, abs=1e-3)
+        assert np.mean(values > gate.lower_threshold) == pytest.approx(2 * budget, abs=1e-3)
+        assert SharedControl(gate).config.upper_threshold == gate.upper_threshold
+    assert budget_thresholds(values, 0.6)[1] == values.min()  # 1 - 2 budget < 0: the smallest value.
+    for bad in (0, 1, -0.1, 1.5, True):
+        with pytest.raises(ConfigError, match=f"budget {bad!r}: expected a share of control steps in"):
+            budget_thresholds(values, bad)
+
+
+def test_the_auc_rows_of_a_signals_file(tmp_path):
+    values = np.concatenate([np.linspace(0.5, 2.0, 50), np.full(50, 1.0)])  # Rising toward the rollover.
+    signals = load_signals(_signals_file(tmp_path / "s.npz", values))
+    (row,) = signal_aucs(signals, horizon_s=2.0, seed=0, resamples=50)
+    assert (row["signal"], row["positive_steps"], row["steps"], row["rolled_over_episodes"]) == (
+        "mean_softmax_entropy", 21, 100, 1)  # 2.9 s .. 4.9 s of the rolled-over episode.
+    assert row["auc"] == 1.0
+
+
+def test_a_budgeted_shared_config_records_the_thresholds_it_ran_with(tmp_path):
+    values = np.random.default_rng(2).uniform(0.0, 2.8, 400)
+    path = _signals_file(tmp_path / "wide.npz", values)
+    config = dataclasses.replace(SharedControlControllerConfig().with_checkpoint("wide"), gate=SharedControlConfig(
+        signal="mean_softmax_entropy", budget=0.05, calibration=str(path)))
+    (spec,) = make_specs(config, "", "wide", [1], rollouts=1, time_limit_s=2.0)
+    gate = yaml.safe_load(spec.controller_config)["gate"]
+    assert gate["upper_threshold"] == pytest.approx(np.quantile(values, 0.95))
+    assert gate["lower_threshold"] == pytest.approx(np.quantile(values, 0.90))
+    assert (gate["budget"], gate["calibration"]) == (0.05, str(path))
+    other = config.with_checkpoint("narrow")  # Another policy's signal says nothing of this one's.
+    with pytest.raises(ConfigError, match="gate.calibration .* recorded with checkpoint digest"):
+        make_specs(other, "", "narrow", [1], rollouts=1, time_limit_s=2.0)
+
+
+def test_gate_signals_records_every_step_of_a_short_rollout(tmp_path, capsys):
+    out = tmp_path / "signals.npz"
+    argv = ["gate-signals", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--rollouts", "1",
+            "--seed", "4", "--time-limit", "1", "--out", str(out)]
+    assert main(argv) == 0
+    printed = capsys.readouterr().out
+    assert "mean_softmax_entropy" in printed and "auc" in printed
+    signals = load_signals(out)
+    assert signals["signals"] == ["mean_softmax_entropy"] and signals["checkpoint"] == "wide_bc40"
+    assert signals["checkpoint_sha256"] == checkpoint_digest("wide_bc40")
+    np.testing.assert_allclose(signals["time_s"], 0.003 + 0.1 * np.arange(10), atol=1e-9)
+    assert signals["episode"].tolist() == [0] * 10
+    assert signals["mean_softmax_entropy"].shape == (10,)
+    assert np.all((signals["mean_softmax_entropy"] > 0) & (signals["mean_softmax_entropy"] < np.log(17)))
+    assert (signals["episode_status"].tolist(), signals["episode_end_time_s"].tolist(),
+            signals["episode_seed"].tolist()) == (["timeout"], [1.0], [4])
+    assert (tmp_path / "signals.auc.json").is_file()
+    # It never overwrites a recording.
+    assert main(argv) == 2
+    assert "exists" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--rollouts", "0"], "--rollouts"),
+    (["--task", "9"], "--task 9"),
+    (["--env", "nowhere"], "nowhere"),
+    (["--checkpoint", "no_such.pt"], "no_such.pt"),
+    (["--time-limit", "-1"], "--time-limit"),
+])
+def test_gate_signals_refuses_bad_input_with_exit_2(tmp_path, capsys, options, message):
+    out = tmp_path / "s.npz"
+    argv = ["gate-signals", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--out", str(out)]
+    code = main(argv + options)
+    err = capsys.readouterr().err
+    assert code == 2 and message in err, err
+    assert not out.exists()
