@@ -1,6 +1,8 @@
 """The search splits: straight ditches whose steep walls are crossable only through windows,
 drawn from `search_ranges.yaml` (ditch_drake/benchmark/generator.py, ranges.py, splits.py)."""
 
+import itertools
+
 import numpy as np
 import pytest
 
@@ -82,14 +84,14 @@ def test_a_search_ditch_has_windows_within_its_ranges_off_the_tasks_lines_and_wa
     for side in WALL_SIDES:
         sections = getattr(params.wall_slopes, side)
         assert sections[0].from_m == 0.0 and sections[-1].to_m == params.length_m
-        assert all(a.to_m == b.from_m for a, b in zip(sections, sections[1:]))
+        assert all(a.to_m == b.from_m for a, b in itertools.pairwise(sections))
         found = windows_of(terrain, side)
         assert windows.per_wall[0] <= len(found) <= windows.per_wall[1]
         for window in found:
             assert windows.slope_deg[0] <= window.slope_deg <= windows.slope_deg[1]
             assert windows.width_m[0] <= window.to_m - window.from_m <= windows.width_m[1] + 1e-9
             assert window.from_m >= windows.end_margin_m and window.to_m <= params.length_m - windows.end_margin_m
-        assert all(b.from_m - a.to_m >= WINDOW_GAP_M - 1e-3 for a, b in zip(found, found[1:]))
+        assert all(b.from_m - a.to_m >= WINDOW_GAP_M - 1e-3 for a, b in itertools.pairwise(found))
     for task in environment.tasks:
         # A controller that drives the straight line meets steep wall on both sides.
         start, goal = np.array(task.start[:2]), np.array(task.goal)
@@ -149,14 +151,14 @@ def windowed(**changes) -> BenchmarkRanges:
     ({"windows.width_m": [0.5, 8.0]}, r"windows.width_m=\[0.5, 8.0\] is out of bounds: expected .*0.67 <= low"),
     ({"windows.width_m": [12.0, 8.0]}, r"windows.width_m=\[12.0, 8.0\] is inverted"),
     ({"windows.slope_deg": [45.0, 62.0]}, r"windows.slope_deg=\[45.0, 62.0\] is out of bounds: .*<= 59.6"),
-    ({"windows.per_wall": [0, 2]}, r"windows.per_wall=\[0, 2\] is out of bounds: expected \[low, high\] of "
-                                   r"integers with 1 <= low"),
+    ({"windows.per_wall": [0, 2]}, (r"windows.per_wall=\[0, 2\] is out of bounds: expected \[low, high\] of "
+                                    r"integers with 1 <= low")),
     ({"windows.end_margin_m": 0.5}, r"windows.end_margin_m=0.5 is out of bounds: expected a number in \[1, 20\]"),
     ({"windows.line_margin_m": -1.0}, r"windows.line_margin_m=-1.0 is out of bounds"),
     ({"slope_deg": [65.0, 75.0]}, r"slope_deg=\[65.0, 75.0\] is out of bounds: expected .*68.4 <= low .*every heading"),
     ({"course_kinds": ["line", "sine"]}, r"course_kinds=\['line', 'sine'\] with windows: expected \[line\]"),
-    ({"course_length_m": [26.0, 36.0]}, r"course_length_m=\[26.0, 36.0\] is too short for the windows: .* at "
-                                        r"least 30 m"),
+    ({"course_length_m": [26.0, 36.0]}, (r"course_length_m=\[26.0, 36.0\] is too short for the windows: .* at "
+                                         r"least 30 m")),
     ({"course_length_m": [50.0, 90.0]}, r"course_length_m=\[50.0, 90.0\] is out of bounds"),
 ])
 def test_bad_window_ranges_are_refused_naming_the_key(changes, message):
