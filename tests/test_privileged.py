@@ -225,3 +225,14 @@ def test_the_benchmark_page_measures_the_perceived_side_against_the_oracles(tmp_
     assert "| generalist (perceived side) | paper | 450/500 (90.00 %); 1/2 | 450/500 (90.00 %); 1/2 |" in text
     assert "| generalist (perceived side) | narrow | 0 | 1 | line |" in text
     assert "| 150/200 | 10 | +0.5 to +2.4 | rolled_over |" in text
+
+
+def test_a_controller_with_the_window_search_is_its_own_marked_row(tmp_path):
+    plain = _record(controller="mppi", controller_config="planner: {}\n")
+    searching = _record(controller="mppi", controller_config="planner: {}\nsearch: {}\n", controller_sha256="s")
+    label = controller_labels([plain, searching])
+    assert (label(plain), label(searching)) == ("mppi", "mppi (window search)")
+    results = tmp_path / "search.jsonl"
+    results.write_text(plain.to_json() + "\n" + searching.to_json() + "\n")
+    text = write_benchmark_report([results], tmp_path / "page.md").read_text()
+    assert "| mppi (window search) | 1/1 " in text and "\"window search\": a controller driven" in text

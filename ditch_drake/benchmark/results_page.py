@@ -27,7 +27,7 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_write_text, prepare_output, remove_stale_temporaries, save_figure
 from ditch_drake.common.outputs import figures_beside, refuse_outputs_over_inputs
 from ditch_drake.evaluation.batch import load_results
-from ditch_drake.evaluation.model_labels import MARKS_NOTE, any_marked, controller_labels
+from ditch_drake.evaluation.model_labels import any_marked, controller_labels, marks_note
 from ditch_drake.evaluation.results import RolloutRecord, current_records
 from ditch_drake.evaluation.statistics import percent
 from ditch_drake.evaluation.summary import summarize
@@ -274,7 +274,7 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
     lines += ["## Success per split", "",
               "successes/trials (rate, 95 % Wilson interval); the test split is reported, never tuned on.", ""]
     if any_marked(records):
-        lines += [MARKS_NOTE, ""]
+        lines += [marks_note(records), ""]
     lines += _success_table(groups, controllers) + [""]
     lines += _side_agreement_lines(records, environments, name_of)
     by_kind: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)

@@ -20,6 +20,8 @@ from ditch_drake.evaluation.results import RolloutRecord
 MARKS_NOTE = ("A row marked \"privileged: ...\" is a controller that reads what the robot cannot sense (it declares "
               "it, and is given only that): a reference, not a competitor. \"perceived side\" / \"oracle side\": a "
               "side-conditioned clone told its crossing side from the lidar's points, or from the analytic ditch.")
+SEARCH_NOTE = ("\"window search\": a controller driven toward the targets of the search for a way in and out "
+               "(`WindowSearch`, on a map of the lidar's points).")
 
 
 def model_label(record: RolloutRecord) -> str:
@@ -27,9 +29,18 @@ def model_label(record: RolloutRecord) -> str:
     return Path(record.checkpoint).stem if record.checkpoint else record.controller
 
 
+def searches(record: RolloutRecord) -> bool:
+    """Whether the record's controller ran with the window search (a top-level `search:` in its
+    config, which is written only when set)."""
+    return any(line.startswith("search:") for line in (record.controller_config or "").splitlines())
+
+
 def record_marks(record: RolloutRecord) -> list[str]:
-    """What a record's row is marked with: its crossing side's source, its privileged inputs."""
-    marks = [f"{record.crossing_side_source} side"] if record.crossing_side_source else []
+    """What a record's row is marked with: the window search, its crossing side's source, its
+    privileged inputs."""
+    marks = ["window search"] if searches(record) else []
+    if record.crossing_side_source:
+        marks.append(f"{record.crossing_side_source} side")
     if record.privileged:
         marks.append(f"privileged: {privileged_words(record.privileged)}")
     return marks
@@ -66,8 +77,14 @@ def controller_labels(records: list[RolloutRecord], marks: bool = True) -> Calla
 
 
 def any_marked(records: list[RolloutRecord]) -> bool:
-    """Whether a table of `records` has a marked row (then `MARKS_NOTE` goes with it)."""
+    """Whether a table of `records` has a marked row (then `marks_note` goes with it)."""
     return any(record_marks(record) for record in records)
+
+
+def marks_note(records: list[RolloutRecord]) -> str:
+    """What a page says beside a table of `records` with a marked row: `MARKS_NOTE`, and
+    `SEARCH_NOTE` where a row searched."""
+    return f"{MARKS_NOTE} {SEARCH_NOTE}" if any(searches(record) for record in records) else MARKS_NOTE
 
 
 def model_demos(label: str) -> int | None:

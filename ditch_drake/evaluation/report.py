@@ -26,7 +26,7 @@ from pathlib import Path
 
 from ditch_drake.common.files import atomic_write_text, remove_stale_temporaries
 from ditch_drake.common.outputs import refuse_outputs_over_inputs
-from ditch_drake.evaluation.model_labels import MARKS_NOTE, any_marked, controller_labels
+from ditch_drake.evaluation.model_labels import any_marked, controller_labels, marks_note
 from ditch_drake.evaluation.paper_findings import findings_section, must_cross_groups
 from ditch_drake.evaluation.report_data import STUDIES, ReportData, load_report_data
 from ditch_drake.evaluation.report_figures import draw_figures
@@ -65,8 +65,9 @@ def write_report(results: list[str | os.PathLike], out: str | os.PathLike, figur
                   ("Each rollout counts once, by its latest real outcome, and each checkpoint name by one version "
                    "of its file (the file as it is now, where it still resolves):"), "",
                   *(f"- {note}" for note in data.notes), ""]
-    if any_marked([record for records in data.records.values() for record in records]):
-        lines += [MARKS_NOTE, ""]
+    every_record = [record for records in data.records.values() for record in records]
+    if any_marked(every_record):
+        lines += [marks_note(every_record), ""]
     for study in data.studies:
         lines += [f"## {study}", "", *data.tables[study], ""]
     must_cross = must_cross_groups(data)
