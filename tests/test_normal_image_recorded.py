@@ -10,7 +10,11 @@ image border), with another config (grid, radius, extent, `idw_power` 1.5), and 
 
 The images depend on the centroid that BLAS sums (`points @ ones`); the file keeps the centroids
 of the machine that recorded it, and a machine whose BLAS sums them in another order skips the
-bit-for-bit comparison rather than failing it.
+bit-for-bit comparison rather than failing it. The other config's inverse-distance weights are a
+float32 power 1.5, which numpy computes with the CPU's vector instructions, so its last bits
+differ between CPUs (by up to 5 units in the last place between two Xeons): that image is
+compared to within `MAX_ULP_OTHER_CPU` units in the last place; the default config's power 2 is
+exact on every CPU and its images bit for bit.
 """
 
 from pathlib import Path
@@ -27,6 +31,7 @@ from ditch_drake.perception.normal_image import (
 
 RECORDED = Path(__file__).parent / "data" / "normal_image_recorded.npz"
 OTHER_CONFIG = NormalImageConfig(rows=96, cols=112, radius=0.06, idw_power=1.5, x_min=-0.9, y_max=0.8)
+MAX_ULP_OTHER_CPU = 8
 
 
 @pytest.fixture(scope="module")
@@ -56,9 +61,13 @@ def test_organized_images_of_recorded_clouds_are_unchanged_bit_for_bit(recorded,
         if turn:
             cloud = np.stack([cloud[1], -cloud[0], cloud[2]])
         image = organized_cloud_to_normal_image(cloud, shape, config)
-        assert image.dtype == expected.dtype and np.array_equal(image, expected)
+        assert image.dtype == expected.dtype
+        if config.idw_power == 2.0:
+            assert np.array_equal(image, expected)
+        else:
+            np.testing.assert_array_max_ulp(image, expected, maxulp=MAX_ULP_OTHER_CPU)
         # The (N, 3) entry point takes the same path.
-        assert np.array_equal(cloud_to_normal_image(cloud.T, config, shape), expected)
+        assert np.array_equal(cloud_to_normal_image(cloud.T, config, shape), image)
 
 
 def test_images_from_given_normals_are_unchanged_bit_for_bit(recorded):
