@@ -324,23 +324,37 @@ def add_gate_signals(commands: Commands) -> None:
     signals.add_argument("--horizon", type=float, default=ConfigDefault(AUC, "horizon_s"),
                          help="a step is labelled a coming failure where its episode rolls over within this many "
                               "seconds after it")
-    add_out(signals, "the signals file (.npz; refused if it exists); the AUC table is written beside it "
-                     "as <out>.auc.json")
+    add_out(signals, "the signals file (.npz), written when every episode has finished, with the AUC table "
+                     "beside it as <out>.auc.json; until then the finished episodes are kept in <out>.parts/, and "
+                     "the same command again continues (Ctrl-C keeps them); a finished file is refused")
     signals.set_defaults(run=cmd_gate_signals)
 
 
 def cmd_gate_signals(args) -> int:
-    """Records the signals on the policy's own rollouts, then each signal's AUC of a rollover within --horizon s."""
+    """Records the signals on the policy's own rollouts, then each signal's AUC of a rollover within --horizon s.
+
+    Each episode is kept in <out>.parts/ as it finishes: interrupted, the same command
+    continues; with other settings it is refused (exit 2). The signals file and its report are
+    written once all have finished, and the folder is then removed: a finished --out is refused.
+    """
     import math
 
     from ditch_drake.common.checks import check_count, check_finite_positive
-    from ditch_drake.common.files import prepare_output
+    from ditch_drake.common.files import exclusive_use, prepare_output
+    from ditch_drake.evaluation.gate_signals import EpisodeParts, parts_folder
 
     out = prepare_output(args.out, "--out")
     report_path = out.with_suffix(".auc.json")
-    for path in (out, report_path):
-        if path.exists():
-            raise ConfigError(f"--out {args.out}: {path} exists; expected a new path (delete it to record again)")
+    folder = parts_folder(out)
+
+    def refuse_finished() -> None:
+        # With a recording in progress the files may be there from a stop while they were written.
+        for path in (out, report_path) if not EpisodeParts.begun(folder) else ():
+            if path.exists():
+                raise ConfigError(f"--out {args.out}: {path} exists (a finished recording); expected a new path "
+                                  "(delete it to record again)")
+
+    refuse_finished()
     check_count(args.rollouts, "--rollouts")
     check_seed(args.seed, args.rollouts, "--seed")
     check_finite_positive(args.time_limit, "--time-limit")
@@ -359,16 +373,26 @@ def cmd_gate_signals(args) -> int:
     import torch
 
     from ditch_drake.evaluation.batch import check_checkpoint
-    from ditch_drake.evaluation.gate_signals import record_gate_signals
+    from ditch_drake.evaluation.gate_signals import parts_header, record_gate_signals
     from ditch_drake.learning.gate_calibration import auc_report, load_signals, save_signals, write_auc_report
 
     digest = check_checkpoint(args.checkpoint)
     torch.set_num_threads(1)  # One forward pass of one sample: as each evaluation worker runs it.
-    recorded = record_gate_signals(args.checkpoint, runs, args.rollouts, args.seed, args.time_limit,
-                                   environments_file)
-    save_signals(out, args.checkpoint, digest, recorded.signals, recorded.steps, recorded.episodes)
-    report = auc_report(load_signals(out), args.horizon, seed=args.seed)
-    write_auc_report(report_path, report)
+    # Two runs on one --out would each run the episodes the other has not kept yet.
+    with exclusive_use(out, "--out"):
+        refuse_finished()  # Again: another run may have finished it meanwhile.
+        parts = EpisodeParts.open(folder, parts_header(digest, args.time_limit, environments_file))
+        try:
+            recorded = record_gate_signals(args.checkpoint, runs, args.rollouts, args.seed, args.time_limit,
+                                           environments_file, parts=parts)
+            save_signals(out, args.checkpoint, digest, recorded.signals, recorded.steps, recorded.episodes)
+            report = auc_report(load_signals(out), args.horizon, seed=args.seed)
+            write_auc_report(report_path, report)
+        except KeyboardInterrupt as error:
+            print(f"interrupted: the finished episodes are kept in {folder}; run the same command again to continue",
+                  file=sys.stderr)
+            return interrupt_exit_code(error)
+        parts.remove()
 
     def number(value: float) -> str:
         return "-" if math.isnan(value) else f"{value:.3f}"

@@ -8,11 +8,28 @@ stacker tick), so it gets every member's probabilities, checks that the label is
 block chose, and evaluates every signal of `ditch_drake.learning.uncertainty` the checkpoint
 has (all three for an ensemble, "mean_softmax_entropy" for a single clone) on them. The extra
 forward pass per step is the price of not changing the policy block's ports.
+
+A recording of many episodes takes long, so each episode is kept as it finishes
+(`EpisodeParts`): an interrupted recording keeps its finished episodes and the same command
+continues it; the signals file is assembled from them in the order of the runs, so a resumed
+recording's file equals one made without a stop.
 """
 
+import hashlib
+import json
 import math
+import os
+import re
+import shutil
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
+import numpy as np
+
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.common.files import atomic_output, remove_stale_temporaries
+from ditch_drake.common.parallel import deferred_interrupts
+from ditch_drake.common.progress import log_progress
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.diagrams.rollout import LearnedPolicyConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
 from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, UNCERTAINTY_SIGNALS
@@ -68,6 +85,24 @@ class SignalWatch:
 
 
 @dataclass
+class EpisodeSignals:
+    """One episode of `record_gate_signals`: which one, how it ended, and every signal at each of
+    its control steps."""
+
+    environment: str
+    task: int
+    seed: int
+    status: str
+    end_time_s: float
+    time_s: list[float]
+    values: dict[str, list[float]]
+
+    @property
+    def key(self) -> tuple[str, int, int]:
+        return self.environment, self.task, self.seed
+
+
+@dataclass
 class GateSignals:
     """What `record_gate_signals` recorded: the arrays of a signals file
     (`ditch_drake.learning.gate_calibration.save_signals`)."""
@@ -78,12 +113,137 @@ class GateSignals:
         "episode_environment": [], "episode_task": [], "episode_seed": [], "episode_status": [],
         "episode_end_time_s": []})
 
+    @classmethod
+    def of(cls, episodes: list[EpisodeSignals]) -> "GateSignals":
+        """The episodes' steps one after another, episode i's steps with index i."""
+        recorded = cls()
+        for index, episode in enumerate(episodes):
+            for name, values in episode.values.items():
+                recorded.signals.setdefault(name, []).extend(values)
+            recorded.steps["time_s"].extend(episode.time_s)
+            recorded.steps["episode"].extend([index] * len(episode.time_s))
+            for key, value in (("episode_environment", episode.environment), ("episode_task", episode.task),
+                               ("episode_seed", episode.seed), ("episode_status", episode.status),
+                               ("episode_end_time_s", episode.end_time_s)):
+                recorded.episodes[key].append(value)
+        return recorded
+
+
+# The schema of an `EpisodeParts` folder's header.
+PARTS_SCHEMA = "ditch_drake.gate_signals.parts"
+PARTS_VERSION = 1
+PARTS_HEADER = "header.json"
+
+
+def parts_folder(out: str | os.PathLike) -> Path:
+    """Where the episodes of the signals file `out` are kept while it is recorded: `<out>.parts`."""
+    return Path(f"{out}.parts")
+
+
+def parts_header(checkpoint_sha256: str, time_limit_s: float, environments_file: str = "") -> dict:
+    """What every episode of a recording depends on besides its (environment, task, seed): a
+    recording continues only with the same (`EpisodeParts.open`)."""
+    environments = Path(environments_file).resolve() if environments_file else None
+    return {"schema": PARTS_SCHEMA, "version": PARTS_VERSION, "checkpoint_sha256": checkpoint_sha256,
+            "time_limit_s": float(time_limit_s), "environments_file": str(environments or ""),
+            "environments_file_sha256": hashlib.sha256(environments.read_bytes()).hexdigest() if environments else ""}
+
+
+class EpisodeParts:
+    """The finished episodes of one recording, a file each in a folder (`parts_folder`).
+
+    `header.json` (`parts_header`), written first, says what the episodes were recorded with; a
+    rerun with another checkpoint or other settings is refused rather than mixed with them. Each
+    episode is `<environment>.task<T>.seed<S>.npz`, written atomically as it finishes: one .npz
+    a file keeps its floats bit for bit, and a stop can tear nothing (an append-only log would
+    need its torn last line found and cut). Removing the folder removes the header first, so a
+    half-removed folder is never taken for a recording in progress.
+    """
+
+    def __init__(self, folder: Path, header: dict):
+        self.folder = folder
+        self.header = header
+
+    @staticmethod
+    def begun(folder: str | os.PathLike) -> bool:
+        """Whether `folder` holds a recording in progress (its header)."""
+        return (Path(folder) / PARTS_HEADER).is_file()
+
+    @classmethod
+    def open(cls, folder: str | os.PathLike, header: dict) -> "EpisodeParts":
+        """The recording in `folder`: begun here with `header`, or continued where its header is the same.
+
+        Raises:
+            ConfigError: the folder's header is unreadable or differs from `header`, naming what differs.
+        """
+        folder = Path(folder)
+        path = folder / PARTS_HEADER
+        if not path.is_file():
+            folder.mkdir(parents=True, exist_ok=True)
+            for leftover in folder.glob("*.npz"):  # Of a removal cut short: not this recording's.
+                leftover.unlink()
+            with atomic_output(path) as file:
+                file.write((json.dumps(header, indent=1) + "\n").encode())
+            return cls(folder, header)
+        try:
+            found = json.loads(path.read_text())
+        except (OSError, ValueError) as error:
+            raise ConfigError(f"{path} is unreadable ({error}); expected the header of a gate-signals recording "
+                              f"(delete {folder} to start afresh)") from error
+        differ = [f"{key} {found.get(key)!r} there, {value!r} now" for key, value in header.items()
+                  if found.get(key) != value]
+        if differ:
+            raise ConfigError(f"{folder} holds the episodes of a recording with other settings ({'; '.join(differ)}); "
+                              "expected the checkpoint, --time-limit and --environments of the run that began it, "
+                              f"or delete {folder} to start afresh")
+        remove_stale_temporaries(folder)
+        return cls(folder, header)
+
+    def path(self, key: tuple[str, int, int]) -> Path:
+        environment, task, seed = key
+        name = re.sub(r"[^A-Za-z0-9_-]+", "_", environment)
+        if name != environment:  # Two names that read the same once cleaned keep files of their own.
+            name += "-" + hashlib.sha256(environment.encode()).hexdigest()[:8]
+        return self.folder / f"{name}.task{task}.seed{seed}.npz"
+
+    def finished(self, key: tuple[str, int, int]) -> EpisodeSignals | None:
+        """The episode kept under `key`, or None where there is none (or an unreadable one, run again)."""
+        try:
+            with np.load(self.path(key), allow_pickle=False) as data:
+                episode = EpisodeSignals(
+                    str(data["environment"]), int(data["task"]), int(data["seed"]), str(data["status"]),
+                    float(data["end_time_s"]), data["time_s"].tolist(),
+                    {str(name): data[f"signal_{name}"].tolist() for name in data["signals"]})
+        except (OSError, ValueError, KeyError):
+            return None
+        return episode if episode.key == key else None
+
+    def keep(self, episode: EpisodeSignals) -> None:
+        """Writes `episode`'s file atomically."""
+        with atomic_output(self.path(episode.key)) as file:
+            np.savez(file, environment=np.array(episode.environment), task=np.array(episode.task),
+                     seed=np.array(episode.seed, dtype=np.int64), status=np.array(episode.status),
+                     end_time_s=np.array(float(episode.end_time_s)),
+                     time_s=np.asarray(episode.time_s, dtype=float), signals=np.array(list(episode.values), dtype=str),
+                     **{f"signal_{name}": np.asarray(values, dtype=float) for name, values in episode.values.items()})
+
+    def remove(self) -> None:
+        """Removes the folder, once the signals file holds its episodes."""
+        (self.folder / PARTS_HEADER).unlink(missing_ok=True)
+        shutil.rmtree(self.folder, ignore_errors=True)
+
 
 def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: int = 10, seed: int = 0,
                         time_limit_s: float = EpisodeConfig.time_limit_s, environments_file: str = "",
-                        progress: bool = True) -> GateSignals:
+                        progress: bool = True, parts: EpisodeParts | None = None) -> GateSignals:
     """Runs `rollouts` episodes (seeds seed ..) of the learned policy of `checkpoint` on each
     (environment, task) of `runs`, ungated, and records every signal it has at every control step.
+
+    The episodes are in the order of `runs` and, within one, of their seeds; an (environment,
+    task, seed) is run once however often `runs` repeats it. With `parts`, each episode is kept
+    there as it finishes and one kept before is not run again; Ctrl-C (KeyboardInterrupt) then
+    keeps every finished episode, and is re-raised. `progress`: a line on stderr per finished
+    episode (k/N, which one, how it ended), beside `RunEpisode`'s bar of simulated time.
 
     Raises:
         ConfigError: a bad environment, task or time limit.
@@ -91,26 +251,33 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
     """
     from pydrake.systems.analysis import Simulator
 
-    recorded = GateSignals()
-    for environment, task in runs:
+    keys = list(dict.fromkeys((environment, task, episode_seed) for environment, task in runs
+                              for episode_seed in range(seed, seed + rollouts)))
+    finished = {key: parts.finished(key) for key in keys} if parts is not None else {}
+    episodes = {key: episode for key, episode in finished.items() if episode is not None}
+    if episodes:
+        log_progress(progress, f"{len(episodes)}/{len(keys)} episodes finished before, kept in {parts.folder}")
+    for environment, task in dict.fromkeys(runs):
+        pending = [key[2] for key in keys if key[:2] == (environment, task) and key not in episodes]
+        if not pending:
+            continue
         scene = SceneConfig(environment=environment, task=task, environments_file=environments_file,
                             episode=replace(EpisodeConfig(), time_limit_s=time_limit_s))
         diagram, built = MakeRolloutDiagram(RolloutConfig(scene=scene, controller=LearnedPolicyConfig(checkpoint)))
         policy = diagram.GetSubsystemByName("learned_policy")
         simulator = Simulator(diagram)
-        for episode_seed in range(seed, seed + rollouts):
+        for episode_seed in pending:
             watch = SignalWatch(policy, built.schedule)
             description = f"{environment} task {task} seed {episode_seed}" if progress else None
             outcome = RunEpisode(simulator, diagram, built, episode_seed, progress=description, watch=watch,
                                  watch_period_s=built.schedule.control_period_s)
-            index = len(recorded.episodes["episode_seed"])
-            for name in watch.signals:
-                recorded.signals.setdefault(name, []).extend(watch.values[name])
-            recorded.steps["time_s"].extend(watch.time_s)
-            recorded.steps["episode"].extend([index] * len(watch.time_s))
-            for key, value in (("episode_environment", environment), ("episode_task", task),
-                               ("episode_seed", episode_seed), ("episode_status", outcome.status),
-                               ("episode_end_time_s", outcome.time_s)):
-                recorded.episodes[key].append(value)
-    return recorded
-
+            episode = EpisodeSignals(environment, task, episode_seed, outcome.status, outcome.time_s, watch.time_s,
+                                     watch.values)
+            with deferred_interrupts():  # A stop lands before the episode is kept or after, never within.
+                if parts is not None:
+                    parts.keep(episode)
+                episodes[episode.key] = episode
+            log_progress(progress, f"episode {len(episodes)}/{len(keys)}: {environment} task {task} seed "
+                                   f"{episode_seed}: {outcome.status} at {outcome.time_s:.1f} s, "
+                                   f"{len(watch.time_s)} steps")
+    return GateSignals.of([episodes[key] for key in keys])
