@@ -134,7 +134,8 @@ def cmd_bench(args) -> int:
     if args.json:
         print(json.dumps(figures))
     else:
-        print_table([{"figure": key, "value": f"{value:.3f}"} for key, value in figures.items()], ["figure", "value"])
+        print_table([{"figure": key, "value": "-" if value is None else f"{value:.3f}"} for key, value in figures.items()],
+                    ["figure", "value"])
     return 0
 
 

@@ -20,7 +20,8 @@ from ditch_drake.diagrams.ditch_scene import AddDitchScene, DitchScene, ReleaseS
 from ditch_drake.diagrams.lidar_rig import AddLidar, LidarHandles
 from ditch_drake.diagrams.observation import AddObservation, ConnectObservation, Observation, ObservationConfig
 from ditch_drake.learning.checkpoint import CheckpointError, environment_model
-from ditch_drake.learning.inference import check_runtime, load_policy
+from ditch_drake.learning.ensemble_network import DEFAULT_PRECISION
+from ditch_drake.learning.inference import check_precision, check_runtime, load_policy
 from ditch_drake.learning.onnx_policy import is_onnx_path
 from ditch_drake.perception.lidar_model import LidarConfig
 from ditch_drake.planning.costmap import CostmapConfig
@@ -111,6 +112,11 @@ class LearnedPolicyConfig:
             place of the goal (a way in and out of a ditch crossable only in places; the goal
             still ends the run), and a side-conditioned clone is told the side toward that
             target (`TargetCrossingSide`; needs crossing_side "perceived"); None: the goal.
+        precision: what an ensemble file's network computes in
+            (`ditch_drake.learning.ensemble_network.PRECISIONS`): "float32", or
+            "bfloat16_image" (its image branch in bfloat16: faster on a CPU that runs bfloat16
+            natively, refused on one that does not; a label may differ from float32's where
+            two logits nearly tie). A single clone runs in float32 only.
     """
 
     checkpoint: str = ""
@@ -118,6 +124,7 @@ class LearnedPolicyConfig:
     crossing_side: str = "perceived"
     runtime: str = "torch"
     search: LearnedWindowSearchConfig | None = field(default=None, metadata=WRITTEN_WHEN_SET)
+    precision: str = field(default=DEFAULT_PRECISION, metadata=WRITTEN_WHEN_SET)
 
     def validate(self) -> None:
         if self.crossing_side not in CROSSING_SIDE_SOURCES:
@@ -129,6 +136,7 @@ class LearnedPolicyConfig:
                 raise ConfigError(f"learned crossing_side={self.crossing_side!r} with a search: expected 'perceived' "
                                   "(the side toward the search's target is read from the perceived edge)")
         check_runtime(self.runtime, self.checkpoint)
+        check_precision(self.precision, self.checkpoint)
 
     def with_checkpoint(self, checkpoint: str) -> "LearnedPolicyConfig":
         """This config naming `checkpoint`; a .onnx file also sets runtime "onnxruntime", the only
@@ -341,7 +349,7 @@ def AddLearnedController(builder: DiagramBuilder, scene: DitchScene, config: Lea
                                     offset_s=schedule.stacker_offset_s)
         builder.Connect(target_xy, observation.goal.GetInputPort("goal_xy"))
     return AddLearnedPolicy(builder, scene, observation, checkpoint, config.crossing_side,
-                            config.runtime, target_xy=target_xy).GetOutputPort("command")
+                            config.runtime, target_xy=target_xy, precision=config.precision).GetOutputPort("command")
 
 
 def AddWindowSearch(builder: DiagramBuilder, scene: DitchScene, grid: ElevationGrid, elevation_map: OutputPort,
@@ -393,22 +401,24 @@ def AddMppiController(builder: DiagramBuilder, scene: DitchScene, config: MppiBa
 def AddLearnedPolicy(builder: DiagramBuilder, scene: DitchScene, observation: Observation,
                      checkpoint: str, crossing_side: str = "perceived", runtime: str = "torch",
                      uncertainty_signal: str = DEFAULT_UNCERTAINTY_SIGNAL,
-                     target_xy: OutputPort | None = None) -> LearnedPolicy:
+                     target_xy: OutputPort | None = None, precision: str = DEFAULT_PRECISION) -> LearnedPolicy:
     """Adds the behavioural clone of `checkpoint` (a shipped name or a path; an ensemble file runs
     all its members) fed by `observation`, its network run by `runtime`
-    (`LearnedPolicyConfig.runtime`), its `uncertainty` output the signal `uncertainty_signal`,
+    (`LearnedPolicyConfig.runtime`) in `precision` (`LearnedPolicyConfig.precision`), its
+    `uncertainty` output the signal `uncertainty_signal`,
     and, for a clone trained in one side's frame, the block that tells it the side to cross on
     (`AddCrossingSide` of `crossing_side`: "perceived" or "oracle"; toward `target_xy` where
     one is given, a route-level target such as `WindowSearch`'s).
 
     Raises:
         ConfigError: an unknown or uninstalled runtime, or one that does not run the checkpoint;
-            an unknown signal, or a disagreement signal with a single clone.
+            a precision the checkpoint or the CPU does not run; an unknown signal, or a
+            disagreement signal with a single clone.
         CheckpointError: the checkpoint does not load, or expects other input sizes than the blocks give.
     """
     schedule = observation.schedule
     policy = builder.AddNamedSystem(
-        "learned_policy", LearnedPolicy(load_policy(checkpoint, runtime),
+        "learned_policy", LearnedPolicy(load_policy(checkpoint, runtime, precision=precision),
                                         offset_s=schedule.controller_offset_s, period_s=schedule.control_period_s,
                                         uncertainty_signal=uncertainty_signal))
     for name, port in observation.ports.items():

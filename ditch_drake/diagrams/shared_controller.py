@@ -189,7 +189,8 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     if config.gate.budget is not None:
         check_calibration_policy(config.gate.calibration, checkpoint)
     policy = AddLearnedPolicy(builder, scene, observation, checkpoint, config.policy.crossing_side,
-                              config.policy.runtime, uncertainty_signal=config.gate.signal)
+                              config.policy.runtime, uncertainty_signal=config.gate.signal,
+                              precision=config.policy.precision)
     fallback = _add_fallback(builder, scene, config, observation, meshcat)
     schedule = scene.schedule
     gate = builder.AddNamedSystem("shared_control", SharedControl(

@@ -45,7 +45,7 @@ from ditch_drake.learning.checkpoint import (
     save_payload,
     to_plain,
 )
-from ditch_drake.learning.ensemble_network import EnsembleNetwork
+from ditch_drake.learning.ensemble_network import DEFAULT_PRECISION, EnsembleNetwork
 from ditch_drake.learning.model import set_torch_threads
 
 SCHEMA = "ditch_drake.policy_ensemble"
@@ -87,9 +87,14 @@ class EnsembleCheckpoint:
         """(num_labels, 2) [v m/s, w rad/s] per label, the members' shared table."""
         return np.asarray(self.members[0].action_commands, dtype=float)
 
-    def build_network(self) -> EnsembleNetwork:
-        """All members as one `EnsembleNetwork`, in eval mode, on the CPU."""
-        return EnsembleNetwork([member.build_model() for member in self.members])
+    def build_network(self, precision: str = DEFAULT_PRECISION) -> EnsembleNetwork:
+        """All members as one `EnsembleNetwork` in `precision`, in eval mode, on the CPU.
+
+        Raises:
+            ConfigError: a precision that is unknown or does not run natively here
+                (`ditch_drake.learning.ensemble_network.check_precision`).
+        """
+        return EnsembleNetwork([member.build_model() for member in self.members], precision)
 
     def to_payload(self) -> dict:
         """The dict that `torch.save` writes (tensors and plain values only)."""
@@ -203,26 +208,32 @@ class EnsembleInference:
         members: K.
         model_config: the members' shared `ModelConfig`.
         action_commands: (num_labels, 2) [v m/s, w rad/s] per label.
+        precision: what the network runs in (`ditch_drake.learning.ensemble_network.PRECISIONS`).
     """
 
     runtime = "torch"
 
-    def __init__(self, ensemble: EnsembleCheckpoint, num_threads: int | None = 1):
+    def __init__(self, ensemble: EnsembleCheckpoint, num_threads: int | None = 1,
+                 precision: str = DEFAULT_PRECISION):
         """Builds the stacked network.
 
         Args:
             ensemble: a loaded ensemble (`load_ensemble`).
             num_threads: torch's intra-op threads, set here for the whole process
                 (`torch.set_num_threads` is process-wide); None leaves torch's setting.
+            precision: "float32", or "bfloat16_image" (the image branch in bfloat16, on a
+                CPU that runs it natively: `EnsembleNetwork`).
 
         Raises:
             ValueError: a thread count < 1.
+            ConfigError: a precision that is unknown or does not run natively here.
         """
         set_torch_threads(num_threads)
         self.members = ensemble.size
         self.model_config = ensemble.model_config
         self.action_commands = ensemble.action_commands
-        self._network = ensemble.build_network()
+        self.precision = precision
+        self._network = ensemble.build_network(precision)
 
     def member_logits(self, image: np.ndarray, imu: np.ndarray, distance: np.ndarray,
                       bearing: np.ndarray) -> np.ndarray:

@@ -12,16 +12,70 @@ Why not `torch.func` (`stack_module_state` + `functional_call` + `vmap`): it giv
 numbers, but its batching rules ran the network about 30 times slower than one member
 (batch 1, one thread, on the 2-core host, loaded), where the stacked layers run at about the
 cost of looping over the members' convolutions and once the overhead of the small layers.
+
+Precision (`PRECISIONS`): "float32" throughout, the default; or "bfloat16_image", the image
+branch (convolutions, pools, ELUs: nearly all of the multiply-adds) in bfloat16 on the
+image rounded to bfloat16, its features cast back to float32 for the scalar branches and the
+head, which stay float32. It approximates the float32 network (bfloat16 keeps 8 significant
+bits): the members' logits move by up to about 0.02 and a label may change where two logits nearly
+tie. It is offered only on a CPU that runs bfloat16 natively (`native_bfloat16_flags`), where
+it is the faster one; elsewhere torch would emulate it. Whole-network bfloat16 or autocast
+agreed less with float32 and are not offered.
 """
 
 import copy
+import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 from torch import nn
 
+from ditch_drake.common.errors import ConfigError
 from ditch_drake.learning.model import SCALAR_INPUTS, FourInputClassifier
+
+# What `EnsembleNetwork` runs in (the module docstring); the first is the default.
+PRECISIONS = ("float32", "bfloat16_image")
+DEFAULT_PRECISION = PRECISIONS[0]
+# The CPU flags (Linux /proc/cpuinfo) of instructions that compute in bfloat16 natively:
+# AVX512-BF16's dot products and AMX's bfloat16 tiles.
+NATIVE_BFLOAT16_FLAGS = ("avx512_bf16", "amx_bf16")
+
+
+def native_bfloat16_flags(cpuinfo: str | Path | None = None) -> tuple[str, ...]:
+    """The flags of `NATIVE_BFLOAT16_FLAGS` that the CPU has, read from `cpuinfo` (a file in the
+    format of Linux's /proc/cpuinfo; None: that file, or () on another system); () where the
+    file does not read (taken as no native bfloat16)."""
+    if cpuinfo is None:
+        if not sys.platform.startswith("linux"):
+            return ()
+        cpuinfo = "/proc/cpuinfo"
+    try:
+        text = Path(cpuinfo).read_text()
+    except OSError:
+        return ()
+    flags = set()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "flags":
+            flags.update(value.split())
+    return tuple(flag for flag in NATIVE_BFLOAT16_FLAGS if flag in flags)
+
+
+def check_precision(precision: str) -> None:
+    """That `precision` is one of `PRECISIONS` and runs natively on this CPU.
+
+    Raises:
+        ConfigError: an unknown precision, naming the choices; "bfloat16_image" on a CPU
+            without `NATIVE_BFLOAT16_FLAGS`, naming what it lacks.
+    """
+    if precision not in PRECISIONS:
+        raise ConfigError(f"ensemble precision={precision!r}: expected one of {list(PRECISIONS)}")
+    if precision != DEFAULT_PRECISION and not native_bfloat16_flags():
+        raise ConfigError(f"ensemble precision={precision!r} needs a CPU that runs bfloat16 natively; this one has "
+                          f"none of the CPU flags {list(NATIVE_BFLOAT16_FLAGS)} (read from /proc/cpuinfo on Linux); "
+                          f"expected precision {DEFAULT_PRECISION!r} here")
 
 
 class _StackedConv2d(nn.Module):
@@ -126,16 +180,26 @@ class EnsembleNetwork(nn.Module):
 
     Attributes:
         members: K.
+        precision: what it runs in, a name of `PRECISIONS` (the module docstring).
     """
 
-    def __init__(self, models: Sequence[FourInputClassifier]):
+    def __init__(self, models: Sequence[FourInputClassifier], precision: str = DEFAULT_PRECISION):
         """Stacks the members' layers.
+
+        Args:
+            models: the members, of one model config.
+            precision: a name of `PRECISIONS`; "bfloat16_image" casts the stacked image branch's
+                weights to bfloat16.
 
         Raises:
             ValueError: fewer than two members, or members of different configs or layers.
             TypeError: a layer with no stacked form.
+            ConfigError: an unknown precision, or "bfloat16_image" on a CPU without native
+                bfloat16 (`check_precision`).
         """
         super().__init__()
+        check_precision(precision)
+        self.precision = precision
         models = list(models)
         if len(models) < 2:
             raise ValueError(f"{len(models)} member(s); an ensemble network needs at least 2")
@@ -145,6 +209,8 @@ class EnsembleNetwork(nn.Module):
         self.config = config
         self.members = len(models)
         self.image_branch = _stack_sequential([model.image_branch for model in models], image=True)
+        self._image_dtype = torch.bfloat16 if precision == "bfloat16_image" else torch.float32
+        self.image_branch.to(self._image_dtype)
         for name in SCALAR_INPUTS:
             setattr(self, f"{name}_branch", _stack_sequential([getattr(m, f"{name}_branch") for m in models], False))
             for kind in ("mean", "std"):
@@ -156,13 +222,15 @@ class EnsembleNetwork(nn.Module):
     def forward(
         self, image: torch.Tensor, imu: torch.Tensor, distance: torch.Tensor, bearing: torch.Tensor
     ) -> torch.Tensor:
-        """Logits (K, B, num_labels): member k's row equals `FourInputClassifier.forward` of member k.
+        """Logits (K, B, num_labels): member k's row equals `FourInputClassifier.forward` of member k
+        (in float32; approximates it in "bfloat16_image").
 
         Args:
             image, imu, distance, bearing: as `FourInputClassifier.forward` takes them, shared by
                 every member.
         """
-        features = [self.image_branch(image.contiguous(memory_format=torch.channels_last))]
+        image = image.to(self._image_dtype, memory_format=torch.channels_last)
+        features = [self.image_branch(image).float()]
         for name, value in zip(SCALAR_INPUTS, (imu, distance, bearing), strict=True):
             standardized = (value.unsqueeze(0) - getattr(self, f"{name}_mean")) / getattr(self, f"{name}_std")
             features.append(getattr(self, f"{name}_branch")(standardized))

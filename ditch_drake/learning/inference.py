@@ -33,6 +33,8 @@ from ditch_drake.common.errors import CheckpointError, ConfigError
 from ditch_drake.learning.checkpoint import PolicyCheckpoint, load_checkpoint, resolve_checkpoint_path
 from ditch_drake.learning.config import ModelConfig
 from ditch_drake.learning.ensemble import EnsembleInference, is_ensemble_checkpoint, load_ensemble
+from ditch_drake.learning.ensemble_network import DEFAULT_PRECISION
+from ditch_drake.learning.ensemble_network import check_precision as check_network_precision
 from ditch_drake.learning.model import set_torch_threads
 from ditch_drake.learning.onnx_policy import (
     INPUT_NAMES,
@@ -193,8 +195,25 @@ def check_runtime(runtime: str, checkpoint: str = "") -> None:
         raise _ensemble_runtime_error(checkpoint, runtime)
 
 
-def load_policy(checkpoint: str | os.PathLike, runtime: str = "torch",
-                num_threads: int | None = 1) -> PolicyInference | EnsemblePolicyInference:
+def check_precision(precision: str, checkpoint: str = "") -> None:
+    """That `precision` (`ditch_drake.learning.ensemble_network.PRECISIONS`) is known and runs
+    natively on this CPU, and that a precision other than float32 is asked of an ensemble file
+    (`EnsembleNetwork` is the network that has one). Cheap: an ensemble's header is read.
+
+    Raises:
+        ConfigError: an unknown precision, bfloat16 on a CPU without it, or a precision other
+            than float32 with a single clone, naming the value and what was expected.
+    """
+    check_network_precision(precision)
+    if precision != DEFAULT_PRECISION and not is_ensemble(checkpoint):
+        name = checkpoint or "the environment's shipped model"
+        raise ConfigError(f"learned precision={precision!r} with checkpoint {name!r}, a single clone: the precision "
+                          f"applies to an ensemble's network; expected an ensemble file or precision "
+                          f"{DEFAULT_PRECISION!r}")
+
+
+def load_policy(checkpoint: str | os.PathLike, runtime: str = "torch", num_threads: int | None = 1,
+                precision: str = DEFAULT_PRECISION) -> PolicyInference | EnsemblePolicyInference:
     """The inference object of `checkpoint` (a shipped name, a .pt or a .onnx file, or an ensemble
     file: then an `EnsembleInference`) on `runtime`.
 
@@ -203,15 +222,21 @@ def load_policy(checkpoint: str | os.PathLike, runtime: str = "torch",
         runtime: a name of `RUNTIMES`.
         num_threads: intra-op threads (torch: process-wide, None leaves its setting; onnxruntime:
             the session's, None is 1).
+        precision: an ensemble network's (`check_precision`); float32 for anything else.
 
     Raises:
         ConfigError: an unknown or uninstalled runtime, a .onnx checkpoint on torch, or an
-            ensemble on a runtime other than torch, naming the runtime.
+            ensemble on a runtime other than torch, naming the runtime; a precision that
+            `check_precision` refuses.
         CheckpointNotFoundError: no such checkpoint.
         CheckpointError: a file that does not load or check, naming it.
     """
     check_runtime(runtime, str(checkpoint))
-    return RUNTIMES[runtime](resolve_checkpoint_path(checkpoint), num_threads)
+    check_precision(precision, str(checkpoint))
+    path = resolve_checkpoint_path(checkpoint)
+    if precision != DEFAULT_PRECISION:
+        return EnsembleInference(load_ensemble(path), num_threads, precision)
+    return RUNTIMES[runtime](path, num_threads)
 
 
 def check_policy_file(checkpoint: str | os.PathLike) -> None:

@@ -130,9 +130,11 @@ def measure_blocks() -> dict:
         "normal_image_organized_ms": normal_image["normal_image_organized_ms"],
         "normal_image_pca_reference_ms": normal_image["normal_image_pca_ms"],
         "policy_step_ms": measure_policy_step_ms()["policy_step_ms"],
-        # Five clones in one forward pass (the shared controller's ensemble).
-        "ensemble_policy_step_ms": measure_ensemble_policy_step_ms()["ensemble_policy_step_ms"],
     }
+    # Five clones in one forward pass (the shared controller's ensemble); beside it, their image
+    # branch in bfloat16 (`precision: bfloat16_image`; None on a CPU without native bfloat16).
+    ensemble = measure_ensemble_policy_step_ms()
+    figures.update({key: ensemble[key] for key in ("ensemble_policy_step_ms", "ensemble_policy_step_bfloat16_ms")})
     # The same network in ONNX Runtime (`runtime: onnxruntime`), where the `onnx` extra is installed.
     onnxruntime_step = measure_onnxruntime_policy_step_ms()
     if onnxruntime_step:

@@ -7,7 +7,9 @@ Run: `python -m ditch_drake.perf.bench_training [samples]`. Prints
   stacked inputs, one forward pass, softmax, its uncertainty signal, write the state) on one
   CPU thread, with random weights (the time does not depend on them).
 - `measure_ensemble_policy_step_ms`: the same for a 5-member ensemble (`EnsembleNetwork`: all
-  members in one forward pass, their mean probabilities and uncertainty).
+  members in one forward pass, their mean probabilities and uncertainty), in float32 and, on a
+  CPU that runs bfloat16 natively, with its image branch in bfloat16 (`precision:
+  bfloat16_image`), the two taking turns update by update.
 - `measure_streaming_memory`: peak resident memory of the training pipeline streaming from a
   dataset folder, each in a fresh process that writes a synthetic store (random frames, label
   8 dominant) into a temporary folder and trains on it as `ditch-drake train --data` does
@@ -215,7 +217,10 @@ def measure_onnxruntime_policy_step_ms(repeats: int = 50) -> dict:
 def measure_ensemble_policy_step_ms(members: int = 5, repeats: int = 50, noise: float = 0.01) -> dict:
     """Median time (ms) of one `LearnedPolicy` discrete update of a `members`-clone ensemble on
     one thread, timed as `measure_policy_step_ms` times one clone: all members in one forward
-    pass (`EnsembleNetwork`), their mean probabilities and the default uncertainty signal.
+    pass (`EnsembleNetwork`), their mean probabilities and the default uncertainty signal; in
+    float32 and with the image branch in bfloat16 ("bfloat16_image"), one update of each in
+    turn, so that the host's changing load falls on both alike. On a CPU without native
+    bfloat16 (`native_bfloat16_flags`) the bfloat16 figures are None and stderr says why.
 
     The ensemble is the shipped `wide` model's weights copied `members` times, each copy's
     floating-point tensors perturbed by seeded Gaussian noise of `noise` times the tensor's
@@ -223,13 +228,16 @@ def measure_ensemble_policy_step_ms(members: int = 5, repeats: int = 50, noise: 
     trained ensemble (the members' values do not change the time).
 
     Returns:
-        {"ensemble_policy_step_ms": median, "ensemble_policy_step_max_ms": slowest}.
+        {"ensemble_policy_step_ms": median, "ensemble_policy_step_max_ms": slowest,
+        "ensemble_policy_step_bfloat16_ms": median or None, "ensemble_policy_step_bfloat16_max_ms":
+        slowest or None}.
     """
     import dataclasses
 
     import torch
     from pydrake.systems.analysis import Simulator  # noqa: F401 (loads Drake's analysis module)
 
+    from ditch_drake.common.errors import ConfigError
     from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
     from ditch_drake.learning.ensemble import EnsembleCheckpoint, EnsembleInference
     from ditch_drake.systems.policy import LearnedPolicy
@@ -244,28 +252,44 @@ def measure_ensemble_policy_step_ms(members: int = 5, repeats: int = 50, noise: 
 
     copies = [dataclasses.replace(wide, state_dict={name: perturbed(value) for name, value in wide.state_dict.items()})
               for _ in range(members)]
-    policy = LearnedPolicy(EnsembleInference(EnsembleCheckpoint(copies), num_threads=1))
-    times = _policy_update_times(policy, repeats)
-    return {"ensemble_policy_step_ms": 1e3 * float(np.median(times)),
-            "ensemble_policy_step_max_ms": 1e3 * float(np.max(times))}
+    ensemble = EnsembleCheckpoint(copies)
+    policies = {"ensemble_policy_step": LearnedPolicy(EnsembleInference(ensemble, num_threads=1))}
+    try:
+        policies["ensemble_policy_step_bfloat16"] = LearnedPolicy(
+            EnsembleInference(ensemble, num_threads=1, precision="bfloat16_image"))
+    except ConfigError as error:
+        print(f"bench: no ensemble_policy_step_bfloat16_ms: {error}", file=sys.stderr)
+    figures = dict.fromkeys(f"ensemble_policy_step{kind}_ms" for kind in ("", "_max", "_bfloat16", "_bfloat16_max"))
+    for name, times in zip(policies, _alternating_update_times(list(policies.values()), repeats), strict=True):
+        figures.update({f"{name}_ms": 1e3 * float(np.median(times)), f"{name}_max_ms": 1e3 * float(np.max(times))})
+    return figures
 
 
 def _policy_update_times(policy, repeats: int) -> list[float]:
     """Wall times (s) of `repeats` forced discrete updates of `policy` on fixed random inputs,
     after 3 warm-up updates (oneDNN picks its kernels on the first calls)."""
-    context = policy.CreateDefaultContext()
-    rng = np.random.default_rng(0)
-    policy.GetInputPort("image_stack").FixValue(context, rng.random(int(np.prod(IMAGE_STACK_SHAPE))))
-    policy.GetInputPort("imu_stack").FixValue(context, rng.normal(0.0, 0.2, IMU_STACK_SIZE))
-    policy.GetInputPort("distance_stack").FixValue(context, rng.uniform(0.0, 20.0, DISTANCE_STACK_SIZE))
-    policy.GetInputPort("bearing_stack").FixValue(context, rng.uniform(-3.0, 3.0, BEARING_STACK_SIZE))
-    state = policy.AllocateDiscreteVariables()
-    times = []
+    return _alternating_update_times([policy], repeats)[0]
+
+
+def _alternating_update_times(policies: list, repeats: int) -> list[list[float]]:
+    """`_policy_update_times` of each of `policies` (the same inputs for each), one update of
+    each in turn: per policy, its `repeats` wall times (s)."""
+    updates = []
+    for policy in policies:
+        context = policy.CreateDefaultContext()
+        rng = np.random.default_rng(0)
+        policy.GetInputPort("image_stack").FixValue(context, rng.random(int(np.prod(IMAGE_STACK_SHAPE))))
+        policy.GetInputPort("imu_stack").FixValue(context, rng.normal(0.0, 0.2, IMU_STACK_SIZE))
+        policy.GetInputPort("distance_stack").FixValue(context, rng.uniform(0.0, 20.0, DISTANCE_STACK_SIZE))
+        policy.GetInputPort("bearing_stack").FixValue(context, rng.uniform(-3.0, 3.0, BEARING_STACK_SIZE))
+        updates.append((policy, context, policy.AllocateDiscreteVariables()))
+    times = [[] for _ in policies]
     for _ in range(repeats + 3):
-        start = time.perf_counter()
-        policy.CalcForcedDiscreteVariableUpdate(context, state)
-        times.append(time.perf_counter() - start)
-    return times[3:]
+        for (policy, context, state), record in zip(updates, times, strict=True):
+            start = time.perf_counter()
+            policy.CalcForcedDiscreteVariableUpdate(context, state)
+            record.append(time.perf_counter() - start)
+    return [record[3:] for record in times]
 
 
 def measure_training_throughput(batches: int = 6, warmup: int = 2) -> dict:
