@@ -17,8 +17,8 @@ Precision (`PRECISIONS`): "float32" throughout, the default; or "bfloat16_image"
 branch (convolutions, pools, ELUs: nearly all of the multiply-adds) in bfloat16 on the
 image rounded to bfloat16, its features cast back to float32 for the scalar branches and the
 head, which stay float32. It approximates the float32 network (bfloat16 keeps 8 significant
-bits): the members' logits move by up to about 0.02 and a label may change where two logits nearly
-tie. It is offered only on a CPU that runs bfloat16 natively (`native_bfloat16_flags`), where
+bits): the members' logits move slightly, and a label may change where two logits nearly tie
+(`tests/test_ensemble_bfloat16.py` measures how often on a fixed batch). It is offered only on a CPU that runs bfloat16 natively (`native_bfloat16_flags`), where
 it is the faster one; elsewhere torch would emulate it. Whole-network bfloat16 or autocast
 agreed less with float32 and are not offered.
 """
