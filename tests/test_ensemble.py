@@ -120,6 +120,14 @@ def test_an_ensemble_file_round_trips_and_says_what_it_is(tmp_path):
         load_ensemble(single)
 
 
+def test_checkpoint_info_lists_an_ensembles_members_beside_a_single_clone(tmp_path, capsys):
+    ensemble = save_ensemble(EnsembleCheckpoint([_checkpoint(seed) for seed in range(3)]), tmp_path / "ensemble.pt")
+    single = save_checkpoint(_checkpoint(9), tmp_path / "single.pt")
+    assert main(["checkpoint-info", str(ensemble), str(single)]) == 0
+    rows = [line.split()[0] for line in capsys.readouterr().out.splitlines()[1:]]
+    assert rows == [f"{ensemble}[0]", f"{ensemble}[1]", f"{ensemble}[2]", str(single)]
+
+
 def test_bad_ensembles_are_refused_naming_the_member_and_the_key(tmp_path):
     def write(members: list[dict]) -> str:
         path = tmp_path / "bad.pt"

@@ -19,6 +19,7 @@ from ditch_drake.cli.options import (
     add_workers,
     checkpoint_for,
     learned_with_crossing_side,
+    named_checkpoint,
     print_table,
     scenario_from_options,
 )
@@ -76,7 +77,7 @@ def cmd_evaluate(args) -> int:
     time_limit_s = EpisodeConfig.time_limit_s
     if args.scenario or args.override:
         # The scenario gives the controller's full config, the environments file and the episode's limit.
-        scenario = scenario_from_options(args)
+        scenario = scenario_from_options(args, name_checkpoint=False)  # Each environment its own model.
         if scenario.environments and not args.env:
             raise ConfigError("evaluate runs environments from a file: put the scenario's inline environments in a "
                               "YAML file and pass --environments FILE --env NAME")
@@ -98,7 +99,10 @@ def cmd_evaluate(args) -> int:
             checkpoint = checkpoint_for(args, environment)
         else:  # make_specs refuses a checkpoint that the controller does not take; a config names its own.
             checkpoint = (args.checkpoint or "") if isinstance(controller, str) else ""
-        chosen = learned_with_crossing_side(controller, checkpoint, args.crossing_side)
+        # A config's empty checkpoint is each environment's own model (a name is left as it is).
+        environment_controller = (controller if isinstance(controller, str)
+                                  else named_checkpoint(controller, environment, environments_file))
+        chosen = learned_with_crossing_side(environment_controller, checkpoint, args.crossing_side)
         specs += make_specs(chosen, checkpoint, environment, args.task, args.rollouts, args.seed, time_limit_s,
                             environments_file)
         tasks = len(args.task) if args.task else len(get_environment(environment, environments_file or None).tasks)

@@ -333,9 +333,11 @@ def checkpoint_for(args, environment: str) -> str:
     return args.checkpoint or environment_model(environment, getattr(args, "environments", None) or "")
 
 
-def scenario_from_options(args, default_controller: str = "learned"):
+def scenario_from_options(args, default_controller: str = "learned", name_checkpoint: bool = True):
     """The Scenario of a single-episode command: the defaults, then --scenario FILE (and
-    --scenario-name), then the options given on the command line, then --override."""
+    --scenario-name), then the options given on the command line, then --override. With
+    `name_checkpoint`, a learned controller's empty checkpoint becomes its environment's model
+    (a command of several environments names each one's: `named_checkpoint`)."""
     from dataclasses import replace
 
     from ditch_drake.diagrams.controllers import controller_config, with_checkpoint
@@ -360,9 +362,18 @@ def scenario_from_options(args, default_controller: str = "learned"):
     if args.override:
         scenario = load_scenario(override=args.override, defaults=scenario)
     check_scenario(scenario)
-    if getattr(scenario.controller, "checkpoint", None) == "":  # Named, so that records and pages say which.
-        from ditch_drake.learning.checkpoint import environment_model
-
-        scenario = replace(scenario, controller=with_checkpoint(scenario.controller, environment_model(
-            scenario.environment, scenario.environments_file)))
+    if name_checkpoint:
+        scenario = replace(scenario, controller=named_checkpoint(scenario.controller, scenario.environment,
+                                                                 scenario.environments_file))
     return scenario
+
+
+def named_checkpoint(controller, environment: str, environments_file: str = ""):
+    """`controller` (a config) with an empty checkpoint replaced by `environment`'s model, so that
+    records and pages say which; any other controller as it is."""
+    if getattr(controller, "checkpoint", None) != "":
+        return controller
+    from ditch_drake.diagrams.controllers import with_checkpoint
+    from ditch_drake.learning.checkpoint import environment_model
+
+    return with_checkpoint(controller, environment_model(environment, environments_file))

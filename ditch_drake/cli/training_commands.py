@@ -99,7 +99,8 @@ def cmd_collect(args) -> int:
 
 def add_checkpoint_info(commands: Commands) -> None:
     info = commands.add("checkpoint-info", "training data and validation metrics of checkpoints")
-    info.add_argument("checkpoints", nargs="+", help="shipped model names or .pt files")
+    info.add_argument("checkpoints", nargs="+",
+                      help="shipped model names, .pt files or ensemble files (a row per member)")
     info.add_argument("--confusion", action="store_true", help="also the validation confusion matrices")
     info.set_defaults(run=cmd_checkpoint_info)
 
@@ -107,9 +108,16 @@ def add_checkpoint_info(commands: Commands) -> None:
 def cmd_checkpoint_info(args) -> int:
     """What each checkpoint was trained on and how it validated."""
     from ditch_drake.learning.checkpoint import load_checkpoint, resolve_checkpoint_path
+    from ditch_drake.learning.ensemble import is_ensemble_checkpoint, load_ensemble
 
-    checkpoints = {name: load_checkpoint(resolve_checkpoint_path(name), allow_untrained=True)
-                   for name in args.checkpoints}
+    checkpoints = {}
+    for name in args.checkpoints:
+        path = resolve_checkpoint_path(name)
+        if is_ensemble_checkpoint(path):  # One row per member, named "<file>[k]".
+            members = load_ensemble(path).members
+            checkpoints.update({f"{name}[{k}]": member for k, member in enumerate(members)})
+        else:
+            checkpoints[name] = load_checkpoint(path, allow_untrained=True)
     rows = [{"checkpoint": name, **checkpoint.summary()} for name, checkpoint in checkpoints.items()]
     print_table(rows, list(rows[0]))
     if args.confusion:

@@ -13,13 +13,19 @@ switched and where the handovers began (`RolloutRecord.handover_fraction`, `swit
 | expert | the scripted shallow-angle expert (standing in for a person), style drawn from the seed | the analytic terrain (privileged) |
 | mppi | the rollover-aware MPPI planner on the policy's lidar | nothing |
 | teleop | a person at the Meshcat page (`MeshcatTeleop`) | nothing; needs a Meshcat, which a batch never has |
+
+With `gate.signal` "random" the gate reads a seeded uniform draw each control step (a
+"random_handover_draw" `RandomSource`) in place of the policy's uncertainty: the chance
+handover a gate is compared with (`AddRandomHandoverDraw`).
 """
 
 import dataclasses
 from dataclasses import dataclass, field
 
+from pydrake.common import RandomDistribution
 from pydrake.geometry import Meshcat
 from pydrake.systems.framework import DiagramBuilder, OutputPort
+from pydrake.systems.primitives import RandomSource
 
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.ditch_scene import DitchScene
@@ -39,7 +45,8 @@ from ditch_drake.learning.inference import is_ensemble
 from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS
 from ditch_drake.systems.driver_indicator import DriverIndicator
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
-from ditch_drake.systems.shared_control import SharedControl, SharedControlConfig
+from ditch_drake.systems.policy import DEFAULT_UNCERTAINTY_SIGNAL
+from ditch_drake.systems.shared_control import RANDOM_SIGNAL, SharedControl, SharedControlConfig
 from ditch_drake.systems.teleop import ActionQuantizer
 
 # Where the scene's Meshcat visualizer draws the chassis: the help marker is its child.
@@ -129,7 +136,7 @@ class SharedControlControllerConfig:
         gate = self.gate.resolved()
         if gate is self.gate:
             return self
-        if self.policy.checkpoint:
+        if self.policy.checkpoint and gate.calibration:
             check_calibration_policy(gate.calibration, self.policy.checkpoint)
         return dataclasses.replace(self, gate=gate)
 
@@ -186,10 +193,13 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     """
     config.validate(meshcat)
     checkpoint = config.policy.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
-    if config.gate.budget is not None:
+    if config.gate.calibration:
         check_calibration_policy(config.gate.calibration, checkpoint)
+    random_gate = config.gate.signal == RANDOM_SIGNAL
+    # The random gate reads no uncertainty of the policy's; the one every checkpoint has is reported.
+    signal = DEFAULT_UNCERTAINTY_SIGNAL if random_gate else config.gate.signal
     policy = AddLearnedPolicy(builder, scene, observation, checkpoint, config.policy.crossing_side,
-                              config.policy.runtime, uncertainty_signal=config.gate.signal,
+                              config.policy.runtime, uncertainty_signal=signal,
                               precision=config.policy.precision)
     fallback = _add_fallback(builder, scene, config, observation, meshcat)
     schedule = scene.schedule
@@ -197,13 +207,32 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
         config.gate, period_s=schedule.control_period_s,
         offset_s=(schedule.controller_offset_s + schedule.recorder_offset_s) / 2))
     builder.Connect(policy.GetOutputPort("command"), gate.GetInputPort("policy_command"))
-    builder.Connect(policy.GetOutputPort("uncertainty"), gate.GetInputPort("uncertainty"))
+    if random_gate:
+        AddRandomHandoverDraw(builder, gate, schedule.control_period_s)
+    else:
+        builder.Connect(policy.GetOutputPort("uncertainty"), gate.GetInputPort("uncertainty"))
     builder.Connect(fallback, gate.GetInputPort("fallback_command"))
     if config.gate.fallback == "teleop":
         indicator = builder.AddNamedSystem("driver_indicator", DriverIndicator(
             meshcat, CHASSIS_MESHCAT_PATH, period_s=schedule.control_period_s, offset_s=schedule.recorder_offset_s))
         builder.Connect(gate.GetOutputPort("who_drives"), indicator.GetInputPort("who_drives"))
     return gate
+
+
+def AddRandomHandoverDraw(builder: DiagramBuilder, gate: SharedControl, period_s: float) -> RandomSource:
+    """Adds the "random_handover_draw" `RandomSource` (one uniform draw in [0, 1) every
+    `period_s`, at t_k = k * period_s) and connects it to `gate`'s `uncertainty`; returns it.
+
+    Sampling at the gate's period, it draws once per gate tick: a gate ticking after t_k (as
+    `AddSharedControl`'s, between the controller and recorder offsets) reads the draw of t_k, one
+    ticking at t_k that of t_(k-1); either way each draw once. Seeded as the sensor noise is:
+    `diagram.SetRandomContext(context, RandomGenerator(seed))` (`StartEpisode`) re-draws it, so
+    the same seed hands over at the same steps. Added after the policy and the fallback, it
+    leaves their draws (and the plant's start) as the same seed gives them with any other signal.
+    """
+    source = builder.AddNamedSystem("random_handover_draw", RandomSource(RandomDistribution.kUniform, 1, period_s))
+    builder.Connect(source.get_output_port(), gate.GetInputPort("uncertainty"))
+    return source
 
 
 def check_calibration_policy(calibration: str, checkpoint: str) -> None:

@@ -233,10 +233,9 @@ def _config_dict(config: TrainConfig) -> dict:
 def loader_workers(config: TrainConfig) -> int:
     """`config.num_workers`, or for None: 0 on every device.
 
-    Measured on an H100 (`python -m ditch_drake.perf.bench_training_device`, docs/concepts/learning.md):
-    reading in the training process streams 7,300 samples/s, while each epoch's and each
-    validation's loader pays its workers' start (several seconds each), so 2, 4 and 8 workers
-    made an epoch 22, 50 and 92 times longer.
+    Measured on an H200 (`python -m ditch_drake.perf.bench_training_device`, docs/concepts/learning.md):
+    reading in the training process streams 5,600 samples/s, and 2 or 4 workers, forked from the
+    preloaded server, were no faster (5,300 and 4,700) while the first epoch paid their start.
     """
     return 0 if config.num_workers is None else config.num_workers
 

@@ -21,6 +21,11 @@ POLICY, FALLBACK = 0, 1
 FALLBACKS = ("expert", "mppi", "teleop")
 # After the controllers have computed this control step's commands, before the recorder reads it.
 GATE_OFFSET_S = (CONTROLLER_OFFSET_S + RECORDER_OFFSET_S) / 2
+# The control for a gate's study: the gate reads a seeded uniform draw in [0, 1) each control
+# step in place of the policy's uncertainty, so it hands over by chance, not by what the policy knows.
+RANDOM_SIGNAL = "random"
+# What `SharedControlConfig.signal` may name: the policy's uncertainty signals, or the draw.
+GATE_SIGNALS = (*UNCERTAINTY_SIGNALS, RANDOM_SIGNAL)
 
 
 @dataclass
@@ -28,17 +33,25 @@ class SharedControlConfig:
     """When the gate hands control to the fallback and back.
 
     Attributes:
-        signal: the uncertainty signal the policy reports (`ditch_drake.learning.uncertainty`).
+        signal: the uncertainty signal the policy reports (`ditch_drake.learning.uncertainty`),
+            or "random" (`RANDOM_SIGNAL`): a uniform draw in [0, 1) each control step, seeded
+            by the episode's seed, in its place (the chance handover a gate is compared with).
         upper_threshold: hand over when the signal is above this (the signal's unit: rad/s for
-            "angular_rate_spread", nats for the entropies). With a budget, set from it.
+            "angular_rate_spread", nats for the entropies, in [0, 1] for "random"). With a
+            budget, set from it.
         lower_threshold: hand back only after the signal has stayed below this ...
         calm_steps: ... for this many consecutive control steps (hysteresis: fewer switches).
         budget: the share of control steps the fallback may drive, in (0, 1); given, both
             thresholds come from the signal's values in `calibration` (`resolved`): the upper
             one the (1 - budget) quantile, which hands over that share of the recorded steps,
-            the lower one the (1 - 2 budget) quantile. None: the fixed thresholds above.
+            the lower one the (1 - 2 budget) quantile. With signal "random" only the upper
+            one, 1 - budget (the draw is above it on that share of the steps), and no file;
+            the lower one and `calm_steps` stay as set, and the fallback's realised share is
+            `random_fallback_share` of them (the budget itself only with `calm_steps` 1 and
+            the lower threshold equal to the upper). None: the fixed thresholds above.
         calibration: with a budget, the signals file of the gated policy's own validation
-            rollouts (`ditch-drake gate-signals`) whose values of `signal` set the thresholds.
+            rollouts (`ditch-drake gate-signals`) whose values of `signal` set the thresholds
+            (none with signal "random").
         fallback: who takes over, one of `FALLBACKS`.
     """
 
@@ -54,10 +67,11 @@ class SharedControlConfig:
         """Raises ConfigError naming the first bad value.
 
         With a budget, the thresholds' order is not checked: the budget sets both (`resolved`),
-        and the file it reads is read only then.
+        and the file it reads is read only then. With signal "random" it is (the budget sets
+        the upper one alone, with no file), and both must lie in [0, 1].
         """
-        if self.signal not in UNCERTAINTY_SIGNALS:
-            raise ConfigError(f"shared control signal {self.signal!r}: expected one of {list(UNCERTAINTY_SIGNALS)}")
+        if self.signal not in GATE_SIGNALS:
+            raise ConfigError(f"shared control signal {self.signal!r}: expected one of {list(GATE_SIGNALS)}")
         if self.fallback not in FALLBACKS:
             raise ConfigError(f"shared control fallback {self.fallback!r}: expected one of {list(FALLBACKS)}")
         if isinstance(self.calm_steps, bool) or not isinstance(self.calm_steps, int) or self.calm_steps < 1:
@@ -70,6 +84,9 @@ class SharedControlConfig:
             budget = self.budget
             if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0.0 < budget < 1.0:
                 raise ConfigError(f"shared control budget {budget!r}: expected a share of control steps in (0, 1)")
+        if self.signal == RANDOM_SIGNAL:
+            self._validate_random()
+        elif self.budget is not None:
             if not self.calibration:
                 raise ConfigError(f"shared control budget {budget} without a calibration: its thresholds are "
                                   f"quantiles of the {self.signal} signal over the policy's validation rollouts; "
@@ -84,8 +101,9 @@ class SharedControlConfig:
     def resolved(self) -> "SharedControlConfig":
         """This config with the thresholds its budget sets on its calibration file
         (`ditch_drake.learning.gate_calibration.budget_thresholds`), the budget and the file
-        kept so that it says where they came from; without a budget, itself. Resolving a
-        resolved config gives the same thresholds (the file read again).
+        kept so that it says where they came from; with signal "random", the upper threshold
+        1 - budget and the lower one as set; without a budget, itself. Resolving a resolved
+        config gives the same thresholds (the file read again).
 
         Raises:
             ConfigError: as `validate`; a calibration file that does not read, or has no values
@@ -95,8 +113,55 @@ class SharedControlConfig:
         self.validate()
         if self.budget is None:
             return self
+        if self.signal == RANDOM_SIGNAL:
+            return dataclasses.replace(self, upper_threshold=1.0 - self.budget)
         upper, lower = budget_thresholds(calibration_values(self.calibration, self.signal), self.budget)
         return dataclasses.replace(self, upper_threshold=upper, lower_threshold=lower)
+
+    def _validate_random(self) -> None:
+        """The thresholds of the random draw: in [0, 1], where a draw in [0, 1) can cross them
+        (a leftover of another signal's, such as the default gate's 2.3 nats, is refused rather
+        than read as "always calm"), lower <= upper, and no calibration file."""
+        if self.calibration:
+            raise ConfigError(f"shared control calibration {self.calibration!r} with signal 'random': its upper "
+                              "threshold is 1 - budget, from no file; expected no calibration")
+        upper = 1.0 - self.budget if self.budget is not None else self.upper_threshold
+        keys = ("lower_threshold",) if self.budget is not None else ("upper_threshold", "lower_threshold")
+        for key in keys:
+            value = getattr(self, key)
+            if not 0.0 <= value <= 1.0:
+                raise ConfigError(f"shared control {key} {value!r} with signal 'random': expected a number in "
+                                  "[0, 1], the range of the uniform draw it is compared with")
+        if self.lower_threshold > upper:
+            source = f"1 - budget {self.budget}" if self.budget is not None else "upper_threshold"
+            raise ConfigError(f"shared control lower_threshold {self.lower_threshold} > {source} = {upper:g} with "
+                              "signal 'random': expected lower <= upper (hand back below, over above)")
+
+
+def random_fallback_share(upper_threshold: float, lower_threshold: float, calm_steps: int) -> float:
+    """The long-run share of control steps the fallback drives when the gate reads a uniform draw
+    in [0, 1) each step (signal "random"), hysteresis included.
+
+    While the policy drives, each step hands over with chance p = 1 - upper, so a spell of the
+    policy lasts 1 / p steps on average (the handback step included). The fallback's spell lasts
+    until `calm_steps` draws in a row fall below the lower threshold (chance q each): on average
+    N = (1 - q^c) / ((1 - q) q^c) steps (the handover step included, the handback step not;
+    N = c where q = 1). The share is N / (1 / p + N) = p N / (1 + p N): p itself where c = 1 and
+    q = 1 - p (each step's driver then its own draw's), more with any hysteresis. An episode
+    starts with the policy driving, so a short one's share is a little less.
+
+    Raises:
+        ConfigError: thresholds outside [0, 1] or lower above upper, or calm_steps < 1.
+    """
+    SharedControlConfig(signal=RANDOM_SIGNAL, upper_threshold=upper_threshold, lower_threshold=lower_threshold,
+                        calm_steps=calm_steps).validate()
+    handover, calm = 1.0 - upper_threshold, lower_threshold
+    if handover == 0.0:
+        return 0.0
+    if calm == 0.0:
+        return 1.0
+    spell = float(calm_steps) if calm == 1.0 else (1.0 - calm**calm_steps) / ((1.0 - calm) * calm**calm_steps)
+    return handover * spell / (1.0 + handover * spell)
 
 
 class SharedControl(LeafSystem):
@@ -135,7 +200,8 @@ class SharedControl(LeafSystem):
 
     Ports:
         policy_command: [v m/s, w rad/s] the policy commands.
-        uncertainty: [the policy's uncertainty], in the unit of the configured signal.
+        uncertainty: [the policy's uncertainty], in the unit of the configured signal; with
+            signal "random", the draw in [0, 1) that `AddSharedControl` connects instead.
         fallback_command: [v m/s, w rad/s] the fallback commands.
         command: [v m/s, w rad/s] the executed command.
         who_drives: [0] the policy, [1] the fallback (a float).

@@ -1,0 +1,28 @@
+"""`evaluate --override` over several environments: each runs its own model unless one is named."""
+
+import json
+
+import pytest
+
+from ditch_drake.cli import main
+
+SHORT = ["--task", "0", "--rollouts", "1", "--time-limit", "0.3", "--workers", "0"]
+
+
+def _checkpoints(path) -> dict[str, str]:
+    return {record["environment"]: record["checkpoint"] for record in map(json.loads, path.read_text().splitlines())}
+
+
+@pytest.mark.parametrize("controller", ["!LearnedPolicyConfig {}", "!SharedControlControllerConfig {}"])
+def test_each_environment_of_an_override_runs_its_own_model(tmp_path, controller):
+    out = tmp_path / "results.jsonl"
+    assert main(["evaluate", "--override", f"{{controller: {controller}}}", "--env", "crater", "--env", "wide",
+                 *SHORT, "--out", str(out)]) == 0
+    assert _checkpoints(out) == {"crater": "crater", "wide": "wide"}
+
+
+def test_a_named_checkpoint_runs_in_every_environment(tmp_path):
+    out = tmp_path / "results.jsonl"
+    assert main(["evaluate", "--override", "{controller: !LearnedPolicyConfig {checkpoint: wide_bc40}}",
+                 "--env", "crater", "--env", "wide", *SHORT, "--out", str(out)]) == 0
+    assert _checkpoints(out) == {"crater": "wide_bc40", "wide": "wide_bc40"}
