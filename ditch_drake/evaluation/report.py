@@ -10,7 +10,9 @@ groups them by study, and writes a Markdown page with
 - one table per study: model, environment, successes / trials, rate and 95 % Wilson
   interval, failures by status and region, halts by region (`report_data.study_table`); a
   privileged controller's rows, and a clone's crossing side's source, marked in the model's
-  name (`model_labels.controller_labels`);
+  name (`model_labels.controller_labels`); under a study with records of the `shared`
+  controller, a "Shared control" table of how much its fallback drove
+  (`report_data.shared_control_table`);
 - where each evaluated checkpoint came from;
 - the figures (`report_figures`), each with a caption under it;
 - the paper's stated findings beside ours, each marked as agreeing or not by a rule computed
@@ -69,7 +71,7 @@ def write_report(results: list[str | os.PathLike], out: str | os.PathLike, figur
     if any_marked(every_record):
         lines += [marks_note(every_record), ""]
     for study in data.studies:
-        lines += [f"## {study}", "", *data.tables[study], ""]
+        lines += [f"## {study}", "", *data.study_lines(study), ""]
     must_cross = must_cross_groups(data)
     figures, missing = draw_figures(data, figures_dir, must_cross)
     models = _models_table([record for records in data.records.values() for record in records])
@@ -112,13 +114,11 @@ def _runs_section(results: list[str | os.PathLike]) -> list[str]:
 
 def _models_table(records: list[RolloutRecord]) -> list[str]:
     """Where each evaluated checkpoint came from, read from the file when it is still there
-    (and still the file the rollouts used: same hash prefix)."""
-    from ditch_drake.learning.checkpoint import (
-        CheckpointError,
-        checkpoint_digest,
-        load_checkpoint,
-        resolve_checkpoint_path,
-    )
+    (and still the file the rollouts used: same hash prefix); an ensemble's row summarises its
+    members (`_ensemble_row`)."""
+    from ditch_drake.common.errors import CheckpointError, ConfigError
+    from ditch_drake.learning.checkpoint import checkpoint_digest, load_checkpoint, resolve_checkpoint_path
+    from ditch_drake.learning.ensemble import is_ensemble_checkpoint, load_ensemble
 
     lines = ["| model | checkpoint | sha256 | demonstrations (train/val) | epochs (best) | device | training_s |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
@@ -128,10 +128,29 @@ def _models_table(records: list[RolloutRecord]) -> list[str]:
         row = ["(file gone or changed since)"] + [""] * 3
         try:
             if checkpoint_digest(path) == digest:
-                summary = load_checkpoint(resolve_checkpoint_path(path)).summary()
-                row = [summary["demos_train/val"], f"{summary['epochs']} ({summary['best_epoch']})",
-                       summary["device"], summary["training_s"]]
-        except (CheckpointError, OSError):
+                file = resolve_checkpoint_path(path)
+                if is_ensemble_checkpoint(file):
+                    row = _ensemble_row(load_ensemble(file).members)
+                else:
+                    summary = load_checkpoint(file).summary()
+                    row = [summary["demos_train/val"], f"{summary['epochs']} ({summary['best_epoch']})",
+                           summary["device"], summary["training_s"]]
+        except (CheckpointError, ConfigError, OSError):
             pass
         lines.append(f"| {label} | {path} | {digest} | " + " | ".join(row) + " |")
     return lines if used else []
+
+
+def _ensemble_row(members: list) -> list[str]:
+    """An ensemble's Models cells from its members (`PolicyCheckpoint`s): each member's
+    demonstrations (train/val) and epochs (best), "each" where all members agree; their devices;
+    their training seconds summed."""
+    def each(values: list[str]) -> str:
+        return f"{values[0]} each" if len(set(values)) == 1 else ", ".join(values)
+
+    summaries = [member.summary() for member in members]
+    training_s = sum(float(member.metrics.get("training_seconds", float("nan"))) for member in members)
+    return [f"ensemble of {len(members)}: " + each([summary["demos_train/val"] for summary in summaries]),
+            each([f"{summary['epochs']} ({summary['best_epoch']})" for summary in summaries]),
+            ", ".join(sorted({summary["device"] for summary in summaries})),
+            f"{training_s:.0f} (sum)"]

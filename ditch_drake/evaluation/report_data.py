@@ -5,10 +5,14 @@ A study is recognized from a results file's name (`scalability.jsonl`, ...); any
 a study of its own, under its name. Only the current records count (`results.current_records`):
 one per rollout key (a real outcome beats an error record), and per learned checkpoint name only
 the records of the file as it is now where it still resolves. What was set aside is a note.
+
+A results file with records of the `shared` controller also gets a table of how much its
+fallback drove (`shared_control_table`).
 """
 
 import os
-from collections import defaultdict
+import statistics
+from collections import Counter, defaultdict
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -30,21 +34,29 @@ class ReportData:
         notes: what was set aside or could not be read, one sentence each.
         summaries: per study, a `GroupSummary` per (model, environment).
         tables: per study, its Markdown table's lines.
+        shared_tables: per study with records of the `shared` controller, the lines of its
+            "Shared control" table (`shared_control_table`); other studies are absent.
     """
 
     records: dict[str, list[RolloutRecord]]
     notes: list[str] = field(default_factory=list)
     summaries: dict[str, dict[tuple[str, str], GroupSummary]] = field(default_factory=dict)
     tables: dict[str, list[str]] = field(default_factory=dict)
+    shared_tables: dict[str, list[str]] = field(default_factory=dict)
 
     @property
     def studies(self) -> list[str]:
         """The paper's studies present, in the paper's order, then the other files' names."""
         return [*(study for study in STUDIES if study in self.records), *sorted(set(self.records) - set(STUDIES))]
 
+    def study_lines(self, study: str) -> list[str]:
+        """A study's table, then its "Shared control" table where it has one."""
+        shared = self.shared_tables.get(study)
+        return [*self.tables[study], *(["", "### Shared control", "", *shared] if shared else [])]
+
     def markdown_tables(self) -> str:
-        """Every study's table under its name (what `ditch-drake report` prints)."""
-        return "\n".join(f"## {study}\n\n" + "\n".join(self.tables[study]) + "\n" for study in self.studies)
+        """Every study's tables under its name (what `ditch-drake report` prints)."""
+        return "\n".join(f"## {study}\n\n" + "\n".join(self.study_lines(study)) + "\n" for study in self.studies)
 
 
 def load_by_study(results: list[str | os.PathLike]) -> dict[str, list[RolloutRecord]]:
@@ -97,6 +109,9 @@ def load_report_data(results: list[str | os.PathLike]) -> ReportData:
                               "record is superseded by an outcome of the same rollout): each rollout counts once")
     for study in data.studies:
         data.tables[study], data.summaries[study] = study_table(data.records[study])
+        shared = shared_control_table(data.records[study])
+        if shared:
+            data.shared_tables[study] = shared
     return data
 
 
@@ -120,3 +135,40 @@ def study_table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str
         lines.append(f"| {model} | {env} | {s.successes}/{s.trials} | {percent(s.rate)} | "
                      f"{percent(s.low)}-{percent(s.high)} | {s.around} | {failures} | {halts} | {s.errors} |")
     return lines, summaries
+
+
+def is_shared_control(record: RolloutRecord) -> bool:
+    """Whether `record` is a rollout of a gated policy with a fallback (the `shared` controller,
+    or any record whose fallback drove some of its steps)."""
+    return record.controller == "shared" or record.handover_fraction > 0
+
+
+def shared_control_table(records: list[RolloutRecord]) -> list[str]:
+    """How much the fallback drove, one row per model and environment with shared-control
+    records: successes, the mean and largest share of control steps the fallback drove, the
+    median number of switches (handovers plus handbacks) per rollout, and where the handovers
+    began (region:count, by region name); error records are left out. Empty without
+    shared-control records."""
+    name_of = controller_labels(records)
+    groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
+    for record in records:
+        if is_shared_control(record):
+            groups[(name_of(record), record.environment)].append(record)
+    if not groups:
+        return []
+    lines = [("| model | environment | success | fallback's share of steps (mean) | (max) | switches (median) | "
+              "handovers (region:count) |"),
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for (model, env), group in sorted(groups.items()):
+        trials = [record for record in group if not record.is_error]
+        successes = sum(record.success for record in trials)
+        if trials:
+            fractions = [record.handover_fraction for record in trials]
+            mean, most = f"{100 * statistics.fmean(fractions):.1f}%", f"{100 * max(fractions):.1f}%"
+            switches = f"{statistics.median(record.switches for record in trials):g}"
+        else:
+            mean = most = switches = "n/a"
+        regions = Counter(region for record in trials for region in record.handover_regions)
+        handovers = ", ".join(f"{region}:{count}" for region, count in sorted(regions.items())) or "-"
+        lines.append(f"| {model} | {env} | {successes}/{len(trials)} | {mean} | {most} | {switches} | {handovers} |")
+    return lines

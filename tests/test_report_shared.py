@@ -1,0 +1,103 @@
+"""The results page for the `shared` controller, from synthetic records of known values: its "Shared
+control" table (the fallback's share of steps, switches, where handovers began), no such table where no
+record is of shared control, and the Models row of an ensemble file."""
+
+from pathlib import Path
+
+import torch
+
+from ditch_drake.evaluation.report import write_report
+from ditch_drake.evaluation.report_data import load_report_data, shared_control_table
+from ditch_drake.evaluation.results import RolloutRecord
+from ditch_drake.learning.checkpoint import checkpoint_digest, make_checkpoint, save_checkpoint
+from ditch_drake.learning.ensemble import EnsembleCheckpoint, save_ensemble
+from ditch_drake.learning.model import FourInputClassifier
+
+SHARED_HEADER = ("| model | environment | success | fallback's share of steps (mean) | (max) | switches (median) | "
+                 "handovers (region:count) |")
+
+
+def record(i: int, controller: str = "shared", env: str = "wide", success: bool = True, fraction: float = 0.0,
+           switches: int = 0, regions: tuple[str, ...] = (), checkpoint: str = "", digest: str = "",
+           status: str = "") -> RolloutRecord:
+    return RolloutRecord(
+        key=f"{controller}|{checkpoint}|{env}|{i}", controller=controller, checkpoint=checkpoint, environment=env,
+        task=i, seed=0, time_limit_s=120.0, goal_radius_m=1.5, checkpoint_sha256=digest,
+        status=status or ("reached_goal" if success else "rolled_over"), success=success, time_s=60.0,
+        path_length_m=30.0, peak_abs_roll_deg=5.0, peak_abs_pitch_deg=30.0, peak_tilt_deg=31.0,
+        min_stability_margin_deg=10.0, final_x_m=0.0, final_y_m=0.0, failure_region="" if success else "up_wall",
+        wall_s=1.0, handover_fraction=fraction, switches=switches, handover_regions=list(regions))
+
+
+def write(path: Path, records: list[RolloutRecord]) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("".join(r.to_json() + "\n" for r in records))
+    return path
+
+
+def shared_records() -> list[RolloutRecord]:
+    """Wide: 2 of 3 reached the goal, the fallback drove 10 %, 20 % and 45 % of the steps, after 2, 4 and 5
+    switches; crater: 1 of 1, never handed over; plus an error record, counted nowhere."""
+    return [
+        record(0, fraction=0.10, switches=2, regions=("up_wall",)),
+        record(1, fraction=0.20, switches=4, regions=("approach", "up_wall")),
+        record(2, success=False, fraction=0.45, switches=5, regions=("floor", "approach", "up_wall")),
+        record(3, success=False, status="error", fraction=0.9, switches=99, regions=("beyond",)),
+        record(4, env="crater"),
+    ]
+
+
+def test_the_shared_control_table_gives_each_groups_share_switches_and_handover_regions():
+    lines = shared_control_table(shared_records())
+    assert lines[0] == SHARED_HEADER
+    assert lines[2:] == ["| shared | crater | 1/1 | 0.0% | 0.0% | 0 | - |",
+                         "| shared | wide | 2/3 | 25.0% | 45.0% | 4 | approach:2, floor:1, up_wall:3 |"]
+    # An even count of rollouts: the median of 4 and 5 switches is 4.5.
+    assert shared_control_table(shared_records()[1:3])[2:] == [
+        "| shared | wide | 1/2 | 32.5% | 45.0% | 4.5 | approach:2, floor:1, up_wall:2 |"]
+
+
+def test_only_shared_control_records_get_rows_and_a_file_without_them_gets_no_table(tmp_path):
+    others = [record(i, controller="dwa", env="wide") for i in range(2)]
+    # A record of another name whose fallback drove some steps counts as shared control.
+    gated = record(9, controller="gated", fraction=0.5, switches=1, regions=("floor",))
+    data = load_report_data([write(tmp_path / "mixed.jsonl", [*others, *shared_records(), gated]),
+                             write(tmp_path / "plain.jsonl", others)])
+    assert data.shared_tables["mixed"][2:] == [
+        "| gated | wide | 1/1 | 50.0% | 50.0% | 1 | floor:1 |",
+        "| shared | crater | 1/1 | 0.0% | 0.0% | 0 | - |",
+        "| shared | wide | 2/3 | 25.0% | 45.0% | 4 | approach:2, floor:1, up_wall:3 |"]
+    assert "plain" not in data.shared_tables and data.study_lines("plain") == data.tables["plain"]
+    page = write_report([tmp_path / "mixed.jsonl", tmp_path / "plain.jsonl"], tmp_path / "page" / "results.md",
+                        tmp_path / "page" / "img", data=data).read_text()
+    mixed, plain = page.split("## mixed")[1].split("## plain")
+    assert "### Shared control\n\n" + SHARED_HEADER in mixed and "Shared control" not in plain
+    assert "### Shared control" in data.markdown_tables()
+
+
+def _checkpoint(seed: int, epochs: int, best: int, seconds: float, train_demos: int):
+    torch.manual_seed(seed)
+    return make_checkpoint(
+        FourInputClassifier().eval(),
+        training={"train_demo_ids": list(range(train_demos)), "val_demo_ids": [0, 1],
+                  "train_config": {"device": "cpu"}},
+        metrics={"epochs_run": epochs, "best_epoch": best, "training_seconds": seconds, "best": {}})
+
+
+def test_the_models_table_summarises_an_ensemble_and_checks_its_hash(tmp_path):
+    members = [_checkpoint(0, 3, 2, 10.4, 5), _checkpoint(1, 3, 1, 20.3, 5)]
+    ensemble = str(save_ensemble(EnsembleCheckpoint(members), tmp_path / "models" / "gated_k2.pt"))
+    single = str(save_checkpoint(_checkpoint(2, 4, 4, 7.0, 5), tmp_path / "models" / "alone.pt"))
+    records = [record(0, fraction=0.2, switches=2, checkpoint=ensemble, digest=checkpoint_digest(ensemble)),
+               record(1, controller="learned", checkpoint=single, digest=checkpoint_digest(single))]
+    results = write(tmp_path / "results" / "gated.jsonl", records)
+    page = write_report([results], tmp_path / "page.md", tmp_path / "img").read_text()
+    models = page.split("## Models")[1].splitlines()
+    assert (f"| gated_k2 | {ensemble} | {checkpoint_digest(ensemble)} | ensemble of 2: 5/2 each | 3 (2), 3 (1) | cpu "
+            "| 31 (sum) |") in models
+    assert f"| alone | {single} | {checkpoint_digest(single)} | 5/2 | 4 (4) | cpu | 7 |" in models
+    # Another file at the ensemble's path since the rollouts: not read as theirs.
+    data = load_report_data([results])
+    save_ensemble(EnsembleCheckpoint(members[::-1]), ensemble)
+    page = write_report([results], tmp_path / "page.md", tmp_path / "img", data=data).read_text()
+    assert f"| gated_k2 | {ensemble} | {records[0].checkpoint_sha256} | (file gone or changed since) |" in page
