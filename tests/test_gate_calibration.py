@@ -16,10 +16,16 @@ from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
 from ditch_drake.evaluation.batch import make_specs
 from ditch_drake.learning.checkpoint import checkpoint_digest
 from ditch_drake.learning.gate_calibration import (
+    FALLBACK,
+    POLICY,
     bootstrap_auc_interval,
     budget_thresholds,
+    calibration_values,
     failure_labels,
+    gate_step,
     load_signals,
+    quantile_thresholds,
+    replay_fallback_share,
     roc_auc,
     save_signals,
     signal_aucs,
@@ -69,18 +75,47 @@ def test_steps_within_two_seconds_before_a_rollover_are_labelled():
         False, False, False, True, True, False, False]
 
 
-def test_a_budget_hands_over_its_share_of_the_recorded_steps(tmp_path):
+def test_a_budget_hands_over_its_share_of_the_recorded_steps_hysteresis_included(tmp_path):
     values = np.random.default_rng(1).gamma(4.0, 0.3, 2000)
     path = _signals_file(tmp_path / "signals.npz", values)
+    episodes = [values[:1000], values[1000:]]
+    assert [len(e) for e in calibration_values(path, "mean_softmax_entropy")] == [1000, 1000]
     for budget in (0.01, 0.05, 0.2):
         gate = SharedControlConfig(signal="mean_softmax_entropy", budget=budget, calibration=str(path)).resolved()
-        assert np.mean(values > gate.upper_threshold) == pytest.approx(budget, abs=1e-3)
-        assert np.mean(values > gate.lower_threshold) == pytest.approx(2 * budget, abs=1e-3)
-        assert SharedControl(gate).config.upper_threshold == gate.upper_threshold
-    assert budget_thresholds(values, 0.6)[1] == values.min()  # 1 - 2 budget < 0: the smallest value.
+        upper, lower, calm_steps = gate.upper_threshold, gate.lower_threshold, gate.calm_steps
+        # Replayed over the recorded episodes, the gate hands over the budget's share of the
+        # steps, to within one step of 2000 (the signal is continuous).
+        assert replay_fallback_share(episodes, upper, lower, calm_steps) == pytest.approx(budget, abs=1e-3)
+        assert replay_fallback_share(episodes, upper, lower, calm_steps) <= budget
+        # Both thresholds are quantiles at one share s: the upper one the (1 - s), the lower the (1 - 2 s).
+        share = np.mean(values > upper)
+        assert np.mean(values > lower) == pytest.approx(2 * share, abs=1e-3)
+        # The calm steps hold each handover: s is below the budget, and the quantiles at the
+        # budget itself (the rule without the hysteresis) would hand over more than the budget.
+        assert share < budget
+        assert replay_fallback_share(episodes, *quantile_thresholds(values, budget), calm_steps) > budget
+        assert SharedControl(gate).config.upper_threshold == upper
+    # Without hysteresis and with the band closed, the quantile itself: s is the budget.
+    upper, lower = budget_thresholds(episodes, 0.05, calm_steps=1)
+    assert np.mean(values > upper) <= 0.05 and replay_fallback_share(episodes, upper, lower, 1) <= 0.05
+    assert quantile_thresholds(values, 0.6)[1] == values.min()  # 1 - 2 s < 0: the smallest value.
     for bad in (0, 1, -0.1, 1.5, True):
         with pytest.raises(ConfigError, match=f"budget {bad!r}: expected a share of control steps in"):
             budget_thresholds(values, bad)
+
+
+def test_the_replay_is_the_gates_hysteresis():
+    # Over 0.5 hands over; three steps below 0.2 in a row hand back.
+    sequence = [0.1, 0.6, 0.1, 0.1, 0.3, 0.1, 0.1, 0.1, 0.4, 0.9, 0.0]
+    drivers, driver, calm = [], POLICY, 0
+    for value in sequence:
+        driver, calm, _ = gate_step(driver, calm, value, 0.5, 0.2, 3)
+        drivers.append(driver)
+    assert drivers == [POLICY, FALLBACK, FALLBACK, FALLBACK, FALLBACK, FALLBACK, FALLBACK, POLICY, POLICY,
+                       FALLBACK, FALLBACK]
+    assert replay_fallback_share([sequence], 0.5, 0.2, 3) == pytest.approx(8 / 11)
+    # Each episode starts with the policy driving.
+    assert replay_fallback_share([sequence[:3], sequence[:3]], 0.5, 0.2, 3) == pytest.approx(4 / 6)
 
 
 def test_the_auc_rows_of_a_signals_file(tmp_path):
@@ -99,8 +134,9 @@ def test_a_budgeted_shared_config_records_the_thresholds_it_ran_with(tmp_path):
         signal="mean_softmax_entropy", budget=0.05, calibration=str(path)))
     (spec,) = make_specs(config, "", "wide", [1], rollouts=1, time_limit_s=2.0)
     gate = yaml.safe_load(spec.controller_config)["gate"]
-    assert gate["upper_threshold"] == pytest.approx(np.quantile(values, 0.95))
-    assert gate["lower_threshold"] == pytest.approx(np.quantile(values, 0.90))
+    upper, lower = budget_thresholds([values[:200], values[200:]], 0.05, SharedControlConfig().calm_steps)
+    assert (gate["upper_threshold"], gate["lower_threshold"]) == (pytest.approx(upper), pytest.approx(lower))
+    assert upper > np.quantile(values, 0.95)  # The hysteresis counted in: fewer handovers than the quantile's.
     assert (gate["budget"], gate["calibration"]) == (0.05, str(path))
     other = config.with_checkpoint("narrow")  # Another policy's signal says nothing of this one's.
     with pytest.raises(ConfigError, match="gate.calibration .* recorded with checkpoint digest"):
@@ -143,3 +179,18 @@ def test_gate_signals_refuses_bad_input_with_exit_2(tmp_path, capsys, options, m
     err = capsys.readouterr().err
     assert code == 2 and message in err, err
     assert not out.exists()
+
+
+def test_gate_thresholds_prints_what_the_gate_would_set(tmp_path, capsys):
+    values = np.random.default_rng(3).gamma(4.0, 0.3, 1000)
+    path = _signals_file(tmp_path / "s.npz", values)
+    assert main(["gate-thresholds", str(path), "--signal", "mean_softmax_entropy", "--budget", "0.05", "0.2"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    header, rows = lines[0].split(), [line.split() for line in lines[1:3]]
+    assert header[:3] == ["budget", "upper_threshold", "lower_threshold"] and [row[0] for row in rows] == ["0.05", "0.2"]
+    gate = SharedControlConfig(signal="mean_softmax_entropy", budget=0.2, calibration=str(path)).resolved()
+    assert float(rows[1][1]) == pytest.approx(gate.upper_threshold, rel=1e-3)
+    assert float(rows[1][header.index("replayed_share")]) <= 0.2 < float(rows[1][header.index(
+        "replayed_share_quantile_rule")])
+    assert main(["gate-thresholds", str(path), "--signal", "vote_entropy"]) == 2
+    assert "has no signal 'vote_entropy'" in capsys.readouterr().err

@@ -46,8 +46,14 @@ def _random_shared(budget: float = 0.5, lower_threshold: float = 0.5, calm_steps
 
 
 def test_a_budget_sets_the_upper_threshold_of_the_draw_without_a_calibration():
+    # Without hysteresis the draw is above 1 - budget on the budget's share of the steps.
+    assert SharedControlConfig(signal="random", budget=0.05, lower_threshold=0.95, calm_steps=1).resolved(
+        ).upper_threshold == pytest.approx(0.95)
     gate = SharedControlConfig(signal="random", budget=0.05, lower_threshold=0.9, calm_steps=5).resolved()
-    assert gate.upper_threshold == pytest.approx(0.95)
+    # Five calm draws below 0.9 hold the fallback (1 - 0.9^5) / (0.1 x 0.9^5) = 6.935 steps on
+    # average, so a handover may come with chance 0.05 / (0.95 x 6.935) = 0.00759 a step.
+    assert gate.upper_threshold == pytest.approx(1.0 - 0.05 / (0.95 * 6.9351), abs=1e-5)
+    assert random_fallback_share(gate.upper_threshold, 0.9, 5) == pytest.approx(0.05)
     assert (gate.lower_threshold, gate.calm_steps, gate.budget, gate.calibration) == (0.9, 5, 0.05, "")
     assert gate.resolved() == gate
     fixed = SharedControlConfig(signal="random", upper_threshold=0.8, lower_threshold=0.3)
@@ -58,16 +64,19 @@ def test_a_budget_sets_the_upper_threshold_of_the_draw_without_a_calibration():
     # The controller's config resolves with no file to check against the policy.
     shared = dataclasses.replace(_random_shared(0.05, 0.9), policy=controller_config("shared").policy.with_checkpoint(
         "wide"))
-    assert shared.resolved().gate.upper_threshold == pytest.approx(0.95)
+    assert shared.resolved().gate.upper_threshold == pytest.approx(1.0 - 0.05 * 0.9 / 0.95)  # Spells of 1 / 0.9.
 
 
 @pytest.mark.parametrize("gate, message", [
     ({"calibration": "signals.npz", "budget": 0.05, "lower_threshold": 0.9},
      "calibration 'signals.npz' with signal 'random'"),
     ({"budget": 0.05, "lower_threshold": 2.3}, r"lower_threshold 2.3 with signal 'random': expected a number in \[0, 1\]"),
-    ({"budget": 0.05, "lower_threshold": 0.97}, r"lower_threshold 0.97 > 1 - budget 0.05 = 0.95"),
+    ({"budget": 0.5, "lower_threshold": 0.9, "calm_steps": 1},
+     r"lower_threshold 0.9 > the budget 0.5's upper threshold 0.1 with signal 'random'"),
+    ({"budget": 0.9, "lower_threshold": 0.5, "calm_steps": 1},
+     r"budget 0.9 with signal 'random', lower_threshold 0.5 and calm_steps 1: .* expected a budget of at most 0.667"),
     ({"upper_threshold": 1.5, "lower_threshold": 0.5}, "upper_threshold 1.5 with signal 'random'"),
-    ({"upper_threshold": 0.4, "lower_threshold": 0.5}, "lower_threshold 0.5 > upper_threshold = 0.4"),
+    ({"upper_threshold": 0.4, "lower_threshold": 0.5}, "lower_threshold 0.5 > upper_threshold 0.4"),
     ({"budget": 1.0, "lower_threshold": 0.5}, r"budget 1.0: expected a share of control steps in \(0, 1\)"),
     ({"budget": 0.05, "lower_threshold": float("nan")}, "lower_threshold nan: expected a number"),
 ])
@@ -111,10 +120,9 @@ def _gate_with_draws(gate_config: SharedControlConfig, seed: int, steps: int) ->
 @pytest.mark.parametrize("budget, lower, calm_steps", [(0.05, 0.95, 1), (0.05, 0.9, 5), (0.2, 0.8, 3)])
 def test_the_fallbacks_share_of_random_handovers_is_the_expected_one(budget, lower, calm_steps):
     gate = SharedControlConfig(signal="random", budget=budget, lower_threshold=lower, calm_steps=calm_steps)
-    expected = random_fallback_share(1.0 - budget, lower, calm_steps)
     drivers = _gate_with_draws(gate, seed=11, steps=4000)
-    # 4000 steps hold hundreds of handover cycles: the share within a few points of its mean.
-    assert np.mean(drivers) == pytest.approx(expected, abs=0.03)
+    # 4000 steps hold tens of handover cycles or more: the share within a few points of the budget.
+    assert np.mean(drivers) == pytest.approx(budget, abs=0.03)
     assert set(drivers) == {POLICY, FALLBACK}
 
 

@@ -42,6 +42,7 @@ COMMANDS = (
     evaluation_commands.add_report,
     training_commands.add_train,
     training_commands.add_gate_signals,
+    training_commands.add_gate_thresholds,
     tool_commands.add_figure,
     tool_commands.add_bench,
     tool_commands.add_reference,

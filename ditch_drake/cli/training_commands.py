@@ -1,4 +1,5 @@
-"""Commands of data and training: collect, train, checkpoint-info, train-generalist, gate-signals."""
+"""Commands of data and training: collect, train, checkpoint-info, train-generalist, gate-signals,
+gate-thresholds."""
 
 import json
 import sys
@@ -310,6 +311,9 @@ def cmd_train_generalist(args) -> int:
 
 GATE_SIGNALS = "ditch_drake.evaluation.gate_signals:record_gate_signals"
 AUC = "ditch_drake.learning.gate_calibration:auc_report"
+GATE = "ditch_drake.systems.shared_control:SharedControlConfig"
+# The budgets `gate-thresholds` prints by default: the shared-control study's.
+STUDY_BUDGETS = (0.01, 0.02, 0.05, 0.1, 0.2)
 
 
 def add_gate_signals(commands: Commands) -> None:
@@ -409,4 +413,46 @@ def cmd_gate_signals(args) -> int:
                   f"{number(row['ci_high'])}]"} for row in report["rows"]],
                 ["signal", "auc", "95% interval", "positive_steps", "steps", "rolled_over_episodes", "episodes"])
     print(f"signals: {out}\nAUC of a rollover within {args.horizon} s: {report_path}")
+    return 0
+
+
+def add_gate_thresholds(commands: Commands) -> None:
+    thresholds = commands.add("gate-thresholds", "the thresholds a budget sets on a signals file (gate.budget with "
+                                                 "gate.calibration), and the share of steps they hand over there")
+    thresholds.add_argument("signals", help="a signals file of ditch-drake gate-signals")
+    thresholds.add_argument("--signal", default=ConfigDefault(GATE, "signal"),
+                            help="the uncertainty signal the gate reads (one the file recorded)")
+    thresholds.add_argument("--budget", type=float, nargs="+", default=list(STUDY_BUDGETS),
+                            help="shares of control steps the fallback may drive, each in (0, 1)")
+    thresholds.add_argument("--calm-steps", type=int, default=ConfigDefault(GATE, "calm_steps"),
+                            help="the gate's hysteresis: calm control steps before it hands back")
+    thresholds.set_defaults(run=cmd_gate_thresholds)
+
+
+def cmd_gate_thresholds(args) -> int:
+    """Prints, for each budget, the thresholds `SharedControlConfig.resolved` would set, the
+    quantile share s they sit at, and the share of the file's steps the gate hands over replayed
+    over its episodes, beside what the quantiles at the budget itself (no hysteresis counted) would."""
+    import numpy as np
+
+    from ditch_drake.learning.gate_calibration import calibration_values, quantile_thresholds, replay_fallback_share
+    from ditch_drake.systems.shared_control import SharedControlConfig
+
+    gates = [SharedControlConfig(signal=args.signal, budget=budget, calibration=args.signals,
+                                 calm_steps=args.calm_steps).resolved() for budget in args.budget]
+    episodes = calibration_values(args.signals, args.signal)
+    values = np.concatenate(episodes)
+    rows = []
+    for gate in gates:
+        upper, lower = gate.upper_threshold, gate.lower_threshold
+        quantile_rule = replay_fallback_share(episodes, *quantile_thresholds(values, gate.budget), gate.calm_steps)
+        rows.append({"budget": f"{gate.budget:g}", "upper_threshold": f"{upper:.4g}", "lower_threshold": f"{lower:.4g}",
+                     "quantile_share": f"{np.mean(values > upper):.4f}",
+                     "replayed_share": f"{replay_fallback_share(episodes, upper, lower, gate.calm_steps):.4f}",
+                     "replayed_share_quantile_rule": f"{quantile_rule:.4f}"})
+    print_table(rows, list(rows[0]))
+    print(f"{args.signal} over {values.size} steps of {len(episodes)} episodes in {args.signals}; calm_steps "
+          f"{args.calm_steps}. quantile_share: the share of the steps above the upper threshold; replayed_share: "
+          "the fallback's share with the gate replayed over each episode; replayed_share_quantile_rule: the same "
+          "with the quantiles at the budget itself (ThriftyDAgger's rule, the hysteresis not counted).")
     return 0

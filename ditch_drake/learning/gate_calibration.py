@@ -11,9 +11,14 @@ episode's outcome and end time. From it:
   over the product of the class sizes: 1 a perfect predictor, 0.5 one that knows nothing),
   with `bootstrap_auc_interval` resampling whole episodes, since the steps of one episode are
   far from independent;
-- `budget_thresholds`: ThriftyDAgger's rule, the gate's upper threshold the (1 - budget)
-  quantile of the signal over the recorded steps, so that on them the fallback would be handed
-  `budget` of the steps; the lower threshold the (1 - 2 budget) quantile (`LOWER_QUANTILE_RULE`).
+- `budget_thresholds`: ThriftyDAgger's rule with the gate's hysteresis counted in: the
+  thresholds are the (1 - s) and (1 - 2 s) quantiles of the signal over the recorded steps
+  (`quantile_thresholds`), at the largest share s for which the gate, replayed over each
+  recorded episode in order (`replay_fallback_share`, the same rule as the `SharedControl`
+  block's, `gate_step`), hands the fallback at most `budget` of the steps. The quantiles alone
+  (s = budget) ignore that the fallback keeps control until the signal has stayed low for
+  `calm_steps`: on the paper clones' validation rollouts, budget 0.1 handed over 12-24 % of the
+  steps at seeds 300-309.
 """
 
 import json
@@ -41,8 +46,13 @@ SIGNALS_VERSION = 1
 # The arrays of a signals file besides one per signal (named by the signal), N steps and E episodes.
 STEP_ARRAYS = ("time_s", "episode")
 EPISODE_ARRAYS = ("episode_environment", "episode_task", "episode_seed", "episode_status", "episode_end_time_s")
-LOWER_QUANTILE_RULE = ("the (1 - 2 budget) quantile: the fallback hands back once the signal is as low as on all but "
-                       "twice the budget's share of the recorded steps")
+LOWER_QUANTILE_RULE = ("the (1 - 2 s) quantile: the fallback hands back once the signal is as low as on all but "
+                       "twice the share s of the recorded steps that the upper threshold, the (1 - s) quantile, "
+                       "lies under")
+# Who drives, as the gate's `who_drives` output says it.
+POLICY, FALLBACK = 0, 1
+# Halvings of the share s in `budget_thresholds`' search: s to within 2^-40.
+SHARE_SEARCH_STEPS = 40
 
 
 def failure_labels(time_s, episode, end_time_s, status, horizon_s: float = FAILURE_HORIZON_S) -> np.ndarray:
@@ -130,24 +140,98 @@ def auc_report(signals: dict, horizon_s: float = FAILURE_HORIZON_S, seed: int = 
             "rows": signal_aucs(signals, horizon_s, seed, resamples)}
 
 
-def budget_thresholds(values, budget: float) -> tuple[float, float]:
-    """The gate's (upper, lower) thresholds that a budget sets on a signal's recorded values.
+def gate_step(driver: int, calm: int, uncertainty: float, upper_threshold: float, lower_threshold: float,
+              calm_steps: int) -> tuple[int, int, bool]:
+    """One control step of the gate's hysteresis (`ditch_drake.systems.shared_control.SharedControl`).
 
-    Upper: the (1 - budget) quantile (`threshold_for_budget`), above which `budget` of the
-    recorded steps lie. Lower: the (1 - 2 budget) quantile, the smallest value for budgets of
-    0.5 or more. A quantile of the signal's own distribution, not a ratio of the upper
-    threshold, so the band means the same for every signal, unit and model: a single clone's
-    softmax entropy never falls near 0 (the shipped `wide`'s median is about 1 nat), so a fixed
-    ratio would put the lower threshold in the bulk for one model and in the tail for another.
+    While the policy drives, an uncertainty above `upper_threshold` hands over to the fallback.
+    While the fallback drives, a step below `lower_threshold` counts one calm step and any other
+    step (a NaN too) resets the count; the step on which it reaches `calm_steps` hands back.
+
+    Args:
+        driver: who drove the step before, `POLICY` or `FALLBACK`.
+        calm: calm steps counted so far.
+        uncertainty: this step's signal.
+
+    Returns:
+        (who drives this step, the calm count after it, whether it switched).
+    """
+    if driver == POLICY:
+        if uncertainty > upper_threshold:
+            return FALLBACK, 0, True
+        return POLICY, calm, False
+    calm = calm + 1 if uncertainty < lower_threshold else 0
+    if calm >= calm_steps:
+        return POLICY, 0, True
+    return FALLBACK, calm, False
+
+
+def replay_fallback_share(sequences, upper_threshold: float, lower_threshold: float, calm_steps: int) -> float:
+    """The share of the steps the gate hands the fallback, replayed over recorded episodes.
+
+    Each sequence is one episode's signal, step by step, as the policy saw it driving alone;
+    the gate starts each with the policy driving. A replay is an estimate: once the fallback
+    drives, the real robot goes elsewhere than the recorded one.
+
+    Args:
+        sequences: one (T_e,) array of the signal per episode.
+        upper_threshold, lower_threshold, calm_steps: the gate's (`gate_step`).
+    """
+    fallback_steps = total_steps = 0
+    for sequence in sequences:
+        driver, calm = POLICY, 0
+        for value in np.asarray(sequence, dtype=float).tolist():
+            driver, calm, _ = gate_step(driver, calm, value, upper_threshold, lower_threshold, calm_steps)
+            fallback_steps += driver
+        total_steps += len(sequence)
+    return fallback_steps / total_steps if total_steps else 0.0
+
+
+def quantile_thresholds(values, share: float) -> tuple[float, float]:
+    """(upper, lower): the (1 - share) quantile of `values` (`threshold_for_budget`), above which
+    `share` of them lie, and the (1 - 2 share) quantile, the smallest value for shares of 0.5
+    or more. A quantile of the signal's own distribution, not a ratio of the upper threshold,
+    so the band means the same for every signal, unit and model: a single clone's softmax
+    entropy never falls near 0 (the shipped `wide`'s median is about 1 nat), so a fixed ratio
+    would put the lower threshold in the bulk for one model and in the tail for another."""
+    upper = threshold_for_budget(values, share)
+    lower = float(np.quantile(np.asarray(values, dtype=float).ravel(), max(0.0, 1.0 - 2.0 * share)))
+    return upper, min(lower, upper)
+
+
+def budget_thresholds(sequences, budget: float, calm_steps: int = 1) -> tuple[float, float]:
+    """The gate's (upper, lower) thresholds that a budget sets on a signal's recorded episodes.
+
+    `quantile_thresholds` at the largest share s (found by bisection, `SHARE_SEARCH_STEPS`
+    halvings) for which the gate with `calm_steps`, replayed over the episodes
+    (`replay_fallback_share`), hands the fallback at most `budget` of their steps. The replayed
+    share grows with s (both thresholds fall), and the hysteresis makes s smaller than the
+    budget: each handover holds the fallback for at least `calm_steps`.
+
+    Args:
+        sequences: one array of the signal per recorded episode, in step order (a single 1-D
+            numpy array is one episode).
+        budget: the share of control steps the fallback may drive, in (0, 1).
+        calm_steps: the gate's hysteresis (`SharedControlConfig.calm_steps`).
 
     Raises:
         ConfigError: a budget outside (0, 1), no values, or values that are not finite.
     """
     if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0.0 < budget < 1.0:
         raise ConfigError(f"budget {budget!r}: expected a share of control steps in (0, 1)")
-    upper = threshold_for_budget(values, budget)
-    lower = float(np.quantile(np.asarray(values, dtype=float).ravel(), max(0.0, 1.0 - 2.0 * budget)))
-    return upper, lower
+    if isinstance(sequences, np.ndarray) and sequences.ndim == 1:
+        sequences = [sequences]
+    sequences = [np.asarray(sequence, dtype=float).ravel() for sequence in sequences]
+    values = np.concatenate(sequences) if sequences else np.zeros(0)
+    threshold_for_budget(values, budget)  # Refuses no values or non-finite ones, as the quantiles would.
+    low, high = 0.0, 1.0  # Replayed shares: 0 at s = 0 (never hands over), 1 at s = 1 (always does).
+    for _ in range(SHARE_SEARCH_STEPS):
+        middle = (low + high) / 2.0
+        if replay_fallback_share(sequences, *quantile_thresholds(values, middle), calm_steps) <= budget:
+            low = middle
+        else:
+            high = middle
+    return quantile_thresholds(values, low)
 
 
 def save_signals(path: str | os.PathLike, checkpoint: str, checkpoint_sha256: str, signals: dict[str, np.ndarray],
@@ -197,8 +281,9 @@ def load_signals(path: str | os.PathLike, what: str = "signals file") -> dict:
     return arrays
 
 
-def calibration_values(path: str | os.PathLike, signal: str, what: str = "gate.calibration") -> np.ndarray:
-    """The values of `signal` over the steps a signals file recorded.
+def calibration_values(path: str | os.PathLike, signal: str, what: str = "gate.calibration") -> list[np.ndarray]:
+    """The values of `signal` over the steps a signals file recorded, one array per episode in
+    step order.
 
     Raises:
         ConfigError: no such readable signals file, or one without `signal` (naming the ones it
@@ -208,7 +293,10 @@ def calibration_values(path: str | os.PathLike, signal: str, what: str = "gate.c
     if signal not in signals["signals"]:
         raise ConfigError(f"{what} {path!s} has no signal {signal!r}: it recorded {signals['signals']}; expected a "
                           "file of the gated policy (an ensemble's for the disagreement signals)")
-    return np.asarray(signals[signal], dtype=float)
+    values, episode = np.asarray(signals[signal], dtype=float), np.asarray(signals["episode"], dtype=int)
+    order = np.lexsort((np.asarray(signals["time_s"], dtype=float), episode))
+    values, episode = values[order], episode[order]
+    return np.split(values, np.flatnonzero(np.diff(episode)) + 1) if values.size else []
 
 
 def write_auc_report(path: str | os.PathLike, report: dict) -> Path:

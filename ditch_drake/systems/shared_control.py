@@ -9,13 +9,11 @@ from pydrake.systems.framework import DiscreteValues, LeafSystem
 
 from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.learning.gate_calibration import budget_thresholds, calibration_values
+from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, budget_thresholds, calibration_values, gate_step
 from ditch_drake.learning.uncertainty import UNCERTAINTY_SIGNALS
 from ditch_drake.spec import robot
 from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S
 
-# Who drives, as the `who_drives` output says it.
-POLICY, FALLBACK = 0, 1
 # What can take over: the scripted expert (standing in for a person), the MPPI planner (no
 # privileged input anywhere), or a person at the teleop input.
 FALLBACKS = ("expert", "mppi", "teleop")
@@ -42,13 +40,14 @@ class SharedControlConfig:
         lower_threshold: hand back only after the signal has stayed below this ...
         calm_steps: ... for this many consecutive control steps (hysteresis: fewer switches).
         budget: the share of control steps the fallback may drive, in (0, 1); given, both
-            thresholds come from the signal's values in `calibration` (`resolved`): the upper
-            one the (1 - budget) quantile, which hands over that share of the recorded steps,
-            the lower one the (1 - 2 budget) quantile. With signal "random" only the upper
-            one, 1 - budget (the draw is above it on that share of the steps), and no file;
-            the lower one and `calm_steps` stay as set, and the fallback's realised share is
-            `random_fallback_share` of them (the budget itself only with `calm_steps` 1 and
-            the lower threshold equal to the upper). None: the fixed thresholds above.
+            thresholds come from the signal's values in `calibration` (`resolved`): the
+            (1 - s) and (1 - 2 s) quantiles at the largest share s for which this gate,
+            `calm_steps` included, replayed over the recorded episodes hands the fallback at
+            most `budget` of their steps (`ditch_drake.learning.gate_calibration.budget_thresholds`).
+            With signal "random" only the upper one, and no file: the lower one and
+            `calm_steps` stay as set, and the upper one is the one at which the fallback's
+            expected share of the steps, hysteresis included (`random_fallback_share`), is the
+            budget (`random_upper_threshold`). None: the fixed thresholds above.
         calibration: with a budget, the signals file of the gated policy's own validation
             rollouts (`ditch-drake gate-signals`) whose values of `signal` set the thresholds
             (none with signal "random").
@@ -102,7 +101,7 @@ class SharedControlConfig:
         """This config with the thresholds its budget sets on its calibration file
         (`ditch_drake.learning.gate_calibration.budget_thresholds`), the budget and the file
         kept so that it says where they came from; with signal "random", the upper threshold
-        1 - budget and the lower one as set; without a budget, itself. Resolving a resolved
+        `random_upper_threshold` and the lower one as set; without a budget, itself. Resolving a resolved
         config gives the same thresholds (the file read again).
 
         Raises:
@@ -114,27 +113,34 @@ class SharedControlConfig:
         if self.budget is None:
             return self
         if self.signal == RANDOM_SIGNAL:
-            return dataclasses.replace(self, upper_threshold=1.0 - self.budget)
-        upper, lower = budget_thresholds(calibration_values(self.calibration, self.signal), self.budget)
+            return dataclasses.replace(
+                self, upper_threshold=random_upper_threshold(self.budget, self.lower_threshold, self.calm_steps))
+        upper, lower = budget_thresholds(calibration_values(self.calibration, self.signal), self.budget,
+                                         self.calm_steps)
         return dataclasses.replace(self, upper_threshold=upper, lower_threshold=lower)
 
     def _validate_random(self) -> None:
         """The thresholds of the random draw: in [0, 1], where a draw in [0, 1) can cross them
         (a leftover of another signal's, such as the default gate's 2.3 nats, is refused rather
-        than read as "always calm"), lower <= upper, and no calibration file."""
+        than read as "always calm"), lower <= upper, no calibration file, and a budget that the
+        hysteresis can meet (`random_upper_threshold`)."""
         if self.calibration:
             raise ConfigError(f"shared control calibration {self.calibration!r} with signal 'random': its upper "
-                              "threshold is 1 - budget, from no file; expected no calibration")
-        upper = 1.0 - self.budget if self.budget is not None else self.upper_threshold
+                              "threshold comes from the budget and the hysteresis, from no file; expected no "
+                              "calibration")
         keys = ("lower_threshold",) if self.budget is not None else ("upper_threshold", "lower_threshold")
         for key in keys:
             value = getattr(self, key)
             if not 0.0 <= value <= 1.0:
                 raise ConfigError(f"shared control {key} {value!r} with signal 'random': expected a number in "
                                   "[0, 1], the range of the uniform draw it is compared with")
+        if self.budget is not None:
+            upper, source = random_upper_threshold(self.budget, self.lower_threshold, self.calm_steps), (
+                f"the budget {self.budget}'s upper threshold")
+        else:
+            upper, source = self.upper_threshold, "upper_threshold"
         if self.lower_threshold > upper:
-            source = f"1 - budget {self.budget}" if self.budget is not None else "upper_threshold"
-            raise ConfigError(f"shared control lower_threshold {self.lower_threshold} > {source} = {upper:g} with "
+            raise ConfigError(f"shared control lower_threshold {self.lower_threshold} > {source} {upper:g} with "
                               "signal 'random': expected lower <= upper (hand back below, over above)")
 
 
@@ -162,6 +168,37 @@ def random_fallback_share(upper_threshold: float, lower_threshold: float, calm_s
         return 1.0
     spell = float(calm_steps) if calm == 1.0 else (1.0 - calm**calm_steps) / ((1.0 - calm) * calm**calm_steps)
     return handover * spell / (1.0 + handover * spell)
+
+
+def random_upper_threshold(budget: float, lower_threshold: float, calm_steps: int) -> float:
+    """The upper threshold of the random draw at which the fallback's expected share of the steps
+    (`random_fallback_share`) is `budget`, for the hysteresis set.
+
+    With the fallback's spells N steps long on average, the share p N / (1 + p N) is the budget
+    where the chance of a handover is p = budget / ((1 - budget) N); the threshold is 1 - p.
+    Without hysteresis (`calm_steps` 1, lower = upper) that is 1 - budget.
+
+    Raises:
+        ConfigError: a lower threshold outside [0, 1], calm_steps < 1, or a budget that spells
+            of N steps cannot stay within (p above 1: the budget above N / (1 + N)).
+    """
+    if not 0.0 <= lower_threshold <= 1.0:
+        raise ConfigError(f"shared control lower_threshold {lower_threshold!r} with signal 'random': expected a "
+                          "number in [0, 1], the range of the uniform draw it is compared with")
+    if isinstance(calm_steps, bool) or not isinstance(calm_steps, int) or calm_steps < 1:
+        raise ConfigError(f"shared control calm_steps {calm_steps!r}: expected an integer >= 1 control steps")
+    if lower_threshold == 0.0:
+        raise ConfigError(f"shared control lower_threshold 0 with signal 'random' and budget {budget}: the draw is "
+                          "never below it, so the fallback never hands back; expected a lower threshold in (0, 1]")
+    calm = lower_threshold
+    spell = float(calm_steps) if calm == 1.0 else (1.0 - calm**calm_steps) / ((1.0 - calm) * calm**calm_steps)
+    handover = budget / ((1.0 - budget) * spell)
+    if handover > 1.0:
+        raise ConfigError(f"shared control budget {budget} with signal 'random', lower_threshold {lower_threshold} "
+                          f"and calm_steps {calm_steps}: the fallback's spells ({spell:.3g} steps on average) hold "
+                          f"it more than that even with a handover at every policy step; expected a budget of at "
+                          f"most {spell / (1.0 + spell):.3g}, or a lower threshold nearer 1, or fewer calm steps")
+    return 1.0 - handover
 
 
 class SharedControl(LeafSystem):
@@ -255,14 +292,10 @@ class SharedControl(LeafSystem):
         driver = int(context.get_discrete_state(self._driver_index).get_value()[0])
         calm = int(context.get_discrete_state(self._calm_index).get_value()[0])
         switches = context.get_discrete_state(self._switches_index).get_value()[0]
-        if driver == POLICY:
-            if uncertainty > self._config.upper_threshold:
-                driver, calm, switches = FALLBACK, 0, switches + 1
-        else:
-            calm = calm + 1 if uncertainty < self._config.lower_threshold else 0
-            if calm >= self._config.calm_steps:
-                driver, calm, switches = POLICY, 0, switches + 1
-        source = self._policy_port if driver == POLICY else self._fallback_port
+        driver, calm, switched = gate_step(driver, calm, uncertainty, self._config.upper_threshold,
+                                           self._config.lower_threshold, self._config.calm_steps)
+        switches += switched
+        source = self._fallback_port if driver == FALLBACK else self._policy_port
         discrete_state.set_value(self._command_index, source.Eval(context))
         discrete_state.set_value(self._driver_index, [float(driver)])
         discrete_state.set_value(self._calm_index, [float(calm)])
