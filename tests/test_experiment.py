@@ -121,9 +121,11 @@ def test_experiment_files_with_a_typo_or_an_unknown_environment_are_refused(tmp_
 def test_the_paper_protocol_plans_13_models_and_29_evaluations_and_32_where_the_ditch_must_be_crossed():
     config = load_experiment("experiments/paper.yaml")
     models, evaluations = plan(config)
-    assert len(models) == 13  # 4 x (10, 20, 40) + the amalgam; must_cross's 40-demonstration models are among them
+    # 4 x (10, 20, 40) + the amalgam; must_cross's 40-demonstration models are among them (+ shared_control's ensembles).
+    assert len([m for m in models if m.ensemble == 1]) == 13
     studies = Counter(e.study for e in evaluations)
-    assert studies == {"scalability": 12, "generalization": 12, "baseline": 4, "amalgam": 1, "must_cross": 32}
+    assert studies == {"scalability": 12, "generalization": 12, "baseline": 4, "amalgam": 1, "must_cross": 32,
+                       "shared_control": 84}
     models, evaluations = plan(config, only=["wide"])
     assert {m.name for m in models} >= {"wide_10", "wide_20", "wide_40", "crater+narrow+sine_40"}
     assert all("wide" in (e.environment, e.environment.removesuffix("_walled"),
@@ -164,7 +166,8 @@ def test_must_cross_runs_both_dwas_the_mppi_and_both_learned_models_in_every_wal
 def test_only_an_open_environment_keeps_its_walled_variant_and_an_untrained_model_is_skipped(tmp_path):
     config = load_experiment("experiments/paper.yaml")
     config = replace(config, models_dir=str(tmp_path / "models"),
-                     studies=replace(config.studies, scalability=None, generalization=None, baseline=None, amalgam=None))
+                     studies=replace(config.studies, scalability=None, generalization=None, baseline=None, amalgam=None,
+                                     shared_control=None))
     models, evaluations = plan(config, only=["wide"])
     assert models == [ModelSpec(("wide",), 40)]  # The train stage trains it when it is missing.
     assert [(e.controller, e.environment) for e in evaluations] == [

@@ -3,12 +3,15 @@ folder too where stems clash), and the experiment's `<environments>_<N>` models 
 
 Every results table names its rows by `controller_labels`, which marks a row in one way: the
 label, then in brackets where a side-conditioned clone was told its crossing side ("perceived
-side", "oracle side": `RolloutRecord.crossing_side_source`) and what the controller declared it
+side", "oracle side": `RolloutRecord.crossing_side_source`), what the controller declared it
 reads beyond its sensors, pose and goal ("privileged: analytic terrain":
-`RolloutRecord.privileged`), e.g. "expert (privileged: analytic terrain)" or "generalist (oracle
-side; privileged: analytic terrain)". Records that differ in either are different rows.
+`RolloutRecord.privileged`) and, for a gated policy, its gate's signal, budget and fallback, e.g.
+"expert (privileged: analytic terrain)", "generalist (oracle side; privileged: analytic terrain)"
+or "crater_40_k5 (gate random, budget 0.05, fallback mppi)". Records that differ in any are
+different rows.
 """
 
+import itertools
 from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
@@ -35,10 +38,33 @@ def searches(record: RolloutRecord) -> bool:
     return any(line.startswith("search:") for line in (record.controller_config or "").splitlines())
 
 
+def gate_words(record: RolloutRecord) -> str:
+    """A shared-control record's gate: its signal, budget (where one set the thresholds) and
+    fallback, e.g. "gate angular_rate_spread, budget 0.05, fallback expert", from the `gate:`
+    line of its config; "" for any other record."""
+    import yaml
+
+    lines = (record.controller_config or "").splitlines()
+    start = next((i for i, line in enumerate(lines) if line.startswith("gate:")), None)
+    if start is None:
+        return ""
+    section = [lines[start], *itertools.takewhile(lambda line: line.startswith(" "), lines[start + 1:])]
+    try:
+        gate = yaml.safe_load("\n".join(section))["gate"]
+    except yaml.YAMLError:
+        return ""
+    if not isinstance(gate, dict):
+        return ""
+    budget = f", budget {gate['budget']:g}" if isinstance(gate.get("budget"), (int, float)) else ""
+    return f"gate {gate.get('signal')}{budget}, fallback {gate.get('fallback')}"
+
+
 def record_marks(record: RolloutRecord) -> list[str]:
-    """What a record's row is marked with: the window search, its crossing side's source, its
-    privileged inputs."""
+    """What a record's row is marked with: the window search, its shared-control gate, its
+    crossing side's source, its privileged inputs."""
     marks = ["window search"] if searches(record) else []
+    if gate_words(record):
+        marks.append(gate_words(record))
     if record.crossing_side_source:
         marks.append(f"{record.crossing_side_source} side")
     if record.privileged:

@@ -4,15 +4,19 @@ An experiment YAML (`experiments/paper.yaml`) names the studies of the paper (se
 docs/design.md, "The experiments"): scalability (10/20/40 demonstrations, evaluated in the training
 environment), generalization (each 40-demonstration model in the other environments),
 baseline (the DWA in every environment), amalgam (one model trained on several
-environments, evaluated in another) and must_cross (issue 20: the classical controllers and
+environments, evaluated in another), must_cross (issue 20: the classical controllers and
 the learned models, like for like, in walled environments where every route crosses the
-ditch). `run_experiment` turns it into work:
+ditch) and shared_control (an ensemble of clones gated by its uncertainty, with a fallback
+where it is unsure, beside the ensemble alone and random handover at the same budget).
+`run_experiment` turns it into work:
 
 1. collect: `collect` the missing demonstrations of every environment a model trains on;
-2. train: every distinct model (environments, number of demonstrations), skipping a
-   finished checkpoint and resuming an interrupted one from its `.resume` file;
-3. evaluate: every study's rollouts, appended to `<results_dir>/<study>.jsonl` (finished
-   rollouts are skipped);
+2. train: every distinct model (environments, number of demonstrations, ensemble members),
+   skipping a finished checkpoint and resuming an interrupted one (a single clone from its
+   `.resume` file, an ensemble from its finished members);
+3. evaluate: the signals files the shared-control gates are calibrated on, where missing
+   (`<results_dir>/gate/<model>.npz`, resumable as `ditch-drake gate-signals`), then every
+   study's rollouts, appended to `<results_dir>/<study>.jsonl` (finished rollouts are skipped);
 4. report: `ditch_drake.evaluation.report.write_report` over the results.
 
 `only` restricts every stage to the models and evaluations that involve the named
@@ -43,6 +47,8 @@ from ditch_drake.learning.config import BALANCING_METHODS
 from ditch_drake.pipelines.stages import (
     collect_demonstrations,
     pass_on_stop,
+    record_signals_or_resume,
+    train_ensemble_or_resume,
     train_or_resume,
     training_device,
     training_precision,
@@ -136,6 +142,57 @@ class MustCrossStudy:
     open_controllers: list[str] = field(default_factory=lambda: ["dwa_paper"])
 
 
+PAPER_ENVIRONMENTS = ["crater", "wide", "narrow", "sine"]
+# The fallbacks a batch evaluation can run (`teleop` needs a person at a Meshcat).
+STUDY_FALLBACKS = ("expert", "mppi")
+
+
+@dataclass
+class SharedControlStudy:
+    """An ensemble gated by its uncertainty, with a fallback where it is unsure, against the
+    ensemble alone and against random handover at the same budget: results in
+    `shared_control.jsonl` (docs/concepts/controllers.md, "Shared control").
+
+    Per environment: the ensemble of `ensemble` paper-method clones, each on a bootstrap
+    resample of the environment's first `demos` demonstrations (`<models_dir>/<env>_<demos>_k<K>.pt`,
+    as `ditch-drake train --ensemble K`; with K = 1 the single clone `<env>_<demos>.pt`); the
+    signals file of its own ungated validation rollouts (`<results_dir>/gate/<model>.npz`, as
+    `ditch-drake gate-signals`), which the gates' budgets are calibrated on; and the rollouts,
+    on seeds `seed`, .. (the experiment's `rollouts` per task): the ensemble alone, and for each
+    budget and fallback the gate on `signal` and the gate on a seeded random draw (signal
+    "random") at the same budget.
+
+    Attributes:
+        environments: where the ensembles are trained and evaluated, each in its own.
+        demos: demonstrations per model (the first ones of the environment's folder).
+        ensemble: K, clones per ensemble (>= 2 for a disagreement signal).
+        signal: the uncertainty signal the gate reads (`ditch_drake.learning.uncertainty`;
+            unit: rad/s for "angular_rate_spread", nats for the entropies).
+        budgets: shares of control steps the fallback may drive, each in (0, 1) (dimensionless).
+        fallbacks: who takes over, each "expert" or "mppi".
+        calibration_rollouts: seeded ungated rollouts per task recorded for the signals file.
+        calibration_seed: the first seed of those rollouts (validation seeds).
+        seed: the first seed of the study's rollouts (test seeds: they must not overlap the
+            calibration's).
+        random_lower_threshold: the random gate's lower threshold on its draw in [0, 1)
+            (dimensionless); its upper one is set by the budget.
+        calm_steps: control steps (0.1 s each) the signal must stay below the lower threshold
+            before a gate hands back, for both gates.
+    """
+
+    environments: list[str] = field(default_factory=lambda: list(PAPER_ENVIRONMENTS))
+    demos: int = 40
+    ensemble: int = 5
+    signal: str = "angular_rate_spread"
+    budgets: list[float] = field(default_factory=lambda: [0.01, 0.02, 0.05, 0.1, 0.2])
+    fallbacks: list[str] = field(default_factory=lambda: ["expert", "mppi"])
+    calibration_rollouts: int = 10
+    calibration_seed: int = 0
+    seed: int = 300
+    random_lower_threshold: float = 0.8
+    calm_steps: int = 5
+
+
 @dataclass
 class Studies:
     scalability: ScalabilityStudy | None = None
@@ -143,6 +200,7 @@ class Studies:
     baseline: BaselineStudy | None = None
     amalgam: AmalgamStudy | None = None
     must_cross: MustCrossStudy | None = None
+    shared_control: SharedControlStudy | None = None
 
 
 @dataclass
@@ -186,14 +244,17 @@ class ExperimentConfig:
 
 @dataclass(frozen=True)
 class ModelSpec:
-    """A model to train: its environments and the first `demos` demonstrations of each."""
+    """A model to train: its environments and the first `demos` demonstrations of each, and
+    `ensemble` clones (K > 1: an ensemble, `ditch_drake.learning.ensemble_training`)."""
 
     environments: tuple[str, ...]
     demos: int
+    ensemble: int = 1
 
     @property
     def name(self) -> str:
-        return f"{'+'.join(self.environments)}_{self.demos}"
+        name = f"{'+'.join(self.environments)}_{self.demos}"
+        return f"{name}_k{self.ensemble}" if self.ensemble > 1 else name
 
 
 def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
@@ -214,14 +275,17 @@ def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
     if config.environments_file:
         known |= set(load_environments(config.environments_file))
     named = list(_study_environments(config))
-    unknown = sorted({env for env in named if env not in known})
+    unknown = sorted({env for _, env in named if env not in known})
     if unknown:
-        raise ConfigError(f"experiment file {path} names unknown environments {unknown}; expected some of {sorted(known)}")
+        keys = sorted({key for key, env in named if env not in known})
+        raise ConfigError(f"experiment file {path} names unknown environments {unknown} ({', '.join(keys)}); "
+                          f"expected some of {sorted(known)}")
     if config.rollouts < 1 or not 0 < config.time_limit_s < math.inf:
         raise ConfigError(f"experiment file {path}: rollouts={config.rollouts} must be >= 1 and "
                           f"time_limit_s={config.time_limit_s} finite and positive")
     check_workers(config.workers, f"experiment file {path}: workers")
     _check_must_cross(config, path)
+    _check_shared_control(config, path)
     if config.training.precision not in ("auto", "fp32", "bf16"):
         raise ConfigError(f"experiment file {path}: training.precision={config.training.precision!r} must be "
                           "'auto', 'fp32' or 'bf16'")
@@ -259,14 +323,84 @@ def _check_must_cross(config: ExperimentConfig, path: Path) -> None:
             raise ConfigError(f"experiment file {path}: studies.must_cross.shipped_models: {error}") from error
 
 
+def _check_shared_control(config: ExperimentConfig, path: Path) -> None:
+    """Refuses a shared_control study whose evaluations could not run (environment names are
+    checked before), naming the key: a signal that is no uncertainty signal, a disagreement
+    signal with K < 2, a budget outside (0, 1), an unknown fallback (or `teleop`, which needs a
+    person at a Meshcat), non-positive counts, negative seeds, test seeds among the
+    calibration's, or a random gate its budget cannot hold (`SharedControlConfig.validate`)."""
+    from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, UNCERTAINTY_SIGNALS
+
+    study = config.studies.shared_control
+    if study is None:
+        return
+    where = f"experiment file {path}: studies.shared_control"
+
+    def integer(value) -> bool:
+        return isinstance(value, int) and not isinstance(value, bool)
+
+    if study.signal not in UNCERTAINTY_SIGNALS:
+        raise ConfigError(f"{where}.signal={study.signal!r}: expected one of {list(UNCERTAINTY_SIGNALS)} (random "
+                          "handover runs beside it anyway)")
+    if not integer(study.ensemble) or study.ensemble < 1:
+        raise ConfigError(f"{where}.ensemble={study.ensemble!r}: expected an integer >= 1 clones")
+    if study.signal in DISAGREEMENT_SIGNALS and study.ensemble < 2:
+        raise ConfigError(f"{where}.ensemble={study.ensemble}: the signal {study.signal!r} is the members' "
+                          "disagreement; expected K >= 2")
+    bad = [b for b in study.budgets if isinstance(b, bool) or not isinstance(b, (int, float)) or not 0.0 < b < 1.0]
+    if bad or not study.budgets:
+        raise ConfigError(f"{where}.budgets={study.budgets!r}: expected shares of control steps in (0, 1)")
+    bad = [fallback for fallback in study.fallbacks if fallback not in STUDY_FALLBACKS]
+    if bad or not study.fallbacks:
+        raise ConfigError(f"{where}.fallbacks={study.fallbacks!r}: expected some of {list(STUDY_FALLBACKS)}")
+    for key in ("demos", "calibration_rollouts", "calm_steps"):
+        if not integer(getattr(study, key)) or getattr(study, key) < 1:
+            raise ConfigError(f"{where}.{key}={getattr(study, key)!r}: expected an integer >= 1")
+    for key in ("seed", "calibration_seed"):
+        if not integer(getattr(study, key)) or getattr(study, key) < 0:
+            raise ConfigError(f"{where}.{key}={getattr(study, key)!r}: expected an integer >= 0")
+    calibration = range(study.calibration_seed, study.calibration_seed + study.calibration_rollouts)
+    tests = range(study.seed, study.seed + config.rollouts)
+    if calibration.start < tests.stop and tests.start < calibration.stop:
+        raise ConfigError(f"{where}.seed={study.seed}: its seeds {study.seed}-{tests.stop - 1} overlap the "
+                          f"calibration's {calibration.start}-{calibration.stop - 1} (calibration_seed, "
+                          "calibration_rollouts); expected test seeds that the thresholds never saw")
+    for gate in study_gates(study, "calibration.npz"):  # Random handover: what its hysteresis can hold.
+        try:
+            gate.validate()
+        except ConfigError as error:
+            raise ConfigError(f"{where}: random handover at budget {gate.budget} with random_lower_threshold "
+                              f"{study.random_lower_threshold} and calm_steps {study.calm_steps}: {error}") from error
+
+
 def _study_environments(config: ExperimentConfig):
+    """(key, environment) for every environment a study names."""
     studies = config.studies
-    for study in (studies.scalability, studies.generalization, studies.baseline):
-        yield from study.environments if study else []
+    for key in ("scalability", "generalization", "baseline", "shared_control"):
+        study = getattr(studies, key)
+        yield from ((f"studies.{key}.environments", env) for env in (study.environments if study else []))
     if studies.amalgam:
-        yield from studies.amalgam.train + studies.amalgam.evaluate
+        yield from (("studies.amalgam.train", env) for env in studies.amalgam.train)
+        yield from (("studies.amalgam.evaluate", env) for env in studies.amalgam.evaluate)
     if studies.must_cross:
-        yield from studies.must_cross.environments + studies.must_cross.open_environments
+        yield from (("studies.must_cross.environments", env) for env in studies.must_cross.environments)
+        yield from (("studies.must_cross.open_environments", env) for env in studies.must_cross.open_environments)
+
+
+def study_gates(study: SharedControlStudy, calibration: str) -> list:
+    """The gates of a shared-control study (`SharedControlConfig`s), for each budget and each
+    fallback: the gate on `study.signal` with thresholds from the budget on `calibration` (a
+    signals file), then random handover at the same budget."""
+    from ditch_drake.systems.shared_control import RANDOM_SIGNAL, SharedControlConfig
+
+    gates = []
+    for budget in study.budgets:
+        for fallback in study.fallbacks:
+            gates += [SharedControlConfig(signal=study.signal, budget=budget, calibration=calibration,
+                                          calm_steps=study.calm_steps, fallback=fallback),
+                      SharedControlConfig(signal=RANDOM_SIGNAL, budget=budget, calm_steps=study.calm_steps,
+                                          lower_threshold=study.random_lower_threshold, fallback=fallback)]
+    return gates
 
 
 def base_environment(config: ExperimentConfig, environment: str) -> str:
@@ -286,13 +420,17 @@ class Evaluation:
 
     `controller` is a registered controller's name; `model` the learned controller's
     checkpoint to train and use (None: a classical controller, or for "learned" the
-    environment's shipped model, `checkpoint.environment_model`).
+    environment's shipped model, `checkpoint.environment_model`). `config`: the controller's
+    config, which names its checkpoint (None: `controller`'s defaults with `model`'s).
+    `seed`: the first rollout's seed (None: the experiment's).
     """
 
     study: str
     controller: str
     model: ModelSpec | None
     environment: str
+    config: typing.Any = field(default=None, hash=False)
+    seed: int | None = None
 
 
 def study_names() -> list[str]:
@@ -342,6 +480,8 @@ def plan(config: ExperimentConfig, only: list[str] | None = None,
                 evaluations.append(Evaluation("must_cross", "learned", model, env))
         for env in study.open_environments:
             evaluations += [Evaluation("must_cross", controller, None, env) for controller in study.open_controllers]
+    if studies.shared_control:
+        evaluations += _shared_control_evaluations(config, studies.shared_control)
 
     if only_studies is not None:
         evaluations = [e for e in evaluations if e.study in only_studies]
@@ -353,8 +493,34 @@ def plan(config: ExperimentConfig, only: list[str] | None = None,
     return models, evaluations
 
 
+def _shared_control_evaluations(config: ExperimentConfig, study: SharedControlStudy) -> list[Evaluation]:
+    """Per environment: its ensemble alone, then `study_gates` around it, on the study's seeds."""
+    from ditch_drake.diagrams.rollout import LearnedPolicyConfig
+    from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
+
+    evaluations = []
+    for env in study.environments:
+        model = ModelSpec((env,), study.demos, study.ensemble)
+        policy = LearnedPolicyConfig(checkpoint=str(model_path(config, model)))
+        evaluations.append(Evaluation("shared_control", "learned", model, env, policy, study.seed))
+        evaluations += [Evaluation("shared_control", "shared", model, env,
+                                   SharedControlControllerConfig(policy=policy, gate=gate), study.seed)
+                        for gate in study_gates(study, str(gate_signals_path(config, model)))]
+    return evaluations
+
+
 def model_path(config: ExperimentConfig, model: ModelSpec) -> Path:
     return Path(config.models_dir) / f"{model.name}.pt"
+
+
+def gate_signals_path(config: ExperimentConfig, model: ModelSpec) -> Path:
+    """The signals file of `model`'s own validation rollouts, which its gates are calibrated on."""
+    return Path(config.results_dir) / "gate" / f"{model.name}.npz"
+
+
+def _calibration(evaluation: Evaluation) -> str:
+    """The signals file an evaluation's gate reads ("" for none, or a gate on a random draw)."""
+    return getattr(getattr(evaluation.config, "gate", None), "calibration", "")
 
 
 def evaluation_specs(config: ExperimentConfig, evaluation: Evaluation) -> list[RolloutSpec]:
@@ -363,10 +529,15 @@ def evaluation_specs(config: ExperimentConfig, evaluation: Evaluation) -> list[R
     checkpoint = str(model_path(config, evaluation.model)) if evaluation.model else ""
     if evaluation.model and not Path(checkpoint).exists():
         return []  # Not trained (yet): `_evaluate` says so. No model: a shipped one, or a classical controller.
+    if _calibration(evaluation) and not Path(_calibration(evaluation)).exists():
+        return []  # Not recorded (yet): `_evaluate` records it first, or says why it could not.
     baseline = config.studies.baseline
     controller = baseline.controller if evaluation.study == "baseline" and baseline.controller else evaluation.controller
+    if evaluation.config is not None:  # It names its checkpoint.
+        controller, checkpoint = evaluation.config, ""
+    seed = config.seed if evaluation.seed is None else evaluation.seed
     return make_specs(controller, checkpoint, evaluation.environment, config.tasks or None, config.rollouts,
-                      config.seed, config.time_limit_s, config.environments_file)
+                      seed, config.time_limit_s, config.environments_file)
 
 
 def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stages: tuple[str, ...] = (
@@ -454,8 +625,10 @@ def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
     from ditch_drake.demos.training_set import load_training_set
     from ditch_drake.learning.config import TrainConfig
 
+    directories = [Path(config.demos_dir) / env for env in model.environments]
+
     def samples():  # A dataset folder's images stay on disk, read batch by batch.
-        return load_training_set([Path(config.demos_dir) / env for env in model.environments], max_demos=model.demos)
+        return load_training_set(directories, max_demos=model.demos)
 
     settings = config.training
     defaults = TrainConfig()
@@ -464,17 +637,43 @@ def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
                                device=device, precision=training_precision(device, settings.precision),
                                max_batches_per_epoch=settings.batches_per_epoch, balancing=settings.balancing,
                                smote=replace(defaults.smote, max_synthetic_fraction=settings.synthetic_fraction))
-    train_or_resume(model_path(config, model), model.name, samples, train_config, progress)
+    if model.ensemble > 1:
+        train_ensemble_or_resume(model_path(config, model), model.name, directories, model.demos, train_config,
+                                 model.ensemble, progress)
+    else:
+        train_or_resume(model_path(config, model), model.name, samples, train_config, progress)
+
+
+def _calibrate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool) -> None:
+    """Records the signals file of each gated evaluation's model where it is missing (the
+    model's ungated rollouts in its environment, on the shared-control study's calibration
+    seeds), before any rollout reads it."""
+    from ditch_drake.world.environments import get_environment
+
+    study = config.studies.shared_control
+    needed = {_calibration(e): e for e in evaluations if _calibration(e)}
+    for path, evaluation in needed.items():
+        checkpoint = model_path(config, evaluation.model)
+        if not checkpoint.exists():
+            log_progress(progress, f"calibrate {evaluation.model.name}: no checkpoint {checkpoint}; skipped")
+            continue
+        env = evaluation.environment
+        tasks = config.tasks or range(len(get_environment(env, config.environments_file or None).tasks))
+        record_signals_or_resume(path, str(checkpoint), [(env, task) for task in tasks], study.calibration_rollouts,
+                                 study.calibration_seed, config.time_limit_s, config.environments_file, progress)
 
 
 def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool) -> None:
     from ditch_drake.evaluation.batch import evaluate
 
+    _calibrate(config, evaluations, progress)
     by_study: dict[str, list[RolloutSpec]] = {}
     for evaluation in evaluations:
         specs = evaluation_specs(config, evaluation)
         if not specs and evaluation.model:
-            log_progress(progress, f"evaluate {evaluation.study}: no checkpoint {model_path(config, evaluation.model)}; skipped")
+            checkpoint = model_path(config, evaluation.model)
+            missing = f"signals file {_calibration(evaluation)}" if checkpoint.exists() else f"checkpoint {checkpoint}"
+            log_progress(progress, f"evaluate {evaluation.study}: no {missing}; skipped")
         by_study.setdefault(evaluation.study, []).extend(specs)
     for study, specs in by_study.items():
         report = evaluate(specs, Path(config.results_dir) / f"{study}.jsonl", workers=config.workers,

@@ -93,3 +93,95 @@ def train_or_resume(out: str | os.PathLike, name: str, samples: Callable[[], obj
     result = train(samples(), config, progress=progress, output_path=out, resume=True)
     if result.interrupted:
         pass_on_stop(result.exit_code)
+
+
+def train_ensemble_or_resume(out: str | os.PathLike, name: str, directories: list[str | os.PathLike],
+                             max_demos: int | None, config, members: int, progress: bool) -> None:
+    """Trains an ensemble of `members` clones on the first `max_demos` demonstrations of each of
+    `directories` into `out`, as `ditch-drake train --ensemble` does (`train_ensemble`, each
+    member on a bootstrap resample, its demonstrations named `<directory>[<index>]`), unless
+    an earlier run finished it.
+
+    A file at `out` that loads as an ensemble is kept; one that does not is trained again. The
+    members an interrupted run finished are kept and the one it was training resumes
+    (`train_ensemble`); a stop is passed on.
+    """
+    from ditch_drake.common.errors import CheckpointError
+    from ditch_drake.demos.training_set import dataset_episodes, training_set
+    from ditch_drake.learning.ensemble import load_ensemble
+    from ditch_drake.learning.ensemble_training import train_ensemble
+
+    out = Path(out)
+    if out.exists():
+        try:
+            load_ensemble(out)
+            log_progress(progress, f"train {name}: {out} exists, kept")
+            return
+        except (CheckpointError, ConfigError) as error:
+            log_progress(progress, f"train {name}: {error}; training again")
+    episodes, names = [], []
+    for directory in directories:
+        found = dataset_episodes(directory, max_demos)
+        episodes += found
+        names += [f"{directory}[{index}]" for index in range(len(found))]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    result = train_ensemble(lambda indices: training_set([episodes[i] for i in indices]), names, out, config,
+                            members, progress)
+    if result.interrupted:
+        pass_on_stop(result.exit_code)
+
+
+def record_signals_or_resume(out: str | os.PathLike, checkpoint: str, runs: list[tuple[str, int]], rollouts: int,
+                             seed: int, time_limit_s: float, environments_file: str, progress: bool) -> None:
+    """Records the signals file `out` of `checkpoint`'s ungated rollouts as `ditch-drake
+    gate-signals` does (`record_gate_signals` on each (environment, task) of `runs`, seeds
+    seed .. seed + rollouts - 1), with its AUC report beside it (`<out>.auc.json`), unless an
+    earlier run finished it.
+
+    Each episode is kept in `<out>.parts/` as it finishes and one kept before is not run
+    again; the file is written when all have finished, then the folder is removed. A stop keeps
+    the finished episodes and is passed on.
+
+    Raises:
+        ConfigError: the parts folder holds a recording with another checkpoint or time
+            limit, or another process is recording it.
+    """
+    import torch
+
+    from ditch_drake.common.files import exclusive_use
+    from ditch_drake.evaluation.batch import check_checkpoint
+    from ditch_drake.evaluation.gate_signals import EpisodeParts, parts_folder, parts_header, record_gate_signals
+    from ditch_drake.learning.gate_calibration import auc_report, load_signals, save_signals, write_auc_report
+
+    out = Path(out)
+    folder = parts_folder(out)
+
+    def finished() -> bool:  # With a recording in progress the file may be from a stop while it was written.
+        return out.exists() and not EpisodeParts.begun(folder)
+
+    if finished():
+        log_progress(progress, f"calibrate {checkpoint}: {out} exists, kept")
+        return
+    digest = check_checkpoint(checkpoint)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # One forward pass of one sample: as each evaluation worker runs it.
+    try:
+        with exclusive_use(out, "signals file"):
+            if finished():  # Another run finished it meanwhile.
+                return
+            parts = EpisodeParts.open(folder, parts_header(digest, time_limit_s, environments_file))
+            try:
+                recorded = record_gate_signals(checkpoint, runs, rollouts, seed, time_limit_s, environments_file,
+                                               progress, parts=parts)
+            except KeyboardInterrupt:
+                log_progress(progress, f"calibrate {checkpoint}: interrupted; the finished episodes are kept in "
+                                       f"{folder}")
+                raise
+            save_signals(out, checkpoint, digest, recorded.signals, recorded.steps, recorded.episodes)
+            write_auc_report(out.with_suffix(".auc.json"), auc_report(load_signals(out), seed=seed))
+            parts.remove()
+            log_progress(progress, f"calibrate {checkpoint}: {len(recorded.episodes['episode_seed'])} episodes, "
+                                   f"signals in {out}")
+    finally:
+        torch.set_num_threads(threads)

@@ -1,0 +1,215 @@
+"""The experiment's shared_control study: its plan (the ensembles, their files, the gates and their
+random controls, the ensemble alone), the checks of its values, that the paper's other studies plan
+what they did before, and a tiny run end to end on a two-member ensemble of untrained clones."""
+
+from collections import Counter
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+
+from ditch_drake.cli import main
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.demos.store import DatasetStore
+from ditch_drake.diagrams.rollout import LearnedPolicyConfig
+from ditch_drake.evaluation.model_labels import controller_labels
+from ditch_drake.evaluation.results import RolloutRecord, read_records
+from ditch_drake.evaluation.runs import read_runs
+from ditch_drake.learning.checkpoint import make_checkpoint
+from ditch_drake.learning.ensemble import EnsembleCheckpoint, load_ensemble, save_ensemble
+from ditch_drake.learning.model import FourInputClassifier
+from ditch_drake.pipelines.experiment import (
+    ModelSpec,
+    evaluation_specs,
+    gate_signals_path,
+    load_experiment,
+    model_path,
+    plan,
+    run_experiment,
+)
+
+PAPER = ["crater", "wide", "narrow", "sine"]
+BUDGETS = [0.01, 0.02, 0.05, 0.1, 0.2]
+PAPER_STUDIES = ["scalability", "generalization", "baseline", "amalgam", "must_cross"]
+# What the paper's five studies planned before shared_control was added: its models in order.
+PAPER_MODELS = ["crater_10", "crater_20", "crater_40", "wide_10", "wide_20", "wide_40", "narrow_10", "narrow_20",
+                "narrow_40", "sine_10", "sine_20", "sine_40", "crater+narrow+sine_40"]
+
+TINY = """
+name: tiny
+demos_dir: {root}/demos
+models_dir: {root}/models
+results_dir: {root}/results
+report: {root}/docs/results.md
+tasks: [1]
+rollouts: 1
+time_limit_s: 1.0
+workers: 0
+studies:
+  shared_control: {{environments: [wide], demos: 2, ensemble: 2, budgets: [0.1], fallbacks: [expert],
+                   calibration_rollouts: 1, seed: 5}}
+"""
+
+
+def test_the_paper_study_plans_a_k5_ensemble_per_ditch_its_gates_their_random_controls_and_the_ensemble_alone():
+    config = load_experiment("experiments/paper.yaml")
+    models, evaluations = plan(config, only_studies=["shared_control"])
+    assert models == [ModelSpec((env,), 40, 5) for env in PAPER]
+    assert [str(model_path(config, m)) for m in models] == [f"models/paper/{env}_40_k5.pt" for env in PAPER]
+    assert [str(gate_signals_path(config, m)) for m in models] == [f"results/paper/gate/{env}_40_k5.npz"
+                                                                    for env in PAPER]
+    # Per ditch: the ensemble alone, and per budget and fallback the gate and random handover.
+    assert Counter(e.environment for e in evaluations) == dict.fromkeys(PAPER, 1 + 5 * 2 * 2)
+    assert {e.study for e in evaluations} == {"shared_control"} and {e.seed for e in evaluations} == {300}
+    for env, model in zip(PAPER, models):
+        here = [e for e in evaluations if e.environment == env]
+        checkpoint = f"models/paper/{env}_40_k5.pt"
+        assert {e.model for e in here} == {model}
+        alone, *gated = here
+        assert (alone.controller, alone.config) == ("learned", LearnedPolicyConfig(checkpoint=checkpoint))
+        assert {e.controller for e in gated} == {"shared"}
+        assert {e.config.policy.checkpoint for e in gated} == {checkpoint}
+        gates = [e.config.gate for e in gated]
+        assert [(g.budget, g.fallback, g.signal) for g in gates] == [
+            (budget, fallback, signal) for budget in BUDGETS for fallback in ("expert", "mppi")
+            for signal in ("angular_rate_spread", "random")]
+        calibration = f"results/paper/gate/{env}_40_k5.npz"
+        assert {(g.calibration, g.calm_steps) for g in gates if g.signal != "random"} == {(calibration, 5)}
+        assert {(g.calibration, g.lower_threshold, g.calm_steps) for g in gates if g.signal == "random"} == {
+            ("", 0.8, 5)}
+    # --only wide keeps wide's ensemble and its 21 evaluations.
+    models, evaluations = plan(config, only=["wide"], only_studies=["shared_control"])
+    assert models == [ModelSpec(("wide",), 40, 5)] and len(evaluations) == 21
+
+
+def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_its_name():
+    config = load_experiment("experiments/paper.yaml")
+    models, evaluations = plan(config, only_studies=PAPER_STUDIES)
+    assert [m.name for m in models] == PAPER_MODELS and {m.ensemble for m in models} == {1}
+    assert Counter(e.study for e in evaluations) == {"scalability": 12, "generalization": 12, "baseline": 4,
+                                                     "amalgam": 1, "must_cross": 32}
+    assert all(e.config is None and e.seed is None for e in evaluations)
+    assert ModelSpec(("wide",), 40) == ModelSpec(("wide",), 40, 1) and ModelSpec(("wide",), 40).name == "wide_40"
+    # A shared-control study of single clones gates the generalization study's own files.
+    single = replace(config.studies.shared_control, ensemble=1, signal="mean_softmax_entropy")
+    models, _ = plan(replace(config, studies=replace(config.studies, shared_control=single)),
+                     only_studies=["shared_control"])
+    assert [str(model_path(config, m)) for m in models] == [f"models/paper/{env}_40.pt" for env in PAPER]
+
+
+@pytest.mark.parametrize("values, message", [
+    ("budgets: [0.05, 1.5]", r"studies\.shared_control\.budgets=\[0\.05, 1\.5\]"),
+    ("budgets: []", r"studies\.shared_control\.budgets=\[\]"),
+    ("fallbacks: [expert, human]", r"studies\.shared_control\.fallbacks=\['expert', 'human'\]"),
+    ("fallbacks: [teleop]", r"studies\.shared_control\.fallbacks=\['teleop'\].*'expert', 'mppi'"),
+    ("environments: [wide, moon]", r"unknown environments \['moon'\] \(studies\.shared_control\.environments\)"),
+    ("ensemble: 1", r"studies\.shared_control\.ensemble=1: the signal 'angular_rate_spread'.*K >= 2"),
+    ("signal: random", r"studies\.shared_control\.signal='random'"),
+    ("seed: 5", r"studies\.shared_control\.seed=5: its seeds 5-5 overlap the calibration's 0-9"),
+    ("calibration_rollouts: 0", r"studies\.shared_control\.calibration_rollouts=0"),
+    ("budgets: [0.05], random_lower_threshold: 1.5", r"studies\.shared_control: random handover at budget 0\.05.*lower_threshold"),
+])
+def test_bad_study_values_are_refused_naming_the_key(tmp_path, values, message):
+    path = tmp_path / "bad.yaml"
+    path.write_text(f"rollouts: 1\nstudies:\n  shared_control: {{{values}}}\n")
+    with pytest.raises(ConfigError, match=message):
+        load_experiment(path)
+
+
+def test_the_command_exits_2_on_a_bad_budget(tmp_path, capsys):
+    path = tmp_path / "bad.yaml"
+    path.write_text("studies:\n  shared_control: {budgets: [0.1, 0]}\n")
+    assert main(["experiment", str(path), "--study", "shared_control", "--stage", "report"]) == 2
+    assert "studies.shared_control.budgets=[0.1, 0.0]: expected shares of control steps in (0, 1)" in capsys.readouterr().err
+
+
+def _ensemble(path: Path) -> Path:
+    """Two untrained clones as an ensemble file: the disagreement signals are defined."""
+    def member(seed: int):
+        torch.manual_seed(seed)
+        return make_checkpoint(FourInputClassifier().eval(), metrics={"best": {}},
+                               training={"train_demo_ids": [0], "val_demo_ids": [1], "train_config": {"device": "cpu"}})
+
+    return save_ensemble(EnsembleCheckpoint([member(0), member(1)]), path)
+
+
+def test_a_tiny_study_calibrates_then_evaluates_and_reports_distinct_rows_and_a_rerun_redoes_nothing(tmp_path):
+    path = tmp_path / "tiny.yaml"
+    path.write_text(TINY.format(root=tmp_path))
+    config = load_experiment(path)
+    models, evaluations = plan(config)
+    assert [m.name for m in models] == ["wide_2_k2"] and len(evaluations) == 3
+    # No ensemble yet: the evaluation has nothing to run (and no signals file to read).
+    assert evaluation_specs(config, evaluations[1]) == []
+    ensemble = _ensemble(tmp_path / "models" / "wide_2_k2.pt")
+    assert evaluation_specs(config, evaluations[1]) == []  # Trained, not yet calibrated.
+    ensemble_time = ensemble.stat().st_mtime_ns
+
+    run_experiment(config, stages=("train", "evaluate", "report"), progress=False)
+    assert ensemble.stat().st_mtime_ns == ensemble_time  # A finished ensemble is kept.
+    signals = tmp_path / "results" / "gate" / "wide_2_k2.npz"
+    assert signals.is_file() and (tmp_path / "results" / "gate" / "wide_2_k2.auc.json").is_file()
+    assert not (tmp_path / "results" / "gate" / "wide_2_k2.npz.parts").exists()
+    records = read_records(tmp_path / "results" / "shared_control.jsonl")[0]
+    assert [(r.controller, r.environment, r.task, r.seed, r.checkpoint) for r in records] == [
+        (controller, "wide", 1, 5, str(ensemble)) for controller in ("learned", "shared", "shared")]
+    assert all(r.status != "error" for r in records), [r.error for r in records]
+    gates = [yaml.safe_load(r.controller_config)["gate"] for r in records[1:]]
+    assert [(g["signal"], g["budget"], g["fallback"]) for g in gates] == [
+        ("angular_rate_spread", 0.1, "expert"), ("random", 0.1, "expert")]
+    assert gates[0]["calibration"] == str(signals) and gates[1]["lower_threshold"] == 0.8
+
+    page = (tmp_path / "docs" / "results.md").read_text()
+    study = page.split("## shared_control")[1].split("### Shared control")
+    rows = [line.split(" | ")[0].lstrip("| ") for line in study[0].splitlines() if "| wide |" in line]
+    assert rows == ["wide_2_k2",
+                    "wide_2_k2 (gate angular_rate_spread, budget 0.1, fallback expert; privileged: analytic terrain)",
+                    "wide_2_k2 (gate random, budget 0.1, fallback expert; privileged: analytic terrain)"]
+    shared = [line.split(" | ")[0].lstrip("| ") for line in study[1].splitlines() if "| wide |" in line]
+    assert shared == rows[1:]
+
+    signals_time = signals.stat().st_mtime_ns
+    run_experiment(config, stages=("train", "evaluate"), progress=False)
+    assert signals.stat().st_mtime_ns == signals_time
+    assert len(read_records(tmp_path / "results" / "shared_control.jsonl")[0]) == 3
+    assert len(read_runs(tmp_path / "results")) == 2
+
+
+def test_the_train_stage_trains_the_ensemble_that_train_ensemble_does(tmp_path, random_demonstration):
+    store = DatasetStore.create(tmp_path / "demos" / "wide")
+    for index, steps in enumerate((9, 6, 11, 5, 8)):
+        store.append(random_demonstration(index, steps))
+    path = tmp_path / "tiny.yaml"
+    path.write_text(TINY.format(root=tmp_path).replace("demos: 2,", "demos: 4,")
+                    + "training: {epochs: 1, patience: 1, batches_per_epoch: 1, synthetic_fraction: 0.5}\n")
+    run_experiment(load_experiment(path), stages=("train",), progress=False)
+    by_command = tmp_path / "by_command.pt"
+    assert main(["train", "--data", str(tmp_path / "demos" / "wide"), "--max-demos", "4", "--seed", "0",
+                 "--ensemble", "2", "--epochs", "1", "--patience", "1", "--batches-per-epoch", "1",
+                 "--synthetic-fraction", "0.5", "--out", str(by_command)]) == 0
+    staged, commanded = (load_ensemble(tmp_path / "models" / "wide_4_k2.pt"), load_ensemble(by_command))
+    assert staged.bootstrap == commanded.bootstrap and len(staged.bootstrap["demonstrations"]) == 4
+    for ours, theirs in zip(staged.members, commanded.members, strict=True):
+        assert ours.training["train_config"] == theirs.training["train_config"]
+        assert all(torch.equal(ours.state_dict[key], theirs.state_dict[key]) for key in theirs.state_dict)
+
+
+def test_a_gated_records_label_names_its_gate_whatever_the_yaml_style_and_others_keep_theirs():
+    def record(controller: str, config: str) -> RolloutRecord:
+        return RolloutRecord(
+            key=controller + config, controller=controller, checkpoint="m/wide_40_k5.pt", environment="wide", task=0,
+            seed=0, time_limit_s=120.0, goal_radius_m=1.5, checkpoint_sha256="", failure_region="", status="reached_goal",
+            success=True, time_s=1.0,
+            path_length_m=1.0, peak_abs_roll_deg=0.0, peak_abs_pitch_deg=0.0, peak_tilt_deg=0.0,
+            min_stability_margin_deg=0.0, final_x_m=0.0, final_y_m=0.0, wall_s=1.0, controller_config=config)
+
+    records = [record("learned", "checkpoint: m/wide_40_k5.pt\n"),
+               record("shared", "policy: {checkpoint: x}\ngate: {signal: random, upper_threshold: 0.99, budget: 0.02, "
+                                "fallback: mppi}\nexpert: {}\n"),
+               record("shared", "policy: {checkpoint: x}\ngate:\n  signal: mean_softmax_entropy\n  "
+                                "upper_threshold: 2.55\n  fallback: expert\nmppi: {}\n")]
+    assert [controller_labels(records)(r) for r in records] == [
+        "wide_40_k5", "wide_40_k5 (gate random, budget 0.02, fallback mppi)",
+        "wide_40_k5 (gate mean_softmax_entropy, fallback expert)"]
