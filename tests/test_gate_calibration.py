@@ -83,17 +83,19 @@ def test_a_budget_hands_over_its_share_of_the_recorded_steps_hysteresis_included
     for budget in (0.01, 0.05, 0.2):
         gate = SharedControlConfig(signal="mean_softmax_entropy", budget=budget, calibration=str(path)).resolved()
         upper, lower, calm_steps = gate.upper_threshold, gate.lower_threshold, gate.calm_steps
-        # Replayed over the recorded episodes, the gate hands over the budget's share of the
-        # steps, to within one step of 2000 (the signal is continuous).
-        assert replay_fallback_share(episodes, upper, lower, calm_steps) == pytest.approx(budget, abs=1e-3)
-        assert replay_fallback_share(episodes, upper, lower, calm_steps) <= budget
+        # Replayed over the recorded episodes (their first warmup_steps ignored, as the block
+        # does), the gate hands over the budget's share of the steps, to within one step of
+        # 2000 (the signal is continuous).
+        replayed = replay_fallback_share(episodes, upper, lower, calm_steps, gate.warmup_steps)
+        assert replayed == pytest.approx(budget, abs=1e-3) and replayed <= budget
         # Both thresholds are quantiles at one share s: the upper one the (1 - s), the lower the (1 - 2 s).
         share = np.mean(values > upper)
         assert np.mean(values > lower) == pytest.approx(2 * share, abs=1e-3)
         # The calm steps hold each handover: s is below the budget, and the quantiles at the
         # budget itself (the rule without the hysteresis) would hand over more than the budget.
         assert share < budget
-        assert replay_fallback_share(episodes, *quantile_thresholds(values, budget), calm_steps) > budget
+        assert replay_fallback_share(episodes, *quantile_thresholds(values, budget), calm_steps,
+                                     gate.warmup_steps) > budget
         assert SharedControl(gate).config.upper_threshold == upper
     # Without hysteresis and with the band closed, the quantile itself: s is the budget.
     upper, lower = budget_thresholds(episodes, 0.05, calm_steps=1)

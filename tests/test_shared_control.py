@@ -11,13 +11,13 @@ from pydrake.systems.primitives import ConstantVectorSource, TrajectorySource
 from pydrake.trajectories import PiecewisePolynomial
 
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.learning.gate_calibration import save_signals
+from ditch_drake.learning.gate_calibration import replay_fallback_share, save_signals
 from ditch_drake.spec import robot
 from ditch_drake.systems.shared_control import FALLBACK, GATE_OFFSET_S, POLICY, SharedControl, SharedControlConfig
 
 POLICY_COMMAND = [1.0, 0.15]
 FALLBACK_COMMAND = [0.5, -0.35]
-CONFIG = SharedControlConfig(upper_threshold=0.5, lower_threshold=0.2, calm_steps=3)
+CONFIG = SharedControlConfig(upper_threshold=0.5, lower_threshold=0.2, calm_steps=3, warmup_steps=0)
 # A scripted uncertainty, and who drives after each step under CONFIG.
 SCRIPT = [
     (0.1, POLICY),
@@ -59,6 +59,38 @@ def test_the_gate_hands_over_holds_and_hands_back_after_the_calm_steps():
         expected = POLICY_COMMAND if driver == POLICY else FALLBACK_COMMAND
         np.testing.assert_array_equal(gate.GetOutputPort("command").Eval(context), expected)
     assert switches == 3
+
+
+def _drivers(config: SharedControlConfig, uncertainties: list[float]) -> list[int]:
+    """Who drives after each forced update of a gate fed `uncertainties` in turn."""
+    gate = SharedControl(config)
+    context = gate.CreateDefaultContext()
+    gate.GetInputPort("policy_command").FixValue(context, POLICY_COMMAND)
+    gate.GetInputPort("fallback_command").FixValue(context, FALLBACK_COMMAND)
+    state = gate.AllocateDiscreteVariables()
+    drivers = []
+    for value in uncertainties:
+        gate.GetInputPort("uncertainty").FixValue(context, [value])
+        gate.CalcForcedDiscreteVariableUpdate(context, state)
+        context.SetDiscreteState(state)
+        drivers.append(int(gate.GetOutputPort("who_drives").Eval(context)[0]))
+    return drivers
+
+
+def test_the_gate_ignores_the_signal_while_the_stacks_fill():
+    # The policy's members disagree on partly empty observation stacks: the default gate reads
+    # nothing over its first STACK_DEPTH - 1 = 3 updates, then gates as usual.
+    assert SharedControlConfig().warmup_steps == 3
+    script = [0.9, 0.9, 0.9, 0.1, 0.9, 0.1]
+    config = SharedControlConfig(upper_threshold=0.5, lower_threshold=0.2, calm_steps=2)
+    assert _drivers(config, script) == [POLICY, POLICY, POLICY, POLICY, FALLBACK, FALLBACK]
+    assert _drivers(SharedControlConfig(upper_threshold=0.5, lower_threshold=0.2, calm_steps=2, warmup_steps=0),
+                    script) == [FALLBACK, FALLBACK, FALLBACK, FALLBACK, FALLBACK, FALLBACK]
+    # The replay that sets a budget's thresholds ignores the same steps.
+    assert replay_fallback_share([script], 0.5, 0.2, 2, warmup_steps=3) == pytest.approx(2 / 6)
+    assert replay_fallback_share([script], 0.5, 0.2, 2) == pytest.approx(1.0)
+    with pytest.raises(ConfigError, match="warmup_steps -1: expected an integer >= 0"):
+        SharedControlConfig(warmup_steps=-1).validate()
 
 
 def test_who_drives_in_a_simulated_diagram_changes_at_the_gates_ticks():

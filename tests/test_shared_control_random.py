@@ -160,15 +160,17 @@ def test_the_seed_decides_the_random_handovers_in_a_built_shared_diagram():
     assert not default.HasSubsystemNamed(DRAW)  # Only the random gate has the draw.
     diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=scene, controller=shared.for_seed(_random_shared(), 0)))
     simulator = Simulator(diagram)
-    first, draws = _drivers_and_draws(simulator, diagram, seed=0, steps=8)
-    again, draws_again = _drivers_and_draws(simulator, diagram, seed=0, steps=8)
-    other, other_draws = _drivers_and_draws(simulator, diagram, seed=1, steps=8)
+    first, draws = _drivers_and_draws(simulator, diagram, seed=0, steps=10)
+    again, draws_again = _drivers_and_draws(simulator, diagram, seed=0, steps=10)
+    other, other_draws = _drivers_and_draws(simulator, diagram, seed=1, steps=10)
     assert (again, draws_again) == (first, draws)
     assert other != first and other_draws != draws
-    # Upper = lower = 0.5, one calm step: each tick's driver is its own draw's.
+    # Upper = lower = 0.5, one calm step: after the warm-up's three ticks, when the policy
+    # drives whatever the draw, each tick's driver is its own draw's.
+    warmup = SharedControlConfig().warmup_steps
     for drivers, values in ((first, draws), (other, other_draws)):
         assert all(0.0 <= value < 1.0 for value in values)
-        assert drivers == [FALLBACK if value > 0.5 else POLICY for value in values]
+        assert drivers == [POLICY] * warmup + [FALLBACK if value > 0.5 else POLICY for value in values[warmup:]]
 
 
 def test_a_short_random_shared_rollout_through_the_batch_path_records_its_handover_fraction(tmp_path):

@@ -123,10 +123,10 @@ def test_a_batch_takes_an_ensemble_file_as_a_checkpoint(pair_file):
 
 
 def _handing_over(fallback: str = "expert") -> SharedControlControllerConfig:
-    """The shared controller with an upper threshold of 0: it hands over at the first tick."""
+    """The shared controller with an upper threshold of 0 and no warm-up: it hands over at the first tick."""
     config = controller_config("shared")
-    return dataclasses.replace(config, gate=dataclasses.replace(config.gate, upper_threshold=0.0,
-                                                                lower_threshold=0.0, fallback=fallback))
+    return dataclasses.replace(config, gate=dataclasses.replace(config.gate, upper_threshold=0.0, lower_threshold=0.0,
+                                                                warmup_steps=0, fallback=fallback))
 
 
 @pytest.mark.parametrize("fallback, privileged", [("expert", ("terrain",)), ("mppi", ())])

@@ -55,8 +55,8 @@ def test_the_person_steers_where_the_gate_hands_over_and_the_page_says_so():
     assert calm.metadata["intervened_steps"] == 0 and calm.metadata["switches"] == 0
     assert HELP_BUTTON not in meshcat.GetButtonNames()
     assert meshcat.HasPath(f"{CHASSIS_MESHCAT_PATH}/driver_marker")
-    # Below any entropy: the gate hands over at its first tick and never back.
-    rig, helped = _teleop_demonstration({"upper_threshold": 0.0, "lower_threshold": 0.0}, meshcat)
+    # Below any entropy, with no warm-up: the gate hands over at its first tick and never back.
+    rig, helped = _teleop_demonstration({"upper_threshold": 0.0, "lower_threshold": 0.0, "warmup_steps": 0}, meshcat)
     assert helped.arrays["intervention"].all() and helped.metadata["switches"] == 1
     # The person's (scripted) command is what was executed and recorded: straight ahead.
     assert set(helped.arrays["label"].tolist()) == {actions.STRAIGHT_LABEL}

@@ -426,6 +426,8 @@ def add_gate_thresholds(commands: Commands) -> None:
                             help="shares of control steps the fallback may drive, each in (0, 1)")
     thresholds.add_argument("--calm-steps", type=int, default=ConfigDefault(GATE, "calm_steps"),
                             help="the gate's hysteresis: calm control steps before it hands back")
+    thresholds.add_argument("--warmup-steps", type=int, default=ConfigDefault(GATE, "warmup_steps"),
+                            help="control steps at each episode's start whose signal the gate ignores")
     thresholds.set_defaults(run=cmd_gate_thresholds)
 
 
@@ -438,21 +440,22 @@ def cmd_gate_thresholds(args) -> int:
     from ditch_drake.learning.gate_calibration import calibration_values, quantile_thresholds, replay_fallback_share
     from ditch_drake.systems.shared_control import SharedControlConfig
 
-    gates = [SharedControlConfig(signal=args.signal, budget=budget, calibration=args.signals,
-                                 calm_steps=args.calm_steps).resolved() for budget in args.budget]
+    gates = [SharedControlConfig(signal=args.signal, budget=budget, calibration=args.signals, calm_steps=args.calm_steps,
+                                 warmup_steps=args.warmup_steps).resolved() for budget in args.budget]
     episodes = calibration_values(args.signals, args.signal)
-    values = np.concatenate(episodes)
+    values = np.concatenate([episode[args.warmup_steps:] for episode in episodes])
     rows = []
     for gate in gates:
         upper, lower = gate.upper_threshold, gate.lower_threshold
-        quantile_rule = replay_fallback_share(episodes, *quantile_thresholds(values, gate.budget), gate.calm_steps)
+        replay = (gate.calm_steps, gate.warmup_steps)
+        quantile_rule = replay_fallback_share(episodes, *quantile_thresholds(values, gate.budget), *replay)
         rows.append({"budget": f"{gate.budget:g}", "upper_threshold": f"{upper:.4g}", "lower_threshold": f"{lower:.4g}",
                      "quantile_share": f"{np.mean(values > upper):.4f}",
-                     "replayed_share": f"{replay_fallback_share(episodes, upper, lower, gate.calm_steps):.4f}",
+                     "replayed_share": f"{replay_fallback_share(episodes, upper, lower, *replay):.4f}",
                      "replayed_share_quantile_rule": f"{quantile_rule:.4f}"})
     print_table(rows, list(rows[0]))
-    print(f"{args.signal} over {values.size} steps of {len(episodes)} episodes in {args.signals}; calm_steps "
-          f"{args.calm_steps}. quantile_share: the share of the steps above the upper threshold; replayed_share: "
+    print(f"{args.signal} over {values.size} steps of {len(episodes)} episodes in {args.signals} (the first "
+          f"{args.warmup_steps} of each ignored); calm_steps {args.calm_steps}. quantile_share: the share of the steps above the upper threshold; replayed_share: "
           "the fallback's share with the gate replayed over each episode; replayed_share_quantile_rule: the same "
           "with the quantiles at the budget itself (ThriftyDAgger's rule, the hysteresis not counted).")
     return 0

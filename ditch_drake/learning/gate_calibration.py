@@ -166,21 +166,25 @@ def gate_step(driver: int, calm: int, uncertainty: float, upper_threshold: float
     return FALLBACK, calm, False
 
 
-def replay_fallback_share(sequences, upper_threshold: float, lower_threshold: float, calm_steps: int) -> float:
+def replay_fallback_share(sequences, upper_threshold: float, lower_threshold: float, calm_steps: int,
+                          warmup_steps: int = 0) -> float:
     """The share of the steps the gate hands the fallback, replayed over recorded episodes.
 
     Each sequence is one episode's signal, step by step, as the policy saw it driving alone;
-    the gate starts each with the policy driving. A replay is an estimate: once the fallback
+    the gate starts each with the policy driving and reads the first `warmup_steps` values as
+    NaN (it ignores them, as `SharedControl` does). A replay is an estimate: once the fallback
     drives, the real robot goes elsewhere than the recorded one.
 
     Args:
         sequences: one (T_e,) array of the signal per episode.
         upper_threshold, lower_threshold, calm_steps: the gate's (`gate_step`).
+        warmup_steps: control steps at each episode's start whose signal the gate ignores.
     """
     fallback_steps = total_steps = 0
     for sequence in sequences:
         driver, calm = POLICY, 0
-        for value in np.asarray(sequence, dtype=float).tolist():
+        for step, value in enumerate(np.asarray(sequence, dtype=float).tolist()):
+            value = math.nan if step < warmup_steps else value
             driver, calm, _ = gate_step(driver, calm, value, upper_threshold, lower_threshold, calm_steps)
             fallback_steps += driver
         total_steps += len(sequence)
@@ -199,7 +203,7 @@ def quantile_thresholds(values, share: float) -> tuple[float, float]:
     return upper, min(lower, upper)
 
 
-def budget_thresholds(sequences, budget: float, calm_steps: int = 1) -> tuple[float, float]:
+def budget_thresholds(sequences, budget: float, calm_steps: int = 1, warmup_steps: int = 0) -> tuple[float, float]:
     """The gate's (upper, lower) thresholds that a budget sets on a signal's recorded episodes.
 
     `quantile_thresholds` at the largest share s (found by bisection, `SHARE_SEARCH_STEPS`
@@ -213,6 +217,8 @@ def budget_thresholds(sequences, budget: float, calm_steps: int = 1) -> tuple[fl
             numpy array is one episode).
         budget: the share of control steps the fallback may drive, in (0, 1).
         calm_steps: the gate's hysteresis (`SharedControlConfig.calm_steps`).
+        warmup_steps: control steps at each episode's start whose signal the gate ignores
+            (`SharedControlConfig.warmup_steps`); their values count in no quantile either.
 
     Raises:
         ConfigError: a budget outside (0, 1), no values, or values that are not finite.
@@ -222,12 +228,12 @@ def budget_thresholds(sequences, budget: float, calm_steps: int = 1) -> tuple[fl
     if isinstance(sequences, np.ndarray) and sequences.ndim == 1:
         sequences = [sequences]
     sequences = [np.asarray(sequence, dtype=float).ravel() for sequence in sequences]
-    values = np.concatenate(sequences) if sequences else np.zeros(0)
+    values = np.concatenate([sequence[warmup_steps:] for sequence in sequences]) if sequences else np.zeros(0)
     threshold_for_budget(values, budget)  # Refuses no values or non-finite ones, as the quantiles would.
     low, high = 0.0, 1.0  # Replayed shares: 0 at s = 0 (never hands over), 1 at s = 1 (always does).
     for _ in range(SHARE_SEARCH_STEPS):
         middle = (low + high) / 2.0
-        if replay_fallback_share(sequences, *quantile_thresholds(values, middle), calm_steps) <= budget:
+        if replay_fallback_share(sequences, *quantile_thresholds(values, middle), calm_steps, warmup_steps) <= budget:
             low = middle
         else:
             high = middle

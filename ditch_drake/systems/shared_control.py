@@ -12,6 +12,7 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, budget_thresholds, calibration_values, gate_step
 from ditch_drake.learning.uncertainty import UNCERTAINTY_SIGNALS
 from ditch_drake.spec import robot
+from ditch_drake.spec.observation_layout import STACK_DEPTH
 from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S
 
 # What can take over: the scripted expert (standing in for a person), the MPPI planner (no
@@ -39,6 +40,11 @@ class SharedControlConfig:
             budget, set from it.
         lower_threshold: hand back only after the signal has stayed below this ...
         calm_steps: ... for this many consecutive control steps (hysteresis: fewer switches).
+        warmup_steps: control steps at each episode's start whose signal the gate ignores (the
+            policy drives them): the policy's stacks of the last `STACK_DEPTH` observations fill
+            over the first `STACK_DEPTH` - 1 steps, and on the partly empty stacks the members
+            of the paper clones' ensembles disagree at the start of every narrow and nearly
+            every wide validation episode, far above their later disagreement.
         budget: the share of control steps the fallback may drive, in (0, 1); given, both
             thresholds come from the signal's values in `calibration` (`resolved`): the
             (1 - s) and (1 - 2 s) quantiles at the largest share s for which this gate,
@@ -58,6 +64,7 @@ class SharedControlConfig:
     upper_threshold: float = 0.2
     lower_threshold: float = 0.1
     calm_steps: int = 5
+    warmup_steps: int = STACK_DEPTH - 1
     budget: float | None = None
     fallback: str = "expert"
     calibration: str = field(default="", metadata=WRITTEN_WHEN_SET)
@@ -75,6 +82,9 @@ class SharedControlConfig:
             raise ConfigError(f"shared control fallback {self.fallback!r}: expected one of {list(FALLBACKS)}")
         if isinstance(self.calm_steps, bool) or not isinstance(self.calm_steps, int) or self.calm_steps < 1:
             raise ConfigError(f"shared control calm_steps {self.calm_steps!r}: expected an integer >= 1 control steps")
+        if isinstance(self.warmup_steps, bool) or not isinstance(self.warmup_steps, int) or self.warmup_steps < 0:
+            raise ConfigError(f"shared control warmup_steps {self.warmup_steps!r}: expected an integer >= 0 control "
+                              "steps")
         for key in ("upper_threshold", "lower_threshold"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
@@ -116,7 +126,7 @@ class SharedControlConfig:
             return dataclasses.replace(
                 self, upper_threshold=random_upper_threshold(self.budget, self.lower_threshold, self.calm_steps))
         upper, lower = budget_thresholds(calibration_values(self.calibration, self.signal), self.budget,
-                                         self.calm_steps)
+                                         self.calm_steps, self.warmup_steps)
         return dataclasses.replace(self, upper_threshold=upper, lower_threshold=lower)
 
     def _validate_random(self) -> None:
@@ -214,7 +224,8 @@ class SharedControl(LeafSystem):
       `calm_steps` hands back to the policy.
 
     A NaN uncertainty is neither above nor below a threshold: it hands nothing over and resets
-    the calm count. The update stores who drives, the calm count, the number of switches (either
+    the calm count; the first `warmup_steps` updates read the uncertainty as NaN (the policy
+    drives while its observation stacks fill). The update stores who drives, the calm count, the number of switches (either
     way) and the command of whoever drives after it, which the outputs read, so the command
     changes only at the gate's ticks. The same update is declared as a forced discrete update,
     so `CalcForcedDiscreteVariableUpdate` runs one step too. Until the first update the policy
@@ -276,6 +287,7 @@ class SharedControl(LeafSystem):
         self._driver_index = self.DeclareDiscreteState(np.array([float(POLICY)]))
         self._calm_index = self.DeclareDiscreteState(1)
         self._switches_index = self.DeclareDiscreteState(1)
+        self._step_index = self.DeclareDiscreteState(1)
         self.DeclareStateOutputPort("command", self._command_index)
         self.DeclareStateOutputPort("who_drives", self._driver_index)
         self.DeclareStateOutputPort("switches", self._switches_index)
@@ -288,7 +300,8 @@ class SharedControl(LeafSystem):
         return self._config
 
     def _update(self, context, discrete_state: DiscreteValues) -> None:
-        uncertainty = float(self._uncertainty_port.Eval(context)[0])
+        step = int(context.get_discrete_state(self._step_index).get_value()[0])
+        uncertainty = float(self._uncertainty_port.Eval(context)[0]) if step >= self._config.warmup_steps else math.nan
         driver = int(context.get_discrete_state(self._driver_index).get_value()[0])
         calm = int(context.get_discrete_state(self._calm_index).get_value()[0])
         switches = context.get_discrete_state(self._switches_index).get_value()[0]
@@ -300,3 +313,4 @@ class SharedControl(LeafSystem):
         discrete_state.set_value(self._driver_index, [float(driver)])
         discrete_state.set_value(self._calm_index, [float(calm)])
         discrete_state.set_value(self._switches_index, [switches])
+        discrete_state.set_value(self._step_index, [float(step + 1)])
