@@ -17,12 +17,15 @@ import sys
 # glibc's mallopt parameters (malloc.h).
 M_TRIM_THRESHOLD = -1
 M_MMAP_MAX = -4
-# The largest trim threshold mallopt takes: free memory at the heap's top is never given back.
-NEVER_TRIM = 2**31 - 1
+# Free memory at the heap's top beyond this is given back to the system: more than a step's
+# largest blocks (two of 268 MB in float32), so they stay, while what a larger dataset's reading
+# frees does not pile up.
+TRIM_THRESHOLD_BYTES = 1 << 30
 
 
 def keep_freed_memory() -> bool:
-    """Asks glibc to serve every block from the heap and never trim it (process-wide, from now on).
+    """Asks glibc to serve every block from the heap and to keep up to `TRIM_THRESHOLD_BYTES` of
+    free memory at its top (process-wide, from now on).
 
     Returns:
         Whether glibc took both settings; False on another platform or C library, where
@@ -35,4 +38,4 @@ def keep_freed_memory() -> bool:
     except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    return bool(mallopt(M_MMAP_MAX, 0)) and bool(mallopt(M_TRIM_THRESHOLD, NEVER_TRIM))
+    return bool(mallopt(M_MMAP_MAX, 0)) and bool(mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD_BYTES))
