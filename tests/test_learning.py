@@ -1,14 +1,11 @@
 """The learning package (network, data, SMOTE, mirroring, metrics, training, checkpoints) and LearnedPolicy."""
 
 import os
-import platform
-import sys
 
 import numpy as np
 import pytest
 import torch
 
-from ditch_drake.common.allocator import keep_freed_memory
 from ditch_drake.learning import train as train_module
 from ditch_drake.learning.balance import SmoteConfig, balance, smote_samples, synthetic_counts
 from ditch_drake.learning.checkpoint import (
@@ -246,12 +243,6 @@ def test_training_without_the_nan_fill_gives_the_same_weights(monkeypatch):
         filled = train(arrays, config, progress=False)
         monkeypatch.undo()
         assert _same_weights(_weights(unfilled), _weights(filled)) and _metrics(unfilled) == _metrics(filled)
-
-
-def test_glibc_keeps_freed_memory_where_it_runs():
-    if not sys.platform.startswith("linux") or platform.libc_ver()[0] != "glibc":
-        pytest.skip(f"not glibc on Linux ({sys.platform}, {platform.libc_ver()[0] or 'unknown C library'})")
-    assert keep_freed_memory() is True
 
 
 def test_precision_choice_and_bad_value(monkeypatch):

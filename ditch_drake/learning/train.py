@@ -70,7 +70,6 @@ from torch import nn
 from tqdm import tqdm
 
 import ditch_drake
-from ditch_drake.common.allocator import keep_freed_memory
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import remove_stale_temporaries
 from ditch_drake.common.parallel import interrupt_exit_code
@@ -106,8 +105,8 @@ INTERRUPTED_SUFFIX = ".interrupted"
 
 # Deterministic mode fills every new tensor with NaN, a guard against reading memory no operation
 # wrote. Training reads none (its weights are the same bit for bit with the fill and without it,
-# tests/test_learning.py), and filling the first convolution's output and its gradient took a
-# third of a bfloat16 step.
+# tests/test_learning.py), and the fill touches every page of the first convolution's output and
+# of its gradient at every step.
 FILL_UNINITIALIZED_MEMORY = False
 
 
@@ -341,7 +340,6 @@ def train(
         previous_deterministic = torch.are_deterministic_algorithms_enabled()
         previous_warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
         previous_fill = torch.utils.deterministic.fill_uninitialized_memory
-        keep_freed_memory()
         try:
             if config.num_threads is not None:
                 torch.set_num_threads(config.num_threads)
