@@ -171,13 +171,20 @@ def random_fallback_share(upper_threshold: float, lower_threshold: float, calm_s
     """
     SharedControlConfig(signal=RANDOM_SIGNAL, upper_threshold=upper_threshold, lower_threshold=lower_threshold,
                         calm_steps=calm_steps).validate()
-    handover, calm = 1.0 - upper_threshold, lower_threshold
+    handover = 1.0 - upper_threshold
     if handover == 0.0:
         return 0.0
-    if calm == 0.0:
+    if lower_threshold == 0.0:
         return 1.0
-    spell = float(calm_steps) if calm == 1.0 else (1.0 - calm**calm_steps) / ((1.0 - calm) * calm**calm_steps)
+    spell = _mean_fallback_spell(lower_threshold, calm_steps)
     return handover * spell / (1.0 + handover * spell)
+
+
+def _mean_fallback_spell(lower_threshold: float, calm_steps: int) -> float:
+    """Control steps a random handover lasts on average, the handover step included: until
+    `calm_steps` draws in a row fall below `lower_threshold` (in (0, 1])."""
+    calm = lower_threshold
+    return float(calm_steps) if calm == 1.0 else (1.0 - calm**calm_steps) / ((1.0 - calm) * calm**calm_steps)
 
 
 def random_upper_threshold(budget: float, lower_threshold: float, calm_steps: int) -> float:
@@ -200,8 +207,7 @@ def random_upper_threshold(budget: float, lower_threshold: float, calm_steps: in
     if lower_threshold == 0.0:
         raise ConfigError(f"shared control lower_threshold 0 with signal 'random' and budget {budget}: the draw is "
                           "never below it, so the fallback never hands back; expected a lower threshold in (0, 1]")
-    calm = lower_threshold
-    spell = float(calm_steps) if calm == 1.0 else (1.0 - calm**calm_steps) / ((1.0 - calm) * calm**calm_steps)
+    spell = _mean_fallback_spell(lower_threshold, calm_steps)
     handover = budget / ((1.0 - budget) * spell)
     if handover > 1.0:
         raise ConfigError(f"shared control budget {budget} with signal 'random', lower_threshold {lower_threshold} "
