@@ -221,16 +221,12 @@ def cmd_train(args) -> int:
 def _train_ensemble(args, config) -> int:
     """`train --ensemble K`: K clones on bootstrap resamples of the demonstrations, one file."""
     from ditch_drake.demos.interventions import episode_interventions
-    from ditch_drake.demos.training_set import dataset_episodes, training_set
+    from ditch_drake.demos.training_set import named_dataset_episodes, training_set
     from ditch_drake.learning.bootstrap import check_member_count
     from ditch_drake.learning.ensemble_training import train_ensemble
 
     members = check_member_count(args.ensemble)
-    episodes, names = [], []
-    for directory in args.data:
-        found = dataset_episodes(directory, args.max_demos)
-        episodes += found
-        names += [f"{directory}[{index}]" for index in range(len(found))]
+    episodes, names = named_dataset_episodes(args.data, args.max_demos)
     weighted = config.intervention_weight != 1.0
     result = train_ensemble(lambda indices: training_set([episodes[i] for i in indices]), names, args.out, config,
                             members, interventions_of=(lambda indices: episode_interventions(
@@ -385,26 +381,20 @@ def cmd_gate_signals(args) -> int:
     import torch
 
     from ditch_drake.evaluation.batch import check_checkpoint
-    from ditch_drake.evaluation.gate_signals import parts_header, record_gate_signals
-    from ditch_drake.learning.gate_calibration import auc_report, load_signals, save_signals, write_auc_report
+    from ditch_drake.evaluation.gate_signals import write_signals_file
 
     digest = check_checkpoint(args.checkpoint)
     torch.set_num_threads(1)  # One forward pass of one sample: as each evaluation worker runs it.
     # Two runs on one --out would each run the episodes the other has not kept yet.
     with exclusive_use(out, "--out"):
         refuse_finished()  # Again: another run may have finished it meanwhile.
-        parts = EpisodeParts.open(folder, parts_header(digest, args.time_limit, environments_file))
         try:
-            recorded = record_gate_signals(args.checkpoint, runs, args.rollouts, args.seed, args.time_limit,
-                                           environments_file, parts=parts)
-            save_signals(out, args.checkpoint, digest, recorded.signals, recorded.steps, recorded.episodes)
-            report = auc_report(load_signals(out), args.horizon, seed=args.seed)
-            write_auc_report(report_path, report)
+            _, report = write_signals_file(out, args.checkpoint, digest, runs, args.rollouts, args.seed,
+                                           args.time_limit, environments_file, args.horizon)
         except KeyboardInterrupt as error:
             print(f"interrupted: the finished episodes are kept in {folder}; run the same command again to continue",
                   file=sys.stderr)
             return interrupt_exit_code(error)
-        parts.remove()
 
     def number(value: float) -> str:
         return "-" if math.isnan(value) else f"{value:.3f}"

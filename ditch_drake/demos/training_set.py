@@ -90,6 +90,18 @@ def dataset_episodes(directory: str | os.PathLike, max_demos: int | None = None)
             for episode in first_episodes(store, max_demos)]
 
 
+def named_dataset_episodes(directories, max_demos: int | None = None) -> tuple[list[DatasetEpisode], list[str]]:
+    """The first `max_demos` episodes of each dataset folder (`dataset_episodes`), in order, and
+    their names, `<directory>[<index>]`: how an ensemble's bootstrap names the demonstrations
+    it resamples."""
+    episodes, names = [], []
+    for directory in directories:
+        found = dataset_episodes(directory, max_demos)
+        episodes += found
+        names += [f"{directory}[{index}]" for index in range(len(found))]
+    return episodes, names
+
+
 def _reflect_masks(reflect, counts: np.ndarray) -> list[np.ndarray]:
     """Each entry's reflect flags over its kept steps."""
     reflect = [False] * len(counts) if reflect is None else list(reflect)

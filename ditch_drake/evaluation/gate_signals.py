@@ -281,3 +281,33 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
                                    f"{episode_seed}: {outcome.status} at {outcome.time_s:.1f} s, "
                                    f"{len(watch.time_s)} steps")
     return GateSignals.of([episodes[key] for key in keys])
+
+
+def write_signals_file(out: str | os.PathLike, checkpoint: str, checkpoint_sha256: str, runs: list[tuple[str, int]],
+                       rollouts: int, seed: int, time_limit_s: float, environments_file: str = "",
+                       horizon_s: float | None = None, progress: bool = True) -> tuple[GateSignals, dict]:
+    """Records `checkpoint`'s signals (`record_gate_signals`) episode by episode into the parts
+    folder beside `out` (continuing what it holds), then writes the signals file `out` and its
+    AUC report (`<out>.auc.json`, a rollover within `horizon_s`; None: the default horizon), and
+    removes the folder. The caller holds `out` (`exclusive_use`). Ctrl-C keeps the finished
+    episodes in the folder and is re-raised.
+
+    Returns:
+        The recorded signals and the AUC report.
+
+    Raises:
+        ConfigError: the parts folder holds a recording with another checkpoint, time limit or
+            environments file.
+    """
+    from ditch_drake.learning.gate_calibration import auc_report, load_signals, save_signals, write_auc_report
+
+    folder = parts_folder(out)
+    parts = EpisodeParts.open(folder, parts_header(checkpoint_sha256, time_limit_s, environments_file))
+    recorded = record_gate_signals(checkpoint, runs, rollouts, seed, time_limit_s, environments_file, progress,
+                                   parts=parts)
+    save_signals(out, checkpoint, checkpoint_sha256, recorded.signals, recorded.steps, recorded.episodes)
+    horizon = {} if horizon_s is None else {"horizon_s": horizon_s}
+    report = auc_report(load_signals(out), seed=seed, **horizon)
+    write_auc_report(Path(out).with_suffix(".auc.json"), report)
+    parts.remove()
+    return recorded, report

@@ -107,7 +107,7 @@ def train_ensemble_or_resume(out: str | os.PathLike, name: str, directories: lis
     (`train_ensemble`); a stop is passed on.
     """
     from ditch_drake.common.errors import CheckpointError
-    from ditch_drake.demos.training_set import dataset_episodes, training_set
+    from ditch_drake.demos.training_set import named_dataset_episodes, training_set
     from ditch_drake.learning.ensemble import load_ensemble
     from ditch_drake.learning.ensemble_training import train_ensemble
 
@@ -119,11 +119,7 @@ def train_ensemble_or_resume(out: str | os.PathLike, name: str, directories: lis
             return
         except (CheckpointError, ConfigError) as error:
             log_progress(progress, f"train {name}: {error}; training again")
-    episodes, names = [], []
-    for directory in directories:
-        found = dataset_episodes(directory, max_demos)
-        episodes += found
-        names += [f"{directory}[{index}]" for index in range(len(found))]
+    episodes, names = named_dataset_episodes(directories, max_demos)
     out.parent.mkdir(parents=True, exist_ok=True)
     result = train_ensemble(lambda indices: training_set([episodes[i] for i in indices]), names, out, config,
                             members, progress)
@@ -150,8 +146,7 @@ def record_signals_or_resume(out: str | os.PathLike, checkpoint: str, runs: list
 
     from ditch_drake.common.files import exclusive_use
     from ditch_drake.evaluation.batch import check_checkpoint
-    from ditch_drake.evaluation.gate_signals import EpisodeParts, parts_folder, parts_header, record_gate_signals
-    from ditch_drake.learning.gate_calibration import auc_report, load_signals, save_signals, write_auc_report
+    from ditch_drake.evaluation.gate_signals import EpisodeParts, parts_folder, write_signals_file
 
     out = Path(out)
     folder = parts_folder(out)
@@ -170,17 +165,13 @@ def record_signals_or_resume(out: str | os.PathLike, checkpoint: str, runs: list
         with exclusive_use(out, "signals file"):
             if finished():  # Another run finished it meanwhile.
                 return
-            parts = EpisodeParts.open(folder, parts_header(digest, time_limit_s, environments_file))
             try:
-                recorded = record_gate_signals(checkpoint, runs, rollouts, seed, time_limit_s, environments_file,
-                                               progress, parts=parts)
+                recorded, _ = write_signals_file(out, checkpoint, digest, runs, rollouts, seed, time_limit_s,
+                                                 environments_file, progress=progress)
             except KeyboardInterrupt:
                 log_progress(progress, f"calibrate {checkpoint}: interrupted; the finished episodes are kept in "
                                        f"{folder}")
                 raise
-            save_signals(out, checkpoint, digest, recorded.signals, recorded.steps, recorded.episodes)
-            write_auc_report(out.with_suffix(".auc.json"), auc_report(load_signals(out), seed=seed))
-            parts.remove()
             log_progress(progress, f"calibrate {checkpoint}: {len(recorded.episodes['episode_seed'])} episodes, "
                                    f"signals in {out}")
     finally:
