@@ -46,9 +46,6 @@ SIGNALS_VERSION = 1
 # The arrays of a signals file besides one per signal (named by the signal), N steps and E episodes.
 STEP_ARRAYS = ("time_s", "episode")
 EPISODE_ARRAYS = ("episode_environment", "episode_task", "episode_seed", "episode_status", "episode_end_time_s")
-LOWER_QUANTILE_RULE = ("the (1 - 2 s) quantile: the fallback hands back once the signal is as low as on all but "
-                       "twice the share s of the recorded steps that the upper threshold, the (1 - s) quantile, "
-                       "lies under")
 # Who drives, as the gate's `who_drives` output says it.
 POLICY, FALLBACK = 0, 1
 # Halvings of the share s in `budget_thresholds`' search: s to within 2^-40.
