@@ -94,6 +94,7 @@ def test_collect_shared_stores_each_step_with_its_driver(tmp_path, capsys):
     (["--learner", "wide"], "--learner wide with --shared"),
     (["--fallback", "mppi", "--shared-labels", "expert"], "shared_labels 'expert' with fallback 'mppi'"),
     (["--upper-threshold", "0.5", "--lower-threshold", "0.9"], "lower_threshold 0.9 > upper_threshold 0.5"),
+    (["--signal", "random"], "upper_threshold 2.55 with signal 'random': expected a number in"),
 ])
 def test_bad_shared_collections_exit_2_naming_the_value(tmp_path, capsys, extra, message):
     code = main(["collect", "--shared", "--env", "wide", "--demos", "1", "--workers", "0",
@@ -101,6 +102,17 @@ def test_bad_shared_collections_exit_2_naming_the_value(tmp_path, capsys, extra,
     err = capsys.readouterr().err
     assert code == 2 and message in err, err
     assert not (tmp_path / "d" / "episodes").exists() or not list((tmp_path / "d" / "episodes").iterdir())
+
+
+def test_the_random_gate_is_offered_to_recording_commands():
+    from ditch_drake.cli.main import build_parser
+    from ditch_drake.cli.shared_options import shared_config_from_options
+
+    for command in (["collect", "--shared", "--out", "d"], ["teleop", "--shared", "--out", "d"]):
+        args = build_parser().parse_args([*command, "--signal", "random", "--upper-threshold", "0.95",
+                                          "--lower-threshold", "0.8"])
+        gate = shared_config_from_options(args, "wide", fallback="expert").gate
+        assert (gate.signal, gate.upper_threshold, gate.lower_threshold) == ("random", 0.95, 0.8)
 
 
 def test_a_checkpoint_without_shared_is_refused(tmp_path, capsys):

@@ -10,11 +10,12 @@ SHARED = "ditch_drake.diagrams.shared_controller:SharedControlControllerConfig"
 def add_gate_options(sub: argparse.ArgumentParser, fallbacks: list[str]) -> None:
     """`--signal`, `--upper-threshold`, `--lower-threshold`, `--calm-steps` and `--fallback`:
     the gate of `SharedControlControllerConfig` (defaults its own: the shipped clones' gate)."""
-    from ditch_drake.learning.uncertainty import UNCERTAINTY_SIGNALS
+    from ditch_drake.systems.shared_control import GATE_SIGNALS
 
     gate = sub.add_argument_group("the gate (with --shared)")
-    gate.add_argument("--signal", choices=list(UNCERTAINTY_SIGNALS), default=ConfigDefault(SHARED, "gate.signal"),
-                      help="the policy's uncertainty signal the gate reads (default %(default)s)")
+    gate.add_argument("--signal", choices=list(GATE_SIGNALS), default=ConfigDefault(SHARED, "gate.signal"),
+                      help="the policy's uncertainty signal the gate reads, or random: a uniform draw in [0, 1) "
+                           "each step, the chance baseline (thresholds then in [0, 1]) (default %(default)s)")
     gate.add_argument("--upper-threshold", type=float, default=ConfigDefault(SHARED, "gate.upper_threshold"),
                       help="hand over when the signal is above this, in its unit (default %(default)s)")
     gate.add_argument("--lower-threshold", type=float, default=ConfigDefault(SHARED, "gate.lower_threshold"),
