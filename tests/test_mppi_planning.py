@@ -163,7 +163,8 @@ def test_same_seed_same_plan_and_result_sizes():
 
 @pytest.mark.parametrize("key, value", [("samples", 3), ("horizon_s", 0.0), ("temperature", -1.0),
                                         ("margin_threshold_deg", 95.0), ("noise_sigma_w", float("nan")),
-                                        ("seed", -1), ("fore_aft_margin_threshold_deg", 90.0)])
+                                        ("seed", -1), ("fore_aft_margin_threshold_deg", 90.0),
+                                        ("climb_fore_aft_margin_threshold_deg", -1.0)])
 def test_planner_config_out_of_range_names_the_key(key, value):
     with pytest.raises(ConfigError, match=key):
         MppiPlanner(MppiPlannerConfig(**{key: value}))
@@ -301,3 +302,22 @@ def test_turning_lean_narrows_the_sideways_margin():
     plain, lean = (MppiPlanner(MppiPlannerConfig(turn_lean=flag, margin_threshold_deg=8.0))._costs(
         grid, heights, origin, poses, w, 0.85, np.array([0.0, 11.0]), 0)[2][0] for flag in (False, True))
     assert lean > plain  # The same turn falls further short of the sideways threshold when turning.
+
+
+def test_a_climb_threshold_admits_a_steeper_climb_but_not_a_steeper_descent():
+    # Straight at 35 deg to the edge over the middle of the 55 deg walls: up the far one (nose up),
+    # and down the near one (nose down): the same pitch, the fore-aft margin about 12 deg.
+    middle = (TERRAIN.toe_distance_m + TERRAIN.hinge_distance_m) / 2
+    w = np.zeros((1, 10))
+    costs = {}
+    for name, y in (("climb", middle - 0.5), ("descent", -middle - 0.5)):
+        pose = np.array([0.0, y, math.radians(35.0)])
+        grid, heights, origin = mapped(TERRAIN, pose)
+        poses = rollout(pose, w, 1.0, 0.1)
+        for threshold in (None, 11.0):
+            planner = MppiPlanner(MppiPlannerConfig(climb_fore_aft_margin_threshold_deg=threshold))
+            cost, attitude = planner.costs(grid, heights, origin, poses, w, 0.0, np.array([5.0, 11.0]))
+            assert np.all(np.degrees(attitude.axle_margin) > 11.0) and np.all(np.degrees(attitude.axle_margin) < 16.0)
+            costs[name, threshold] = cost[0]
+    assert costs["climb", None] == np.inf and np.isfinite(costs["climb", 11.0])
+    assert costs["descent", None] == np.inf and costs["descent", 11.0] == np.inf

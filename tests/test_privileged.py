@@ -236,3 +236,11 @@ def test_a_controller_with_the_window_search_is_its_own_marked_row(tmp_path):
     results.write_text(plain.to_json() + "\n" + searching.to_json() + "\n")
     text = write_benchmark_report([results], tmp_path / "page.md").read_text()
     assert "| mppi (window search) | 1/1 " in text and "\"window search\": a controller driven" in text
+
+
+def test_an_mppi_with_a_climb_threshold_is_its_own_marked_row():
+    searching = _record(controller="mppi", controller_config="planner: {samples: 256}\nsearch: {}\n")
+    climbing = _record(controller="mppi", controller_sha256="c", controller_config=(
+        "planner: {fore_aft_margin_threshold_deg: 16.0, climb_fore_aft_margin_threshold_deg: 11.0}\nsearch: {}\n"))
+    label = controller_labels([searching, climbing])
+    assert (label(searching), label(climbing)) == ("mppi (window search)", "mppi (window search; climb margin 11 deg)")

@@ -5,13 +5,14 @@ Every results table names its rows by `controller_labels`, which marks a row in 
 label, then in brackets where a side-conditioned clone was told its crossing side ("perceived
 side", "oracle side": `RolloutRecord.crossing_side_source`), what the controller declared it
 reads beyond its sensors, pose and goal ("privileged: analytic terrain":
-`RolloutRecord.privileged`) and, for a gated policy, its gate's signal, budget and fallback, e.g.
-"expert (privileged: analytic terrain)", "generalist (oracle side; privileged: analytic terrain)"
-or "crater_40_k5 (gate random, budget 0.05, fallback mppi)". Records that differ in any are
+`RolloutRecord.privileged`), an MPPI's nose-up threshold where set ("climb margin 11 deg")
+and, for a gated policy, its gate's signal, budget and fallback, e.g. "expert (privileged:
+analytic terrain)", "generalist (oracle side; privileged: analytic terrain)" or "crater_40_k5 (gate random, budget 0.05, fallback mppi)". Records that differ in any are
 different rows.
 """
 
 import itertools
+import re
 from collections import defaultdict
 from collections.abc import Callable
 from pathlib import Path
@@ -38,6 +39,13 @@ def searches(record: RolloutRecord) -> bool:
     return any(line.startswith("search:") for line in (record.controller_config or "").splitlines())
 
 
+def climb_words(record: RolloutRecord) -> str:
+    """An MPPI record's nose-up fore-aft threshold where one was set, e.g. "climb margin 11 deg"
+    (`MppiPlannerConfig.climb_fore_aft_margin_threshold_deg`, written only when set); "" otherwise."""
+    found = re.search(r"climb_fore_aft_margin_threshold_deg: ([-+.0-9eE]+)", record.controller_config or "")
+    return f"climb margin {float(found.group(1)):g} deg" if found else ""
+
+
 def gate_words(record: RolloutRecord) -> str:
     """A shared-control record's gate: its signal, budget (where one set the thresholds) and
     fallback, e.g. "gate angular_rate_spread, budget 0.05, fallback expert", from the `gate:`
@@ -60,9 +68,11 @@ def gate_words(record: RolloutRecord) -> str:
 
 
 def record_marks(record: RolloutRecord) -> list[str]:
-    """What a record's row is marked with: the window search, its shared-control gate, its
-    crossing side's source, its privileged inputs."""
+    """What a record's row is marked with: the window search, an MPPI's climb threshold, its
+    shared-control gate, its crossing side's source, its privileged inputs."""
     marks = ["window search"] if searches(record) else []
+    if climb_words(record):
+        marks.append(climb_words(record))
     if gate_words(record):
         marks.append(gate_words(record))
     if record.crossing_side_source:

@@ -58,7 +58,10 @@ head-on. The simulator rolled the robot over head-on and at 30-45 deg and got it
 be the rule alone: the fore-aft direction needs a larger allowance, as the speed acts along the
 heading (the chassis pitches over the rounded hinge and into the toe under its momentum). The
 defaults, 8 deg sideways and 16 deg fore-aft, admit about 12-26 deg to the edge on a 55 deg
-wall: the band that crossed in the simulator.
+wall: the band that crossed in the simulator. Climbing, the momentum pushes the chassis into the
+wall rather than over an axle: `climb_fore_aft_margin_threshold_deg`, where set, is the fore-aft
+threshold of the poses that pitch nose up (11 deg admits up to about 35 deg to the edge on a
+55 deg wall, the scripted expert's climb; unset, every pose has `fore_aft_margin_threshold_deg`).
 
 Weights exp(-(cost - least cost) / temperature) average the admissible sequences that turn the
 same way as the best one (all of them when it turns less than `_SIDE_MIN_TURN_RAD`) into the new
@@ -73,10 +76,11 @@ the first `obstruction_grace_s` is not held against the samples.
 """
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.planning.attitude import predict_attitude
 from ditch_drake.planning.elevation_map import ElevationGrid, presume_drops
@@ -126,6 +130,7 @@ class MppiPlannerConfig:
     terminal_weight: float = 2.0
     margin_threshold_deg: float = 8.0
     fore_aft_margin_threshold_deg: float = 16.0
+    climb_fore_aft_margin_threshold_deg: float | None = field(default=None, metadata=WRITTEN_WHEN_SET)
     comfort_margin_deg: float = 20.0
     margin_weight: float = 5.0
     roll_weight: float = 0.1
@@ -151,6 +156,8 @@ class MppiPlannerConfig:
         """Raises ConfigError naming the first key out of range."""
         for f in fields(self):
             value = getattr(self, f.name)
+            if f.name == "climb_fore_aft_margin_threshold_deg" and value is None:
+                continue
             if f.name not in ("seed", "samples", "hold_samples", "contour_samples", "fallback", "turn_lean") and not (isinstance(value, (int, float)) and math.isfinite(value)):
                 raise ConfigError(f"mppi {f.name}={value!r}: expected a finite number")
         for name in ("hold_samples", "contour_samples", "fallback", "turn_lean"):
@@ -182,9 +189,10 @@ class MppiPlannerConfig:
         if not 0.0 <= self.margin_threshold_deg <= self.comfort_margin_deg < 90.0:
             raise ConfigError(f"mppi margin_threshold_deg={self.margin_threshold_deg!r}, comfort_margin_deg="
                               f"{self.comfort_margin_deg!r}: expected 0 <= threshold <= comfort < 90")
-        if not 0.0 <= self.fore_aft_margin_threshold_deg < 90.0:
-            raise ConfigError(f"mppi fore_aft_margin_threshold_deg={self.fore_aft_margin_threshold_deg!r}: "
-                              "expected 0 <= threshold < 90")
+        for name in ("fore_aft_margin_threshold_deg", "climb_fore_aft_margin_threshold_deg"):
+            value = getattr(self, name)
+            if value is not None and not 0.0 <= value < 90.0:
+                raise ConfigError(f"mppi {name}={value!r}: expected 0 <= threshold < 90")
 
     @property
     def steps(self) -> int:
@@ -338,7 +346,12 @@ class MppiPlanner:
         turn_lean = np.arctan(c.speed_mps * np.abs(w) / _GRAVITY) if c.turn_lean else 0.0
         side_short = (math.radians(c.margin_threshold_deg) + turn_lean
                       - np.where(known, attitude.side_margin, np.inf))
-        axle_short = math.radians(c.fore_aft_margin_threshold_deg) - np.where(known, attitude.axle_margin, np.inf)
+        axle_threshold = math.radians(c.fore_aft_margin_threshold_deg)
+        if c.climb_fore_aft_margin_threshold_deg is not None:
+            # Nose up (negative Drake pitch) the speed pushes the chassis into the wall, not over the axle.
+            axle_threshold = np.where(attitude.pitch < 0, math.radians(c.climb_fore_aft_margin_threshold_deg),
+                                      axle_threshold)
+        axle_short = axle_threshold - np.where(known, attitude.axle_margin, np.inf)
         obstructed = attitude.obstructed
         if grace_steps > 0:
             obstructed = obstructed.copy()
