@@ -10,7 +10,7 @@ SHARED = "ditch_drake.diagrams.shared_controller:SharedControlControllerConfig"
 def add_gate_options(sub: argparse.ArgumentParser, fallbacks: list[str]) -> None:
     """`--signal`, `--upper-threshold`, `--lower-threshold`, `--calm-steps` and `--fallback`:
     the gate of `SharedControlControllerConfig` (defaults its own: the shipped clones' gate)."""
-    from ditch_drake.systems.shared_control import GATE_SIGNALS
+    from ditch_drake.learning.uncertainty import GATE_SIGNALS
 
     gate = sub.add_argument_group("the gate (with --shared)")
     gate.add_argument("--signal", choices=list(GATE_SIGNALS), default=ConfigDefault(SHARED, "gate.signal"),

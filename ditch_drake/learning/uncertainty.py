@@ -97,6 +97,12 @@ UNCERTAINTY_SIGNALS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] =
 }
 # Those that are the members' disagreement, so need an ensemble (K >= 2).
 DISAGREEMENT_SIGNALS = frozenset({"angular_rate_spread", "vote_entropy"})
+# The control for a gate's study: the gate reads a seeded uniform draw in [0, 1) each control
+# step in place of the policy's uncertainty, so it hands over by chance, not by what the policy knows.
+RANDOM_SIGNAL = "random"
+# What a shared-control gate may read (`SharedControlConfig.signal`): the policy's uncertainty
+# signals, or the draw.
+GATE_SIGNALS = (*UNCERTAINTY_SIGNALS, RANDOM_SIGNAL)
 
 
 def uncertainty_signal(name: str) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:

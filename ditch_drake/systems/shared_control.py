@@ -10,7 +10,7 @@ from pydrake.systems.framework import DiscreteValues, LeafSystem
 from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, budget_thresholds, calibration_values, gate_step
-from ditch_drake.learning.uncertainty import UNCERTAINTY_SIGNALS
+from ditch_drake.learning.uncertainty import GATE_SIGNALS, RANDOM_SIGNAL
 from ditch_drake.spec import robot
 from ditch_drake.spec.observation_layout import STACK_DEPTH
 from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S
@@ -20,11 +20,6 @@ from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S
 FALLBACKS = ("expert", "mppi", "teleop")
 # After the controllers have computed this control step's commands, before the recorder reads it.
 GATE_OFFSET_S = (CONTROLLER_OFFSET_S + RECORDER_OFFSET_S) / 2
-# The control for a gate's study: the gate reads a seeded uniform draw in [0, 1) each control
-# step in place of the policy's uncertainty, so it hands over by chance, not by what the policy knows.
-RANDOM_SIGNAL = "random"
-# What `SharedControlConfig.signal` may name: the policy's uncertainty signals, or the draw.
-GATE_SIGNALS = (*UNCERTAINTY_SIGNALS, RANDOM_SIGNAL)
 
 
 @dataclass
