@@ -7,8 +7,8 @@ side", "oracle side": `RolloutRecord.crossing_side_source`), what the controller
 reads beyond its sensors, pose and goal ("privileged: analytic terrain":
 `RolloutRecord.privileged`), an MPPI's nose-up threshold where set ("climb margin 11 deg")
 and, for a gated policy, its gate's signal, budget and fallback, e.g. "expert (privileged:
-analytic terrain)", "generalist (oracle side; privileged: analytic terrain)" or "crater_40_k5 (gate random, budget 0.05, fallback mppi)". Records that differ in any are
-different rows.
+analytic terrain)", "generalist (oracle side; privileged: analytic terrain)" or "crater_40_k5
+(gate random, budget 0.05, fallback mppi)". Records that differ in any are different rows.
 """
 
 import itertools
