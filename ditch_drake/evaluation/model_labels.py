@@ -71,10 +71,10 @@ def record_marks(record: RolloutRecord) -> list[str]:
     """What a record's row is marked with: the window search, an MPPI's climb threshold, its
     shared-control gate, its crossing side's source, its privileged inputs."""
     marks = ["window search"] if searches(record) else []
-    if climb_words(record):
-        marks.append(climb_words(record))
-    if gate_words(record):
-        marks.append(gate_words(record))
+    if climb := climb_words(record):
+        marks.append(climb)
+    if gate := gate_words(record):
+        marks.append(gate)
     if record.crossing_side_source:
         marks.append(f"{record.crossing_side_source} side")
     if record.privileged:

@@ -156,7 +156,7 @@ class MppiPlannerConfig:
         """Raises ConfigError naming the first key out of range."""
         for f in fields(self):
             value = getattr(self, f.name)
-            if f.name == "climb_fore_aft_margin_threshold_deg" and value is None:
+            if value is None and f.default is None:  # An optional key left unset.
                 continue
             if f.name not in ("seed", "samples", "hold_samples", "contour_samples", "fallback", "turn_lean") and not (isinstance(value, (int, float)) and math.isfinite(value)):
                 raise ConfigError(f"mppi {f.name}={value!r}: expected a finite number")
