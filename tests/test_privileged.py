@@ -244,3 +244,13 @@ def test_an_mppi_with_a_climb_threshold_is_its_own_marked_row():
         "planner: {fore_aft_margin_threshold_deg: 16.0, climb_fore_aft_margin_threshold_deg: 11.0}\nsearch: {}\n"))
     label = controller_labels([searching, climbing])
     assert (label(searching), label(climbing)) == ("mppi (window search)", "mppi (window search; climb margin 11 deg)")
+
+
+def test_a_search_that_holds_its_way_is_its_own_marked_row():
+    holding = _record(controller="mppi", controller_sha256="h", controller_config=(
+        "planner: {climb_fore_aft_margin_threshold_deg: 11.0}\nsearch: {edge_standoff_m: 0.8, hold_way_m: 0.5}\n"))
+    keeping_off = _record(controller="mppi", controller_sha256="k", controller_config=(
+        "search: {hold_way_m: 0.5, keep_off_seen_drops: true}\n"))
+    label = controller_labels([holding, keeping_off])
+    assert label(holding) == "mppi (window search, way held 0.5 m; climb margin 11 deg)"
+    assert label(keeping_off) == "mppi (window search, way held 0.5 m, off seen drops)"

@@ -97,6 +97,16 @@ def test_a_crossing_travels_the_way_the_window_has_room_for():
     assert windows.crossing_direction(window, 12.0, 1.0, 3.5) == -1.0  # Past its end: back into it.
     assert windows.crossing_direction(window, -3.0, 1.0, 3.5) == 1.0  # Short of it: on into it.
     assert windows.crossing_direction((0.0, 2.0), 0.5, 1.0, 3.5) == 1.0  # Short both ways: the roomier.
+    assert windows.crossing_direction((0.0, 2.0), 1.5, 1.0, 3.5) == -1.0  # ... chosen anew past the middle.
+
+
+def test_a_crossing_under_way_keeps_its_way_to_the_windows_end():
+    window = (0.0, 10.0)
+    assert windows.crossing_direction(window, 8.0, 1.0, 3.5, under_way=True, turn_m=0.5) == 1.0
+    assert windows.crossing_direction(window, 9.7, 1.0, 3.5, under_way=True, turn_m=0.5) == -1.0
+    assert windows.crossing_direction(window, 12.0, 1.0, 3.5, under_way=True, turn_m=0.5) == -1.0
+    assert windows.crossing_direction((0.0, 2.0), 1.5, 1.0, 3.5, under_way=True, turn_m=0.5) == 1.0
+    assert windows.crossing_direction((0.0, 2.0), 0.4, -1.0, 3.5, under_way=True, turn_m=0.5) == 1.0
 
 
 @pytest.mark.parametrize("x, slope_deg", [(-15.0, 50.0), (15.0, 70.0)])
@@ -215,7 +225,68 @@ def test_window_search_turns_back_twice_as_far_out_each_time():
     assert [x for x, _ in turns[1:]] == [-8.0, 16.0, -32.0]
 
 
+@pytest.mark.parametrize("hold_way_m, turned_at_x", [(None, -7.0), (0.5, -12.0)])
+def test_window_search_on_the_top_turns_back_at_the_windows_end_only_when_holding_its_way(hold_way_m, turned_at_x):
+    """Committed to the window from x -12 to -2 m and driving along the top toward -x: chosen
+    anew, the way turns back at x -7, where the window leaves less than the descent's lead and
+    margin (5.5 m) ahead and more behind; held, only past the window's usable end."""
+    block = _search_block(WindowSearchConfig(hold_way_m=hold_way_m))
+    grid = ElevationGrid()
+    context = block.CreateDefaultContext()
+    simulator = Simulator(block, context)
+    ways = []
+    for x in [-2.0, *np.arange(-3.0, -13.0, -1.0)]:
+        origin, heights = _map_of_a_ditch((-12.0, -2.0), robot_xy=(x, -4.0), size_m=12.0)
+        yaw = math.pi / 2 if x == -2.0 else math.pi
+        block.GetInputPort("body_poses").FixValue(context, [RigidTransform(RollPitchYaw(0, 0, yaw), [x, -4.0, 0.3])])
+        block.GetInputPort("elevation_map").FixValue(context, grid.pack(origin, heights))
+        simulator.AdvanceTo(context.get_time() + 0.1)
+        if x != -2.0:
+            assert block.GetOutputPort("phase").Eval(context)[0] == SearchPhase.GOING_IN
+            ways.append((x, math.copysign(1.0, block.GetOutputPort("target_xy").Eval(context)[0] - x)))
+    first_turn = next(x for x, way in ways if way > 0)
+    assert first_turn == turned_at_x
+    assert all(way < 0 for x, way in ways if x > turned_at_x)
+
+
+# Where a window's wall has fallen 0.3 m below the top (`nearest_drop`'s least drop), across from the edge line.
+WINDOW_DROP_C_M = -WINDOW_SET_BACK_M + 0.3 / math.tan(math.radians(WINDOW_DEG))
+
+
+@pytest.mark.parametrize("keep_off_seen_drops, target_y", [(False, STEEP_HINGE_Y - 0.8),
+                                                            (True, STEEP_HINGE_Y + WINDOW_DROP_C_M - 0.8)])
+def test_window_search_keeps_off_a_set_back_hinge_it_sees_only_when_asked(keep_off_seen_drops, target_y):
+    """A gentle section too short to cross (1 m) has its hinge set back 1.5 m from the edge
+    line, where the search's target along the top lies 3 m ahead: kept off the drops seen, the
+    target stays the standoff short of where that wall is seen to fall, not of the line."""
+    block = _search_block(WindowSearchConfig(keep_off_seen_drops=keep_off_seen_drops))
+    grid = ElevationGrid()
+    context = block.CreateDefaultContext()
+    origin, heights = _map_of_a_ditch((-3.5, -2.5), size_m=12.0)
+    block.GetInputPort("body_poses").FixValue(context, [RigidTransform(RollPitchYaw(0, 0, math.pi / 2),
+                                                                       [0.0, -4.0, 0.3])])
+    block.GetInputPort("elevation_map").FixValue(context, grid.pack(origin, heights))
+    Simulator(block, context).AdvanceTo(0.15)
+    assert block.GetOutputPort("phase").Eval(context)[0] == SearchPhase.SEARCH_IN
+    target = block.GetOutputPort("target_xy").Eval(context)
+    assert target[0] == pytest.approx(-3.0, abs=0.2)
+    assert target[1] == pytest.approx(target_y, abs=0.2)
+
+
+def test_the_nearest_drop_is_the_set_back_hinge_where_one_is_seen():
+    origin, heights = _map_of_a_ditch((-6.0, -3.0), size_m=12.0)
+    frame = windows.EdgeFrame(np.array([0.0, STEEP_HINGE_Y]), np.array([-1.0, 0.0]), np.array([0.0, 1.0]))
+    beside = windows.nearest_drop(heights, origin, RESOLUTION_M, frame, (4.0, 5.0), (-3.0, 3.0), 0.0)
+    assert beside == pytest.approx(WINDOW_DROP_C_M, abs=0.15)
+    assert math.isnan(windows.nearest_drop(heights, origin, RESOLUTION_M, frame, (0.0, 1.0), (-3.0, 3.0), 0.0))
+
+
 def test_window_search_config_rejects_bad_values():
+    with pytest.raises(ConfigError, match="keep_off_seen_drops"):
+        WindowSearchConfig(keep_off_seen_drops="yes").validate()
+    with pytest.raises(ConfigError, match="hold_way_m"):
+        WindowSearchConfig(hold_way_m=0.0).validate()
+    WindowSearchConfig(hold_way_m=None).validate()
     with pytest.raises(ConfigError, match="crossable_slope_deg"):
         WindowSearchConfig(crossable_slope_deg=95.0).validate()
     with pytest.raises(ConfigError, match="min_window_m"):

@@ -5,7 +5,8 @@ Every results table names its rows by `controller_labels`, which marks a row in 
 label, then in brackets where a side-conditioned clone was told its crossing side ("perceived
 side", "oracle side": `RolloutRecord.crossing_side_source`), what the controller declared it
 reads beyond its sensors, pose and goal ("privileged: analytic terrain":
-`RolloutRecord.privileged`), an MPPI's nose-up threshold where set ("climb margin 11 deg")
+`RolloutRecord.privileged`), a window search ("window search", "window search, way held 0.5 m, off seen drops"),
+an MPPI's nose-up threshold where set ("climb margin 11 deg")
 and, for a gated policy, its gate's signal, budget and fallback, e.g. "expert (privileged:
 analytic terrain)", "generalist (oracle side; privileged: analytic terrain)" or "crater_40_k5
 (gate random, budget 0.05, fallback mppi)". Records that differ in any are different rows.
@@ -39,6 +40,22 @@ def searches(record: RolloutRecord) -> bool:
     return any(line.startswith("search:") for line in (record.controller_config or "").splitlines())
 
 
+def search_words(record: RolloutRecord) -> str:
+    """A searching record's mark: "window search", with ", way held 0.5 m" where its search held
+    a crossing's way along (`WindowSearchConfig.hold_way_m`) and ", off seen drops" where it kept
+    off the drops it saw (`keep_off_seen_drops`; both written only when set); "" for a record
+    that did not search."""
+    if not searches(record):
+        return ""
+    config = record.controller_config or ""
+    words = "window search"
+    if found := re.search(r"hold_way_m: ([-+.0-9eE]+)", config):
+        words += f", way held {float(found.group(1)):g} m"
+    if re.search(r"keep_off_seen_drops: true", config):
+        words += ", off seen drops"
+    return words
+
+
 def climb_words(record: RolloutRecord) -> str:
     """An MPPI record's nose-up fore-aft threshold where one was set, e.g. "climb margin 11 deg"
     (`MppiPlannerConfig.climb_fore_aft_margin_threshold_deg`, written only when set); "" otherwise."""
@@ -70,7 +87,7 @@ def gate_words(record: RolloutRecord) -> str:
 def record_marks(record: RolloutRecord) -> list[str]:
     """What a record's row is marked with: the window search, an MPPI's climb threshold, its
     shared-control gate, its crossing side's source, its privileged inputs."""
-    marks = ["window search"] if searches(record) else []
+    marks = [words] if (words := search_words(record)) else []
     if climb := climb_words(record):
         marks.append(climb)
     if gate := gate_words(record):

@@ -199,6 +199,18 @@ def nearest_rise(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: E
     return float(c[rise].min()) if rise.any() else math.nan
 
 
+def nearest_drop(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: EdgeFrame, s_range_m: tuple[float, float],
+                 across_band_m: tuple[float, float], top_z_m: float, drop_m: float = 0.3) -> float:
+    """The least across c (m) of a known cell within `s_range_m` along and `across_band_m` lower
+    than `top_z_m` by more than `drop_m`: where the top is seen to fall away there (a window's
+    hinge, set back from the steep wall's edge line), NaN if none."""
+    xs, ys = cell_centres(heights, origin_xy_m, resolution_m)
+    s, c = frame.coordinates(np.stack([xs, ys], axis=-1))
+    drop = np.isfinite(heights) & (top_z_m - np.nan_to_num(heights, nan=np.inf) > drop_m)
+    drop &= (s >= min(s_range_m)) & (s <= max(s_range_m)) & (c >= across_band_m[0]) & (c <= across_band_m[1])
+    return float(c[drop].min()) if drop.any() else math.nan
+
+
 def patch(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: EdgeFrame, s_range_m: tuple[float, float],
           c_range_m: tuple[float, float]) -> tuple[float, np.ndarray]:
     """(the fraction of cells known, their heights (m)) within along `s_range_m` and across
@@ -231,12 +243,17 @@ def floor_ended(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: Ed
     return int(np.sum(h - floor_z_m > rise_m)) >= min_cells
 
 
-def crossing_direction(window: tuple[float, float], s_m: float, direction: float, needed_m: float) -> float:
+def crossing_direction(window: tuple[float, float], s_m: float, direction: float, needed_m: float,
+                       under_way: bool = False, turn_m: float = 0.0) -> float:
     """Which way along (+-1) a crossing through `window` should travel from `s_m`: on
     `direction` while the window leaves `needed_m` ahead, else the way with more of it (back
-    into it, where the robot has passed its end)."""
+    into it, where the robot has passed its end). `under_way` (the way already chosen on this
+    level): kept while the window leaves `turn_m` ahead. Choosing anew by `needed_m` at every
+    update turned the robot about wherever a window left less than `needed_m` ahead: in the
+    middle of one shorter than twice `needed_m`, a few metres short of the end of a longer one,
+    and each turn cost the time the next one was taken in."""
     ahead = window[1] - s_m if direction > 0 else s_m - window[0]
-    if ahead >= needed_m:
+    if ahead >= (turn_m if under_way else needed_m):
         return direction
     behind = s_m - window[0] if direction > 0 else window[1] - s_m
     return -direction if behind > ahead else direction

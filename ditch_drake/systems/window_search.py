@@ -2,13 +2,15 @@
 
 import enum
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.common.value import Value
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.planning import crossing_windows as windows
 from ditch_drake.planning.elevation_map import ElevationGrid
@@ -64,6 +66,16 @@ class WindowSearchConfig:
         out_rise_m: out once within this of the top's height beyond the far wall's foot.
         near_band_m: the near wall is read within this each side of the edge line (a gentle
             wall's hinge lies set back from a steep one's).
+        keep_off_seen_drops: the targets along the top keep `edge_standoff_m` short of the
+            nearest drop seen near them too, not only of the edge line: a gentle window's hinge
+            lies set back from the steep wall's edge, by up to a few metres, and the robot
+            following the edge line at the standoff drove onto the window's wall sideways
+            where it came to one (off by default, as measured before).
+        hold_way_m: where set, a crossing's way along, once chosen on a level, is held until the
+            window leaves less than this ahead (then back into it). Unset, it is chosen anew at
+            every update, turning back wherever the window leaves less than the lead and the
+            margin ahead: a robot that had not yet climbed there turned about every few metres
+            along a window and used up its time on the floor.
     """
 
     crossable_slope_deg: float = 58.0
@@ -88,10 +100,18 @@ class WindowSearchConfig:
     exit_across_m: float = 6.0
     out_rise_m: float = 0.5
     near_band_m: float = 3.0
+    keep_off_seen_drops: bool = field(default=False, metadata=WRITTEN_WHEN_SET)
+    hold_way_m: float | None = field(default=None, metadata=WRITTEN_WHEN_SET)
 
     def validate(self) -> None:
         """Raises ConfigError naming the first key out of range."""
         for name, value in vars(self).items():
+            if value is None and name == "hold_way_m":  # Left unset.
+                continue
+            if name == "keep_off_seen_drops":
+                if not isinstance(value, bool):
+                    raise ConfigError(f"window search {name}={value!r}: expected true or false")
+                continue
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
                 raise ConfigError(f"window search {name}={value!r}: expected a positive number")
         if not self.crossable_slope_deg < 90:
@@ -100,8 +120,8 @@ class WindowSearchConfig:
 
 # Layout of the bookkeeping state.
 (_PHASE, _DIRECTION, _FRAME_X, _FRAME_Y, _FRAME_ANGLE, _TOP_Z, _FLOOR_Z, _ORIGIN, _DONE_SIDES, _BEST, _STALL,
- _WINDOW_FROM, _WINDOW_TO, _FAR_FOOT, _REACH) = range(15)
-_STATE_SIZE = 15
+ _WINDOW_FROM, _WINDOW_TO, _FAR_FOOT, _REACH, _UNDER_WAY) = range(16)
+_STATE_SIZE = 16
 
 
 class WindowSearch(LeafSystem):
@@ -154,7 +174,7 @@ class WindowSearch(LeafSystem):
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         self._target_index = self.DeclareDiscreteState(self._goal_xy.copy())
         state = np.full(_STATE_SIZE, np.nan)
-        state[[_PHASE, _DIRECTION, _DONE_SIDES, _STALL]] = [SearchPhase.APPROACH, 1.0, 0.0, 0.0]
+        state[[_PHASE, _DIRECTION, _DONE_SIDES, _STALL, _UNDER_WAY]] = [SearchPhase.APPROACH, 1.0, 0.0, 0.0, 0.0]
         self._state_index = self.DeclareDiscreteState(state)
         self._near_index = self.DeclareDiscreteState(np.full(bins, np.nan))
         self._far_index = self.DeclareDiscreteState(np.full(bins, np.nan))
@@ -210,13 +230,21 @@ class WindowSearch(LeafSystem):
             near = np.where(np.isfinite(seen), seen, near)
             ended = windows.edge_ended(*bin_args[:4], self._ahead(state, s_robot), (0.5, c.near_band_m), state[_TOP_Z])
             searching, window = self._search_step(near, state, s_robot, phase == SearchPhase.SEARCH_IN, ended)
+            def top_across(s_target: float) -> float:
+                if not c.keep_off_seen_drops:
+                    return -c.edge_standoff_m
+                drop = windows.nearest_drop(*bin_args[:4], (s_robot, s_target + math.copysign(1.0, s_target - s_robot)),
+                                            (-c.near_band_m, c.near_band_m), state[_TOP_Z])
+                return min(0.0, drop if np.isfinite(drop) else 0.0) - c.edge_standoff_m
+
             if searching:
-                target = frame.point(s_robot + state[_DIRECTION] * c.lookahead_m, -c.edge_standoff_m)
+                s_target = s_robot + state[_DIRECTION] * c.lookahead_m
+                target = frame.point(s_target, top_across(s_target))
             else:
                 phase = SearchPhase.GOING_IN
                 on_top = ground_z > state[_TOP_Z] - c.out_rise_m
                 target = self._goal_xy if window is None else self._crossing_target(
-                    frame, window, state, s_robot, yaw, c.descent_lead_m, c.entry_across_m, on_top, -c.edge_standoff_m)
+                    frame, window, state, s_robot, yaw, c.descent_lead_m, c.entry_across_m, on_top, top_across)
                 on_floor = ground_z < state[_TOP_Z] - c.floor_drop_m and tilt_deg < c.floor_tilt_deg
                 if on_floor:
                     state[_FLOOR_Z] = ground_z
@@ -243,7 +271,7 @@ class WindowSearch(LeafSystem):
                 on_floor = ground_z < state[_FLOOR_Z] + c.out_rise_m
                 target = self._goal_xy if window is None else self._crossing_target(
                     frame, window, state, s_robot, yaw, c.ascent_lead_m, state[_FAR_FOOT] + c.exit_across_m, on_floor,
-                    across)
+                    lambda _: across)
                 if ground_z > state[_TOP_Z] - c.out_rise_m and c_robot > state[_FAR_FOOT]:
                     phase = SearchPhase.OUT
         if phase == SearchPhase.OUT:
@@ -256,19 +284,23 @@ class WindowSearch(LeafSystem):
 
     def _crossing_target(self, frame: windows.EdgeFrame, window: tuple[float, float], state: np.ndarray,
                          s_robot: float, yaw: float, lead_m: float, across_m: float, on_level: bool,
-                         level_across_m: float) -> np.ndarray:
+                         level_across: Callable[[float], float]) -> np.ndarray:
         """The target of a crossing through `window`: `across_m` across, `lead_m` ahead along on
         the way with room for it in the window (decided while `on_level`: turned back into the
         window where the robot has passed its end). While the robot on the level heads off that
-        way by more than 60 deg, the target lies along the level (`level_across_m` across)
+        way by more than 60 deg, the target lies along the level (`level_across(s)` across at its s)
         ahead that way instead: the MPPI climbs or descends toward a target ahead of it, but
         drives away from one behind it up a wall beside it."""
         c = self._config
         if on_level:
-            state[_DIRECTION] = windows.crossing_direction(window, s_robot, state[_DIRECTION], lead_m + c.window_margin_m)
+            held = c.hold_way_m is not None and bool(state[_UNDER_WAY])
+            state[_DIRECTION] = windows.crossing_direction(window, s_robot, state[_DIRECTION], lead_m + c.window_margin_m,
+                                                           under_way=held, turn_m=c.hold_way_m or 0.0)
+            state[_UNDER_WAY] = 1.0
             heading_along = frame.along @ np.array([math.cos(yaw), math.sin(yaw)])
             if state[_DIRECTION] * heading_along < 0.5:
-                return frame.point(s_robot + state[_DIRECTION] * c.lookahead_m, level_across_m)
+                s_target = s_robot + state[_DIRECTION] * c.lookahead_m
+                return frame.point(s_target, level_across(s_target))
         return frame.point(windows.along_target(window, s_robot, state[_DIRECTION], lead_m, c.window_margin_m),
                            across_m)
 
@@ -307,7 +339,7 @@ class WindowSearch(LeafSystem):
         the goal lies square across), as far as the goal's along and `first_leg_m` beyond: a way
         short of the goal's along costs no detour."""
         state[_DIRECTION] = 1.0 if abs(s_goal - s_robot) <= 1.0 else math.copysign(1.0, s_goal - s_robot)
-        state[_ORIGIN], state[_DONE_SIDES] = s_robot, 0.0
+        state[_ORIGIN], state[_DONE_SIDES], state[_UNDER_WAY] = s_robot, 0.0, 0.0
         state[_REACH] = self._config.first_leg_m + abs(s_goal - s_robot)
         self._start_leg(state, s_robot)
 
