@@ -192,11 +192,8 @@ def nearest_rise(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: E
                  across_band_m: tuple[float, float], min_rise_m: float = 0.3) -> float:
     """The least across c (m) of a known cell within `across_band_m` rising more than `min_rise_m`
     above `reference_z_m` (the far wall's foot seen from the floor), NaN if none."""
-    xs, ys = cell_centres(heights, origin_xy_m, resolution_m)
-    _, c = frame.coordinates(np.stack([xs, ys], axis=-1))
     rise = np.isfinite(heights) & (np.nan_to_num(heights, nan=-np.inf) - reference_z_m > min_rise_m)
-    rise &= (c >= across_band_m[0]) & (c <= across_band_m[1])
-    return float(c[rise].min()) if rise.any() else math.nan
+    return _least_across(rise, origin_xy_m, resolution_m, frame, across_band_m)
 
 
 def nearest_drop(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: EdgeFrame, s_range_m: tuple[float, float],
@@ -204,11 +201,20 @@ def nearest_drop(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: E
     """The least across c (m) of a known cell within `s_range_m` along and `across_band_m` lower
     than `top_z_m` by more than `drop_m`: where the top is seen to fall away there (a window's
     hinge, set back from the steep wall's edge line), NaN if none."""
-    xs, ys = cell_centres(heights, origin_xy_m, resolution_m)
-    s, c = frame.coordinates(np.stack([xs, ys], axis=-1))
     drop = np.isfinite(heights) & (top_z_m - np.nan_to_num(heights, nan=np.inf) > drop_m)
-    drop &= (s >= min(s_range_m)) & (s <= max(s_range_m)) & (c >= across_band_m[0]) & (c <= across_band_m[1])
-    return float(c[drop].min()) if drop.any() else math.nan
+    return _least_across(drop, origin_xy_m, resolution_m, frame, across_band_m, s_range_m)
+
+
+def _least_across(cells: np.ndarray, origin_xy_m, resolution_m: float, frame: EdgeFrame,
+                  across_band_m: tuple[float, float], s_range_m: tuple[float, float] | None = None) -> float:
+    """The least across c (m) of the map cells `cells` (a mask) within `across_band_m` and, where
+    given, `s_range_m` along; NaN if none."""
+    xs, ys = cell_centres(cells, origin_xy_m, resolution_m)
+    s, c = frame.coordinates(np.stack([xs, ys], axis=-1))
+    cells = cells & (c >= across_band_m[0]) & (c <= across_band_m[1])
+    if s_range_m is not None:
+        cells &= (s >= min(s_range_m)) & (s <= max(s_range_m))
+    return float(c[cells].min()) if cells.any() else math.nan
 
 
 def patch(heights: np.ndarray, origin_xy_m, resolution_m: float, frame: EdgeFrame, s_range_m: tuple[float, float],

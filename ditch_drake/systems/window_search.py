@@ -1,6 +1,7 @@
 """Searching a ditch's edge for a way in, and its floor for a way out, in the elevation map."""
 
 import enum
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -230,13 +231,7 @@ class WindowSearch(LeafSystem):
             near = np.where(np.isfinite(seen), seen, near)
             ended = windows.edge_ended(*bin_args[:4], self._ahead(state, s_robot), (0.5, c.near_band_m), state[_TOP_Z])
             searching, window = self._search_step(near, state, s_robot, phase == SearchPhase.SEARCH_IN, ended)
-            def top_across(s_target: float) -> float:
-                if not c.keep_off_seen_drops:
-                    return -c.edge_standoff_m
-                drop = windows.nearest_drop(*bin_args[:4], (s_robot, s_target + math.copysign(1.0, s_target - s_robot)),
-                                            (-c.near_band_m, c.near_band_m), state[_TOP_Z])
-                return min(0.0, drop if np.isfinite(drop) else 0.0) - c.edge_standoff_m
-
+            top_across = functools.partial(self._top_across, bin_args[:4], state[_TOP_Z], s_robot)
             if searching:
                 s_target = s_robot + state[_DIRECTION] * c.lookahead_m
                 target = frame.point(s_target, top_across(s_target))
@@ -281,6 +276,17 @@ class WindowSearch(LeafSystem):
         discrete_state.set_value(self._state_index, state)
         discrete_state.set_value(self._near_index, near)
         discrete_state.set_value(self._far_index, far)
+
+    def _top_across(self, map_args: tuple, top_z_m: float, s_robot: float, s_target: float) -> float:
+        """Across (m) of a target along the top at `s_target`: `edge_standoff_m` short of the
+        edge line and, with `keep_off_seen_drops`, of the nearest drop seen from the robot to 1 m
+        past the target. `map_args`: (heights, origin, resolution, frame)."""
+        c = self._config
+        if not c.keep_off_seen_drops:
+            return -c.edge_standoff_m
+        drop = windows.nearest_drop(*map_args, (s_robot, s_target + math.copysign(1.0, s_target - s_robot)),
+                                    (-c.near_band_m, c.near_band_m), top_z_m)
+        return min(0.0, drop if np.isfinite(drop) else 0.0) - c.edge_standoff_m
 
     def _crossing_target(self, frame: windows.EdgeFrame, window: tuple[float, float], state: np.ndarray,
                          s_robot: float, yaw: float, lead_m: float, across_m: float, on_level: bool,
