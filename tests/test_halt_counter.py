@@ -140,7 +140,7 @@ def test_summaries_and_the_table_sum_halts_over_the_records_that_count_them():
     assert summary.halts_by_region == halts(up_wall=3, floor=1) and summary.halts_counted == 2
     assert summarize([_record()]).halts_by_region == {}
     lines, _ = study_table(counted)
-    assert lines[0].split(" | ")[-2] == "halts (region)" and "| floor 1, up_wall 3 |" in lines[2]
+    assert lines[0].split(" | ")[-4] == "halts (region)" and "| floor 1, up_wall 3 |" in lines[2]
     assert "| - |" in study_table([_record()])[0][2]
 
 
@@ -158,3 +158,11 @@ def test_a_rollout_record_counts_the_halts_of_its_episode_afresh_each_time(stand
         assert record.status == "timeout" and record.halts_by_region == halts(approach=1)
     assert rollout_worker.error_record(standing_still_spec, "boom").halts_by_region == {}
     assert np.isnan(rollout_worker.error_record(standing_still_spec, "boom").time_s)
+
+
+def test_the_study_table_gives_the_median_time_and_path_length_of_the_successes_only():
+    crossed = [_record(status="reached_goal", success=True, failure_region="", time_s=t, path_length_m=p, seed=s)
+               for s, (t, p) in enumerate([(40.0, 20.0), (50.0, 30.0), (90.0, 70.0)])]
+    lines, _ = study_table([*crossed, _record(seed=9, time_s=120.0, path_length_m=5.0)])
+    assert lines[0].endswith("| errors | time (s) | path (m) |") and lines[2].endswith("| 0 | 50 | 30 |")
+    assert study_table([_record()])[0][2].endswith("| - | - |")

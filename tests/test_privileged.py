@@ -254,3 +254,16 @@ def test_a_search_that_holds_its_way_is_its_own_marked_row():
     label = controller_labels([holding, keeping_off])
     assert label(holding) == "mppi (window search, way held 0.5 m; climb margin 11 deg)"
     assert label(keeping_off) == "mppi (window search, way held 0.5 m, off seen drops)"
+
+
+def test_the_benchmark_page_gives_time_and_path_length_paired_with_the_most_successful_controller(tmp_path):
+    expert = [_record(environment="wide", task=task, time_s=30.0 + task, path_length_m=10.0) for task in range(3)]
+    mppi = [_record(controller="mppi", controller_config="planner: {}\n", controller_sha256="m", environment="wide",
+                    task=task, time_s=60.0 + 2 * task, path_length_m=15.0, success=task < 2,
+                    status="reached_goal" if task < 2 else "rolled_over") for task in range(3)]
+    results = tmp_path / "paper.jsonl"
+    results.write_text("".join(record.to_json() + "\n" for record in expert + mppi))
+    text = write_benchmark_report([results], tmp_path / "page.md").read_text()
+    assert "| expert | paper | 3 | 31 (30-32) | 10 (10-10) | - | - | - | - |" in text
+    # mppi crossed tasks 0 and 1: 60/30 and 62/31 s, 15/10 m.
+    assert "| mppi | paper | 2 | 61 (60-62) | 15 (15-15) | expert | 2 | 2.00 | 1.50 |" in text

@@ -2,6 +2,7 @@
 
 From benchmark results files (and the ditches file beside each, `splits.ditches_file`):
 - success per controller and split, with 95 % Wilson intervals, and in each of the paper's ditches;
+- time and path length of the successes, and paired with the split's most successful controller;
 - success against each ditch's slope, bottom width, depth and course curvature, and each task's
   turn from square across (a figure and its tables: per controller, the rate in bins of each,
   pooled over the generated splits);
@@ -132,6 +133,49 @@ def _success_table(groups: dict[tuple[str, str], list[RolloutRecord]], controlle
                          + (f", {summary.errors} errors" if summary.errors else ""))
         lines.append(f"| {controller} | " + " | ".join(cells) + " |")
     return lines
+
+
+def _quartiles(values: list[float]) -> str:
+    q1, median, q3 = np.percentile(values, [25, 50, 75])
+    return f"{median:.0f} ({q1:.0f}-{q3:.0f})"
+
+
+def _time_and_path_lines(groups: dict[tuple[str, str], list[RolloutRecord]], controllers: list[str]) -> list[str]:
+    """Time and path length of the successful rollouts per controller and split, and beside the
+    split's most successful controller on the rollouts (environment, task, seed) both crossed.
+
+    Each controller crosses different ditches, and the hard ones take longer, so only the paired
+    columns compare like with like.
+    """
+    lines = ["## Time and path length", "",
+             "Of the successful rollouts: median (interquartile range). \"paired\": the median over the rollouts "
+             "(same ditch, task and seed) that both this controller and the split's most successful one crossed, "
+             "of this one's time and path length divided by that one's.", "",
+             "| controller | split | successes | time (s) | path (m) | paired with | paired rollouts "
+             "| time ratio | path ratio |", "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    splits = [split for split in SPLITS if any(key[1] == split for key in groups)]
+    for split in splits:
+        crossed = {controller: {(r.environment, r.task, r.seed): r for r in groups.get((controller, split), [])
+                                if r.success} for controller in controllers}
+        reference = max(controllers, key=lambda controller: len(crossed[controller]))
+        for controller in controllers:
+            mine = crossed[controller]
+            if not mine:
+                if groups.get((controller, split)):
+                    lines.append(f"| {controller} | {split} | 0 | - | - | - | - | - | - |")
+                continue
+            cells = [str(len(mine)), _quartiles([r.time_s for r in mine.values()]),
+                     _quartiles([r.path_length_m for r in mine.values()])]
+            both = sorted(mine.keys() & crossed[reference].keys())
+            if controller == reference or not both:
+                cells += ["-", "-", "-", "-"]
+            else:
+                ratios = np.array([(mine[k].time_s / crossed[reference][k].time_s,
+                                    mine[k].path_length_m / crossed[reference][k].path_length_m) for k in both])
+                time_ratio, path_ratio = np.median(ratios, axis=0)
+                cells += [reference, str(len(both)), f"{time_ratio:.2f}", f"{path_ratio:.2f}"]
+            lines.append(f"| {controller} | {split} | " + " | ".join(cells) + " |")
+    return lines + [""]
 
 
 def _binned(records: list[RolloutRecord], features: dict[tuple, dict], name_of: Callable[[RolloutRecord], str],
@@ -276,6 +320,7 @@ def write_benchmark_report(results: list[str | os.PathLike], out: str | os.PathL
     if any_marked(records):
         lines += [marks_note(records), ""]
     lines += _success_table(groups, controllers) + [""]
+    lines += _time_and_path_lines(groups, controllers)
     lines += _side_agreement_lines(records, environments, name_of)
     by_kind: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
     for record in generated:

@@ -117,23 +117,28 @@ def load_report_data(results: list[str | os.PathLike]) -> ReportData:
 
 def study_table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str, str], GroupSummary]]:
     """A study's Markdown table (one row per model and environment: successes, Wilson interval,
-    failures by status and region, halts by region, errors) and the summaries behind it."""
+    failures by status and region, halts by region, errors, the successes' median time and path
+    length) and the summaries behind it."""
     groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
     name_of = controller_labels(records)
     for record in records:
         groups[(name_of(record), record.environment)].append(record)
     summaries = {key: summarize(group) for key, group in sorted(groups.items())}
     lines = [("| model | environment | success | rate | 95 % Wilson | of which around the ditch | "
-              "failures (status@region) | halts (region) | errors |"),
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+              "failures (status@region) | halts (region) | errors | time (s) | path (m) |"),
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for (model, env), s in summaries.items():
         failures = ", ".join(f"{k} {v}" for k, v in sorted(s.failure_regions.items())) or "-"
         # The regions a crossing meets, in order; "-": records from before halts were counted.
         halts = ", ".join(f"{k} {v}" for k, v in s.halts_by_region.items() if v) or ("0" if s.halts_counted else "-")
         if 0 < s.halts_counted < s.trials:
             halts += f" (in {s.halts_counted} of {s.trials} trials)"
+        crossed = [r for r in groups[(model, env)] if r.success]
+        time_and_path = (f"{statistics.median(r.time_s for r in crossed):.0f} | "
+                         f"{statistics.median(r.path_length_m for r in crossed):.0f}" if crossed else "- | -")
         lines.append(f"| {model} | {env} | {s.successes}/{s.trials} | {percent(s.rate)} | "
-                     f"{percent(s.low)}-{percent(s.high)} | {s.around} | {failures} | {halts} | {s.errors} |")
+                     f"{percent(s.low)}-{percent(s.high)} | {s.around} | {failures} | {halts} | {s.errors} | "
+                     f"{time_and_path} |")
     return lines, summaries
 
 
