@@ -219,3 +219,15 @@ def test_the_ray_backend_gives_the_same_records_as_the_local_pool(tmp_path):
 def test_an_unknown_backend_is_refused(tmp_path):
     with pytest.raises(ConfigError, match="'spark'"):
         evaluate(SPECS, tmp_path / "r.jsonl", backend="spark")
+
+
+def test_a_rollout_that_cannot_import_a_module_stops_the_run_naming_it(tmp_path, monkeypatch):
+    def broken_install(spec):
+        return rollout_worker.error_record(spec, "ModuleNotFoundError: No module named 'ditch_drake.models_sdf'")
+
+    monkeypatch.setattr(batch, "run_rollout", broken_install)
+    out = tmp_path / "results.jsonl"
+    with pytest.raises(ConfigError, match=r"No module named 'ditch_drake.models_sdf'.*reinstall"):
+        evaluate(SPECS, out, workers=0, progress=False)
+    [record] = read_records(out)[0]  # The first rollout's error is kept; the second never ran.
+    assert record.status == "error"

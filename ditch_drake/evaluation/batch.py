@@ -8,7 +8,8 @@ again, it skips the recorded rollouts: nothing is lost and nothing is recorded t
 A Python exception inside a rollout is recorded as status "error" with its message. A
 worker process that dies (a crash in compiled code, the out-of-memory killer) takes its
 rollouts with it: they are retried once in a fresh pool, then recorded as errors. An error
-record does not finish its rollout: the next run of the same specs runs it again.
+record does not finish its rollout: the next run of the same specs runs it again. A rollout
+that cannot import a module stops the run (ConfigError): every other would fail the same way.
 
 Ctrl-C or SIGTERM stops a run within a second or two: the workers are killed (what they
 were running is lost and runs again next time), every rollout that had ended is already in
@@ -237,6 +238,12 @@ def _evaluate_locked(specs: list[RolloutSpec], results_path: str | os.PathLike, 
         undeclared = f"{UndeclaredInputError.__name__}: "
         if record.status == "error" and record.error.startswith(undeclared):
             raise ConfigError(record.error.removeprefix(undeclared))
+        # A module a rollout cannot import fails every other rollout the same way: the installation's
+        # fault, not the rollout's; the run stops rather than fill the file with error records.
+        if record.status == "error" and record.error.startswith(("ModuleNotFoundError: ", "ImportError: ")):
+            raise ConfigError(f"a rollout could not import what it needs ({record.error}): the package's installation "
+                              "is broken; reinstall it (`pip install -e .` in its checkout) and run the same command "
+                              "again (the rollouts recorded are kept)")
 
     try:
         with terminate_as_interrupt(), RecordWriter(results_path) as writer:
