@@ -119,6 +119,19 @@ class WindowSearchConfig:
             raise ConfigError(f"window search crossable_slope_deg={self.crossable_slope_deg!r}: expected < 90")
 
 
+@dataclass(frozen=True)
+class _View:
+    """What one update sees: the chassis's planar position (m) and yaw (rad), its tilt from
+    upright (deg), the map's height under it (m, NaN unmapped), and the map as
+    (heights, origin_xy, resolution) for `crossing_windows`."""
+
+    xy: np.ndarray
+    yaw: float
+    tilt_deg: float
+    ground_z: float
+    map_args: tuple
+
+
 # Layout of the bookkeeping state.
 (_PHASE, _DIRECTION, _FRAME_X, _FRAME_Y, _FRAME_ANGLE, _TOP_Z, _FLOOR_Z, _ORIGIN, _DONE_SIDES, _BEST, _STALL,
  _WINDOW_FROM, _WINDOW_TO, _FAR_FOOT, _REACH, _UNDER_WAY) = range(16)
@@ -199,76 +212,26 @@ class WindowSearch(LeafSystem):
         output.SetFromVector([context.get_discrete_state(self._state_index).get_value()[_PHASE]])
 
     def _update(self, context, discrete_state) -> None:
-        c = self._config
         state = context.get_discrete_state(self._state_index).get_value().copy()
         near = context.get_discrete_state(self._near_index).get_value().copy()
         far = context.get_discrete_state(self._far_index).get_value().copy()
         target = context.get_discrete_state(self._target_index).get_value().copy()
         X_WB = self._poses_port.Eval(context)[self._chassis_index]
-        xy, yaw = X_WB.translation()[:2], planar_yaw(X_WB)
-        tilt_deg = math.degrees(math.acos(np.clip(X_WB.rotation().matrix()[2, 2], -1.0, 1.0)))
         origin_xy, heights = self._grid.unpack(self._map_port.Eval(context))
-        ground_z = windows.ground_height(heights, origin_xy, self._grid.resolution, xy)
-        phase = SearchPhase(int(state[_PHASE]))
-        if math.isnan(ground_z):  # No map yet.
+        xy = X_WB.translation()[:2]
+        view = _View(xy=xy, yaw=planar_yaw(X_WB),
+                     tilt_deg=math.degrees(math.acos(np.clip(X_WB.rotation().matrix()[2, 2], -1.0, 1.0))),
+                     ground_z=windows.ground_height(heights, origin_xy, self._grid.resolution, xy),
+                     map_args=(heights, origin_xy, self._grid.resolution))
+        if math.isnan(view.ground_z):  # No map yet.
             return
+        phase = SearchPhase(int(state[_PHASE]))
         if phase == SearchPhase.APPROACH:
-            target = self._goal_xy
-            frame = windows.find_edge(heights, origin_xy, self._grid.resolution, xy, yaw, ground_z)
-            if frame is not None:
-                s_robot, _ = frame.coordinates(xy)
-                s_goal, _ = frame.coordinates(self._goal_xy)
-                state[_FRAME_X:_FRAME_ANGLE + 1] = frame.to_vector()
-                state[_TOP_Z] = ground_z
-                self._start_search(state, s_robot, s_goal)
-                phase = SearchPhase.SEARCH_IN
-        if phase != SearchPhase.APPROACH:
-            frame = windows.EdgeFrame.from_vector(state[_FRAME_X:_FRAME_ANGLE + 1])
-            s_robot, c_robot = frame.coordinates(xy)
-            bin_args = (heights, origin_xy, self._grid.resolution, frame, self._bin_edges_m)
+            target, phase = self._goal_xy, self._approach(view, state)
         if phase in (SearchPhase.SEARCH_IN, SearchPhase.GOING_IN):
-            seen = windows.wall_slopes(*bin_args, state[_TOP_Z], (-c.near_band_m, c.near_band_m), rising=False)
-            near = np.where(np.isfinite(seen), seen, near)
-            ended = windows.edge_ended(*bin_args[:4], self._ahead(state, s_robot), (0.5, c.near_band_m), state[_TOP_Z])
-            searching, window = self._search_step(near, state, s_robot, phase == SearchPhase.SEARCH_IN, ended)
-            top_across = functools.partial(self._top_across, bin_args[:4], state[_TOP_Z], s_robot)
-            if searching:
-                s_target = s_robot + state[_DIRECTION] * c.lookahead_m
-                target = frame.point(s_target, top_across(s_target))
-            else:
-                phase = SearchPhase.GOING_IN
-                on_top = ground_z > state[_TOP_Z] - c.out_rise_m
-                target = self._goal_xy if window is None else self._crossing_target(
-                    frame, window, state, s_robot, yaw, c.descent_lead_m, c.entry_across_m, on_top, top_across)
-                on_floor = ground_z < state[_TOP_Z] - c.floor_drop_m and tilt_deg < c.floor_tilt_deg
-                if on_floor:
-                    state[_FLOOR_Z] = ground_z
-                    self._start_search(state, s_robot, frame.coordinates(self._goal_xy)[0])
-                    phase = SearchPhase.SEARCH_OUT
-        if phase in (SearchPhase.SEARCH_OUT, SearchPhase.GOING_OUT) and ground_z < state[_FLOOR_Z] + c.out_rise_m:
-            # Read from the floor only: from up the wall, the top beyond would pass for more wall.
-            band = (c_robot + 0.5, c_robot + c.far_band_m)
-            seen = windows.wall_slopes(*bin_args, state[_FLOOR_Z], band, rising=True)
-            far = np.where(np.isfinite(seen), seen, far)
-            foot = windows.nearest_rise(heights, origin_xy, self._grid.resolution, frame, state[_FLOOR_Z], band)
-            if np.isfinite(foot):
-                state[_FAR_FOOT] = foot
+            phase, target = self._way_in(view, state, near, searching=phase == SearchPhase.SEARCH_IN)
         if phase in (SearchPhase.SEARCH_OUT, SearchPhase.GOING_OUT):
-            ended = windows.floor_ended(*bin_args[:4], self._ahead(state, s_robot), (c_robot - 0.5, c_robot + 0.5),
-                                        state[_FLOOR_Z])
-            searching, window = self._search_step(far, state, s_robot, phase == SearchPhase.SEARCH_OUT, ended)
-            across = (state[_FAR_FOOT] - c.far_standoff_m if np.isfinite(state[_FAR_FOOT])
-                      else c_robot + c.floor_drift_m)
-            if searching:
-                target = frame.point(s_robot + state[_DIRECTION] * c.lookahead_m, across)
-            else:
-                phase = SearchPhase.GOING_OUT
-                on_floor = ground_z < state[_FLOOR_Z] + c.out_rise_m
-                target = self._goal_xy if window is None else self._crossing_target(
-                    frame, window, state, s_robot, yaw, c.ascent_lead_m, state[_FAR_FOOT] + c.exit_across_m, on_floor,
-                    lambda _: across)
-                if ground_z > state[_TOP_Z] - c.out_rise_m and c_robot > state[_FAR_FOOT]:
-                    phase = SearchPhase.OUT
+            phase, target = self._way_out(view, state, far, searching=phase == SearchPhase.SEARCH_OUT)
         if phase == SearchPhase.OUT:
             target = self._goal_xy
         state[_PHASE] = phase
@@ -276,6 +239,72 @@ class WindowSearch(LeafSystem):
         discrete_state.set_value(self._state_index, state)
         discrete_state.set_value(self._near_index, near)
         discrete_state.set_value(self._far_index, far)
+
+    def _approach(self, view: _View, state: np.ndarray) -> SearchPhase:
+        """Toward the goal until an edge is seen ahead; then the edge's frame is stored and the
+        search along it starts."""
+        frame = windows.find_edge(*view.map_args, view.xy, view.yaw, view.ground_z)
+        if frame is None:
+            return SearchPhase.APPROACH
+        state[_FRAME_X:_FRAME_ANGLE + 1] = frame.to_vector()
+        state[_TOP_Z] = view.ground_z
+        self._start_search(state, frame.coordinates(view.xy)[0], frame.coordinates(self._goal_xy)[0])
+        return SearchPhase.SEARCH_IN
+
+    def _way_in(self, view: _View, state: np.ndarray, near: np.ndarray,
+                searching: bool) -> tuple[SearchPhase, np.ndarray]:
+        """Along the top for a way in while `searching` (`near`: the near wall's slopes, updated
+        in place), then across through it; on the floor, the search for a way out starts."""
+        c = self._config
+        frame = windows.EdgeFrame.from_vector(state[_FRAME_X:_FRAME_ANGLE + 1])
+        s_robot, _ = frame.coordinates(view.xy)
+        bin_args = (*view.map_args, frame, self._bin_edges_m)
+        seen = windows.wall_slopes(*bin_args, state[_TOP_Z], (-c.near_band_m, c.near_band_m), rising=False)
+        near[:] = np.where(np.isfinite(seen), seen, near)
+        ended = windows.edge_ended(*bin_args[:4], self._ahead(state, s_robot), (0.5, c.near_band_m), state[_TOP_Z])
+        searching, window = self._search_step(near, state, s_robot, searching, ended)
+        top_across = functools.partial(self._top_across, bin_args[:4], state[_TOP_Z], s_robot)
+        if searching:
+            s_target = s_robot + state[_DIRECTION] * c.lookahead_m
+            return SearchPhase.SEARCH_IN, frame.point(s_target, top_across(s_target))
+        on_top = view.ground_z > state[_TOP_Z] - c.out_rise_m
+        target = self._goal_xy if window is None else self._crossing_target(
+            frame, window, state, s_robot, view.yaw, c.descent_lead_m, c.entry_across_m, on_top, top_across)
+        if view.ground_z < state[_TOP_Z] - c.floor_drop_m and view.tilt_deg < c.floor_tilt_deg:
+            state[_FLOOR_Z] = view.ground_z
+            self._start_search(state, s_robot, frame.coordinates(self._goal_xy)[0])
+            return SearchPhase.SEARCH_OUT, target
+        return SearchPhase.GOING_IN, target
+
+    def _way_out(self, view: _View, state: np.ndarray, far: np.ndarray,
+                 searching: bool) -> tuple[SearchPhase, np.ndarray]:
+        """Along the floor for a way out while `searching` (`far`: the far wall's slopes, updated
+        in place), then up through it; out once back at the top's height beyond the far wall's foot."""
+        c = self._config
+        frame = windows.EdgeFrame.from_vector(state[_FRAME_X:_FRAME_ANGLE + 1])
+        s_robot, c_robot = frame.coordinates(view.xy)
+        bin_args = (*view.map_args, frame, self._bin_edges_m)
+        if view.ground_z < state[_FLOOR_Z] + c.out_rise_m:
+            # Read from the floor only: from up the wall, the top beyond would pass for more wall.
+            band = (c_robot + 0.5, c_robot + c.far_band_m)
+            seen = windows.wall_slopes(*bin_args, state[_FLOOR_Z], band, rising=True)
+            far[:] = np.where(np.isfinite(seen), seen, far)
+            foot = windows.nearest_rise(*bin_args[:4], state[_FLOOR_Z], band)
+            if np.isfinite(foot):
+                state[_FAR_FOOT] = foot
+        ended = windows.floor_ended(*bin_args[:4], self._ahead(state, s_robot), (c_robot - 0.5, c_robot + 0.5),
+                                    state[_FLOOR_Z])
+        searching, window = self._search_step(far, state, s_robot, searching, ended)
+        across = state[_FAR_FOOT] - c.far_standoff_m if np.isfinite(state[_FAR_FOOT]) else c_robot + c.floor_drift_m
+        if searching:
+            return SearchPhase.SEARCH_OUT, frame.point(s_robot + state[_DIRECTION] * c.lookahead_m, across)
+        on_floor = view.ground_z < state[_FLOOR_Z] + c.out_rise_m
+        target = self._goal_xy if window is None else self._crossing_target(
+            frame, window, state, s_robot, view.yaw, c.ascent_lead_m, state[_FAR_FOOT] + c.exit_across_m, on_floor,
+            lambda _: across)
+        if view.ground_z > state[_TOP_Z] - c.out_rise_m and c_robot > state[_FAR_FOOT]:
+            return SearchPhase.OUT, target
+        return SearchPhase.GOING_OUT, target
 
     def _top_across(self, map_args: tuple, top_z_m: float, s_robot: float, s_target: float) -> float:
         """Across (m) of a target along the top at `s_target`: `edge_standoff_m` short of the
