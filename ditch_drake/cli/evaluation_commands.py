@@ -215,9 +215,9 @@ def cmd_benchmark(args) -> int:
 
 def add_benchmark_report(commands: Commands) -> None:
     benchmark_report = commands.add("benchmark-report", "the benchmark's page from its results files: success per "
-                                                        "split with Wilson intervals, against slope, width, depth and "
-                                                        "curvature, failure regions, the failed ditches with replay "
-                                                        "commands")
+                                                        "split with Wilson intervals, time and path length, against "
+                                                        "slope, width, depth and curvature, failure regions, the failed "
+                                                        "ditches with replay commands")
     benchmark_report.add_argument("results", nargs="+", help="benchmark results files (*.jsonl)")
     add_out(benchmark_report, "the Markdown page", default="results/benchmark/report.md")
     benchmark_report.add_argument("--figures", default=None,
