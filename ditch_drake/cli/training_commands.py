@@ -332,6 +332,10 @@ def add_gate_signals(commands: Commands) -> None:
     signals.add_argument("--horizon", type=float, default=ConfigDefault(AUC, "horizon_s"),
                          help="a step is labelled a coming failure where its episode rolls over within this many "
                               "seconds after it")
+    signals.add_argument("--risk", action="store_true",
+                         help="also record the tip-risk signals: minus the tip margin of the chassis now "
+                              "(tip_risk_now) and the least one predicted along the commanded arc on the perceived "
+                              "elevation map (tip_risk_ahead), in deg")
     add_out(signals, "the signals file (.npz), written when every episode has finished, with the AUC table "
                      "beside it as <out>.auc.json; until then the finished episodes are kept in <out>.parts/, and "
                      "the same command again continues (Ctrl-C keeps them); a finished file is refused")
@@ -390,7 +394,7 @@ def cmd_gate_signals(args) -> int:
         refuse_finished()  # Again: another run may have finished it meanwhile.
         try:
             _, report = write_signals_file(out, args.checkpoint, digest, runs, args.rollouts, args.seed,
-                                           args.time_limit, environments_file, args.horizon)
+                                           args.time_limit, environments_file, args.horizon, risk=args.risk)
         except KeyboardInterrupt as error:
             print(f"interrupted: the finished episodes are kept in {folder}; run the same command again to continue",
                   file=sys.stderr)

@@ -42,6 +42,7 @@ from ditch_drake.systems.policy import DEFAULT_UNCERTAINTY_SIGNAL, LearnedPolicy
 from ditch_drake.systems.skid_steer_drive import ConstantCommand
 from ditch_drake.systems.target_crossing_side import TargetCrossingSide
 from ditch_drake.systems.teleop import ActionQuantizer
+from ditch_drake.systems.tip_risk import TipRisk, TipRiskConfig
 from ditch_drake.systems.window_search import WindowSearch, WindowSearchConfig
 
 
@@ -117,6 +118,11 @@ class LearnedPolicyConfig:
             "bfloat16_image" (its image branch in bfloat16: faster on a CPU that runs bfloat16
             natively, refused on one that does not; a label may differ from float32's where
             two logits nearly tie). A single clone runs in float32 only.
+        tip_risk: with it, a "tip_risk" block (`TipRisk`) reads the policy's command, the pose
+            and the elevation map fused from the observation's lidar (the search's, or an
+            `ElevationMapper` of its own), and gives minus the tip margin now and along the
+            commanded arc: a risk signal that `ditch-drake gate-signals --risk` records beside
+            the uncertainty signals. It drives nothing. None: no such block.
     """
 
     checkpoint: str = ""
@@ -125,6 +131,7 @@ class LearnedPolicyConfig:
     runtime: str = "torch"
     search: LearnedWindowSearchConfig | None = field(default=None, metadata=WRITTEN_WHEN_SET)
     precision: str = field(default=DEFAULT_PRECISION, metadata=WRITTEN_WHEN_SET)
+    tip_risk: TipRiskConfig | None = field(default=None, metadata=WRITTEN_WHEN_SET)
 
     def validate(self) -> None:
         if self.crossing_side not in CROSSING_SIDE_SOURCES:
@@ -137,6 +144,8 @@ class LearnedPolicyConfig:
                                   "(the side toward the search's target is read from the perceived edge)")
         check_runtime(self.runtime, self.checkpoint)
         check_precision(self.precision, self.checkpoint)
+        if self.tip_risk is not None:
+            self.tip_risk.validate()
 
     def with_checkpoint(self, checkpoint: str) -> "LearnedPolicyConfig":
         """This config naming `checkpoint`; a .onnx file also sets runtime "onnxruntime", the only
@@ -329,27 +338,38 @@ def AddExpert(builder: DiagramBuilder, scene: DitchScene, config: ExpertConfig) 
 
 
 def AddLearnedController(builder: DiagramBuilder, scene: DitchScene, config: LearnedPolicyConfig) -> OutputPort:
-    """The learned policy on its observation blocks; with `config.search`, an "elevation_mapper"
-    (`ElevationMapper`, on the observation's lidar) and a "window_search" on its map, whose
-    target the goal sensor reads in place of the goal (and the crossing side is told toward)."""
+    """The learned policy on its observation blocks; with `config.search` or `config.tip_risk`,
+    an "elevation_mapper" (`ElevationMapper`, on the observation's lidar); with `config.search`,
+    a "window_search" on its map, whose target the goal sensor reads in place of the goal (and
+    the crossing side is told toward); with `config.tip_risk`, a "tip_risk" block on its map and
+    the policy's command."""
     config.validate()
     checkpoint = config.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
     observation = AddObservation(builder, scene, config.observation, goal_input=config.search is not None)
     target_xy = None
-    if config.search is not None:
+    mapper = None
+    chassis = scene.plant.GetBodyByName("chassis", scene.husky).index()
+    if config.search is not None or config.tip_risk is not None:
         schedule = scene.schedule
         # At the frame stacker's offset, after the lidar's tick: the map fuses this step's cloud.
         mapper = builder.AddNamedSystem("elevation_mapper", ElevationMapper(
-            scene.plant.GetBodyByName("chassis", scene.husky).index(), observation.lidar.X_BL, ElevationMapConfig(),
+            chassis, observation.lidar.X_BL, ElevationMapConfig(),
             period_s=schedule.control_period_s, offset_s=schedule.stacker_offset_s))
         builder.Connect(observation.lidar.converter.GetOutputPort("organized_points"),
                         mapper.GetInputPort("point_cloud"))
         builder.Connect(scene.plant.get_body_poses_output_port(), mapper.GetInputPort("body_poses"))
+    if config.search is not None:
         target_xy = AddWindowSearch(builder, scene, mapper.grid, mapper.GetOutputPort("elevation_map"), config.search,
-                                    offset_s=schedule.stacker_offset_s)
+                                    offset_s=scene.schedule.stacker_offset_s)
         builder.Connect(target_xy, observation.goal.GetInputPort("goal_xy"))
-    return AddLearnedPolicy(builder, scene, observation, checkpoint, config.crossing_side,
-                            config.runtime, target_xy=target_xy, precision=config.precision).GetOutputPort("command")
+    command = AddLearnedPolicy(builder, scene, observation, checkpoint, config.crossing_side,
+                               config.runtime, target_xy=target_xy, precision=config.precision).GetOutputPort("command")
+    if config.tip_risk is not None:
+        risk = builder.AddNamedSystem("tip_risk", TipRisk(chassis, mapper.grid, config.tip_risk))
+        builder.Connect(mapper.GetOutputPort("elevation_map"), risk.GetInputPort("elevation_map"))
+        builder.Connect(scene.plant.get_body_poses_output_port(), risk.GetInputPort("body_poses"))
+        builder.Connect(command, risk.GetInputPort("command"))
+    return command
 
 
 def AddWindowSearch(builder: DiagramBuilder, scene: DitchScene, grid: ElevationGrid, elevation_map: OutputPort,

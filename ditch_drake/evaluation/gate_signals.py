@@ -7,7 +7,9 @@ called once per control step, reads its block's inputs and decision: it runs the
 stacker tick), so it gets every member's probabilities, checks that the label is the one the
 block chose, and evaluates every signal of `ditch_drake.learning.uncertainty` the checkpoint
 has (all three for an ensemble, "mean_softmax_entropy" for a single clone) on them. The extra
-forward pass per step is the price of not changing the policy block's ports.
+forward pass per step is the price of not changing the policy block's ports. With `risk`, the
+diagram also has a "tip_risk" block (`ditch_drake.systems.tip_risk`), and the watch records its
+two signals, minus the tip margin now and along the commanded arc, at the same steps.
 
 A recording of many episodes takes long, so each episode is kept as it finishes
 (`EpisodeParts`): an interrupted recording keeps its finished episodes and the same command
@@ -36,6 +38,7 @@ from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, UNCERTAINTY_S
 from ditch_drake.spec.schedule import ScheduleConfig
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 from ditch_drake.systems.policy import LearnedPolicy
+from ditch_drake.systems.tip_risk import TIP_RISK_SIGNALS, TipRisk, TipRiskConfig
 
 # The policy block's observation inputs, in `LearnedPolicy.decide`'s order.
 STACK_PORTS = ("image_stack", "imu_stack", "distance_stack", "bearing_stack")
@@ -52,14 +55,16 @@ class SignalWatch:
     Called with the root Context at the end of each control period (`watch_period_s` = the
     control period), when the policy's latest tick is `offset_s` into the period just ended.
     A tick already recorded (an episode that ended mid-period) is not recorded twice; before
-    the policy's first tick nothing is.
+    the policy's first tick nothing is. With `tip_risk` (the diagram's `TipRisk` block on the
+    policy's command), its signals are recorded too.
     """
 
-    def __init__(self, policy: LearnedPolicy, schedule: ScheduleConfig):
+    def __init__(self, policy: LearnedPolicy, schedule: ScheduleConfig, tip_risk: TipRisk | None = None):
         self._policy = policy
+        self._tip_risk = tip_risk
         self._period_s = schedule.control_period_s
         self._offset_s = schedule.controller_offset_s
-        self.signals = supported_signals(policy.members)
+        self.signals = supported_signals(policy.members) + (list(TIP_RISK_SIGNALS) if tip_risk is not None else [])
         self._rates = policy.action_commands[:, 1]
         self.time_s: list[float] = []
         self.values: dict[str, list[float]] = {name: [] for name in self.signals}
@@ -80,7 +85,12 @@ class SignalWatch:
                                f"{decision.label}: the watch does not see what the policy saw")
         self.time_s.append(tick_s)
         for name in self.signals:
-            self.values[name].append(float(UNCERTAINTY_SIGNALS[name](decision.member_probabilities, self._rates)))
+            if name in UNCERTAINTY_SIGNALS:
+                self.values[name].append(float(UNCERTAINTY_SIGNALS[name](decision.member_probabilities, self._rates)))
+        if self._tip_risk is not None:
+            risk = self._tip_risk.GetOutputPort("tip_risk").Eval(self._tip_risk.GetMyContextFromRoot(root_context))
+            for name, value in zip(TIP_RISK_SIGNALS, risk):
+                self.values[name].append(float(value))
         return False
 
 
@@ -140,13 +150,15 @@ def parts_folder(out: str | os.PathLike) -> Path:
     return Path(f"{out}.parts")
 
 
-def parts_header(checkpoint_sha256: str, time_limit_s: float, environments_file: str = "") -> dict:
+def parts_header(checkpoint_sha256: str, time_limit_s: float, environments_file: str = "",
+                 risk: bool = False) -> dict:
     """What every episode of a recording depends on besides its (environment, task, seed): a
     recording continues only with the same (`EpisodeParts.open`)."""
     environments = Path(environments_file).resolve() if environments_file else None
     return {"schema": PARTS_SCHEMA, "version": PARTS_VERSION, "checkpoint_sha256": checkpoint_sha256,
             "time_limit_s": float(time_limit_s), "environments_file": str(environments or ""),
-            "environments_file_sha256": hashlib.sha256(environments.read_bytes()).hexdigest() if environments else ""}
+            "environments_file_sha256": hashlib.sha256(environments.read_bytes()).hexdigest() if environments else "",
+            "risk": bool(risk)}
 
 
 class EpisodeParts:
@@ -235,9 +247,10 @@ class EpisodeParts:
 
 def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: int = 10, seed: int = 0,
                         time_limit_s: float = EpisodeConfig.time_limit_s, environments_file: str = "",
-                        progress: bool = True, parts: EpisodeParts | None = None) -> GateSignals:
+                        progress: bool = True, parts: EpisodeParts | None = None, risk: bool = False) -> GateSignals:
     """Runs `rollouts` episodes (seeds seed ..) of the learned policy of `checkpoint` on each
-    (environment, task) of `runs`, ungated, and records every signal it has at every control step.
+    (environment, task) of `runs`, ungated, and records every signal it has at every control step;
+    with `risk`, the tip-risk signals too (`ditch_drake.systems.tip_risk`, default config).
 
     The episodes are in the order of `runs` and, within one, of their seeds; an (environment,
     task, seed) is run once however often `runs` repeats it. With `parts`, each episode is kept
@@ -263,11 +276,13 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
             continue
         scene = SceneConfig(environment=environment, task=task, environments_file=environments_file,
                             episode=replace(EpisodeConfig(), time_limit_s=time_limit_s))
-        diagram, built = MakeRolloutDiagram(RolloutConfig(scene=scene, controller=LearnedPolicyConfig(checkpoint)))
+        controller = LearnedPolicyConfig(checkpoint, tip_risk=TipRiskConfig() if risk else None)
+        diagram, built = MakeRolloutDiagram(RolloutConfig(scene=scene, controller=controller))
         policy = diagram.GetSubsystemByName("learned_policy")
+        tip_risk = diagram.GetSubsystemByName("tip_risk") if risk else None
         simulator = Simulator(diagram)
         for episode_seed in pending:
-            watch = SignalWatch(policy, built.schedule)
+            watch = SignalWatch(policy, built.schedule, tip_risk)
             description = f"{environment} task {task} seed {episode_seed}" if progress else None
             outcome = RunEpisode(simulator, diagram, built, episode_seed, progress=description, watch=watch,
                                  watch_period_s=built.schedule.control_period_s)
@@ -285,12 +300,13 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
 
 def write_signals_file(out: str | os.PathLike, checkpoint: str, checkpoint_sha256: str, runs: list[tuple[str, int]],
                        rollouts: int, seed: int, time_limit_s: float, environments_file: str = "",
-                       horizon_s: float | None = None, progress: bool = True) -> tuple[GateSignals, dict]:
+                       horizon_s: float | None = None, progress: bool = True,
+                       risk: bool = False) -> tuple[GateSignals, dict]:
     """Records `checkpoint`'s signals (`record_gate_signals`) episode by episode into the parts
     folder beside `out` (continuing what it holds), then writes the signals file `out` and its
     AUC report (`<out>.auc.json`, a rollover within `horizon_s`; None: the default horizon), and
     removes the folder. The caller holds `out` (`exclusive_use`). Ctrl-C keeps the finished
-    episodes in the folder and is re-raised.
+    episodes in the folder and is re-raised. `risk`: the tip-risk signals too.
 
     Returns:
         The recorded signals and the AUC report.
@@ -302,9 +318,9 @@ def write_signals_file(out: str | os.PathLike, checkpoint: str, checkpoint_sha25
     from ditch_drake.learning.gate_calibration import auc_report, load_signals, save_signals, write_auc_report
 
     folder = parts_folder(out)
-    parts = EpisodeParts.open(folder, parts_header(checkpoint_sha256, time_limit_s, environments_file))
+    parts = EpisodeParts.open(folder, parts_header(checkpoint_sha256, time_limit_s, environments_file, risk))
     recorded = record_gate_signals(checkpoint, runs, rollouts, seed, time_limit_s, environments_file, progress,
-                                   parts=parts)
+                                   parts=parts, risk=risk)
     save_signals(out, checkpoint, checkpoint_sha256, recorded.signals, recorded.steps, recorded.episodes)
     horizon = {} if horizon_s is None else {"horizon_s": horizon_s}
     report = auc_report(load_signals(out), seed=seed, **horizon)

@@ -1,0 +1,112 @@
+"""How near the robot is to tipping, now and along the arc it is commanded: a risk signal for a gate.
+
+The members' disagreement says how unsure a clone is of a view; it does not say whether being
+wrong there matters. The tip margin does: `tip_risk_now` is the margin of the chassis as it
+stands, and `tip_risk_ahead` the least margin that the `mppi` baseline's attitude model
+(`ditch_drake.planning.attitude`) predicts on the perceived elevation map along the arc the
+robot is commanded, held for `horizon_s`. Both are minus the margin in degrees, so that, as for
+the uncertainty signals, higher is worse: -60 on flat ground, 0 at the tipping point.
+"""
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from pydrake.common.value import Value
+from pydrake.math import RigidTransform
+from pydrake.systems.framework import BasicVector, LeafSystem
+
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.planning.attitude import predict_attitude
+from ditch_drake.planning.elevation_map import ElevationGrid, presume_drops
+from ditch_drake.planning.mppi import MppiPlannerConfig, rollout
+from ditch_drake.spec import robot
+from ditch_drake.spec.planar import planar_yaw
+from ditch_drake.systems.episode_monitor import stability_margins_rad
+
+# The outputs' entries, in order.
+TIP_RISK_SIGNALS = ("tip_risk_now", "tip_risk_ahead")
+
+
+@dataclass
+class TipRiskConfig:
+    """The arc along which `TipRisk` predicts the margin.
+
+    Attributes:
+        horizon_s: how long the commanded (v, w) is held (s); the arc is cut in control periods.
+        presume_drops: judge the arc on the map the `mppi` baseline plans on: unknown cells next
+            to known ones presumed to fall away as a ditch wall would (its planner's defaults,
+            `MppiPlannerConfig.presumed_drop_*`); False: unknown cells are left out.
+    """
+
+    horizon_s: float = 2.0
+    presume_drops: bool = True
+
+    def validate(self) -> None:
+        if not (math.isfinite(self.horizon_s) and self.horizon_s >= robot.CONTROL_PERIOD_S):
+            raise ConfigError(f"tip_risk horizon_s={self.horizon_s!r}: expected at least one control period "
+                              f"({robot.CONTROL_PERIOD_S} s)")
+
+
+def arc_margins_rad(grid: ElevationGrid, heights: np.ndarray, origin_m: np.ndarray, pose: np.ndarray,
+                    v: float, w: float, config: TipRiskConfig) -> np.ndarray:
+    """Predicted stability margins (rad) at the poses of (v, w) held from `pose` (x, y, yaw) for
+    `config.horizon_s`, the pose itself first; NaN where the map does not know enough wheels."""
+    origin = np.round(np.asarray(origin_m) / grid.resolution).astype(int)
+    if config.presume_drops:
+        planner = MppiPlannerConfig()
+        xs, ys = grid.cell_centers(origin)
+        within = np.hypot(xs[None, :] - pose[0], ys[:, None] - pose[1]) <= planner.presumed_drop_radius_m
+        heights = presume_drops(heights, grid.resolution, planner.presumed_drop_slope_deg, planner.presumed_drop_m,
+                                within)
+    steps = max(1, round(config.horizon_s / robot.CONTROL_PERIOD_S))
+    poses = rollout(np.asarray(pose, dtype=float), np.full((1, steps), float(w)), float(v), robot.CONTROL_PERIOD_S)[0]
+    return predict_attitude(grid, heights, origin, poses).margin
+
+
+class TipRisk(LeafSystem):
+    """Minus the tip margin, now and along the commanded arc (module doc), computed when read.
+
+    .. pydrake_system::
+
+        name: TipRisk
+        input_ports:
+        - elevation_map
+        - body_poses
+        - command
+        output_ports:
+        - tip_risk
+
+    Ports:
+        elevation_map: [origin_x (m), origin_y (m), heights (m, NaN unknown) row-major] of `grid`,
+            as `ElevationMapper` gives it.
+        body_poses: the plant's body poses X_WB (vector of RigidTransform).
+        command: [v m/s, w rad/s], the command the arc holds.
+        tip_risk: [tip_risk_now, tip_risk_ahead] (deg): minus the static stability margin of the
+            chassis's attitude, and minus the least margin predicted along the arc (the current
+            pose's margin where the map knows no pose of it).
+    """
+
+    def __init__(self, chassis_body_index, grid: ElevationGrid, config: TipRiskConfig | None = None):
+        """Raises:
+            ConfigError: a horizon shorter than a control period.
+        """
+        super().__init__()
+        self._config = config or TipRiskConfig()
+        self._config.validate()
+        self._grid = grid
+        self._chassis_index = int(chassis_body_index)
+        self._map_port = self.DeclareVectorInputPort("elevation_map", 2 + grid.size)
+        self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
+        self._command_port = self.DeclareVectorInputPort("command", 2)
+        self.DeclareVectorOutputPort("tip_risk", BasicVector(len(TIP_RISK_SIGNALS)), self._calc_risk)
+
+    def _calc_risk(self, context, output) -> None:
+        X_WB = self._poses_port.Eval(context)[self._chassis_index]
+        now_rad = min(stability_margins_rad(X_WB.rotation().matrix()))
+        origin_m, heights = self._grid.unpack(self._map_port.Eval(context))
+        v, w = self._command_port.Eval(context)
+        pose = np.array([*X_WB.translation()[:2], planar_yaw(X_WB)])
+        margins = arc_margins_rad(self._grid, heights, origin_m, pose, v, w, self._config)
+        ahead_rad = float(np.nanmin(margins)) if np.isfinite(margins).any() else now_rad
+        output.SetFromVector([-math.degrees(now_rad), -math.degrees(ahead_rad)])
