@@ -69,6 +69,7 @@ def test_a_stopped_recording_continues_to_the_file_of_an_unstopped_one(tmp_path,
 @pytest.mark.parametrize("options, mismatch", [
     (["--time-limit", "2"], "time_limit_s 3.0 there, 2.0 now"),
     (["--checkpoint", "narrow_bc40"], "checkpoint_sha256"),
+    (["--risk"], "risk False there, True now"),
 ])
 def test_a_rerun_with_other_settings_is_refused(tmp_path, monkeypatch, capsys, options, mismatch):
     out = tmp_path / "signals.npz"

@@ -1,0 +1,89 @@
+"""The tip-risk block: minus the tip margin of the chassis now and along the commanded arc, and
+`gate-signals --risk`, which records it beside the uncertainty signals without changing the run."""
+
+import math
+
+import numpy as np
+import pytest
+from pydrake.math import RigidTransform, RollPitchYaw
+
+from ditch_drake.cli import main
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.learning.gate_calibration import load_signals
+from ditch_drake.planning.elevation_map import ElevationGrid
+from ditch_drake.spec import robot
+from ditch_drake.systems.tip_risk import TipRisk, TipRiskConfig
+
+FORE_AFT_TIP_DEG = math.degrees(robot.tip_angle_fore_aft_rad())
+SIDEWAYS_TIP_DEG = math.degrees(robot.tip_angle_sideways_rad())
+
+
+def _risk(heights_of_xy, X_WB: RigidTransform, command, config: TipRiskConfig | None = None) -> np.ndarray:
+    """The block's output with its map made of `heights_of_xy(x, y)` around the robot."""
+    grid = ElevationGrid()
+    origin = grid.window_origin(X_WB.translation()[:2])
+    xs, ys = grid.cell_centers(origin)
+    heights = heights_of_xy(xs[None, :], ys[:, None]) + np.zeros(grid.shape)
+    block = TipRisk(0, grid, config)
+    context = block.CreateDefaultContext()
+    block.GetInputPort("elevation_map").FixValue(context, grid.pack(grid.origin_m(origin), heights))
+    block.GetInputPort("body_poses").FixValue(context, [X_WB])
+    block.GetInputPort("command").FixValue(context, np.asarray(command, dtype=float))
+    return block.GetOutputPort("tip_risk").Eval(context)
+
+
+def flat(x, y):
+    return 0.0 * x
+
+
+def wall_ahead(x, y):
+    """Flat to x = 1 m, then falling away at 55 deg (a ditch's wall)."""
+    return -np.tan(np.radians(55.0)) * np.clip(x - 1.0, 0.0, None) + 0.0 * y
+
+
+def test_on_flat_ground_both_are_minus_the_smaller_tip_angle():
+    risk = _risk(flat, RigidTransform(), [1.0, 0.0])
+    np.testing.assert_allclose(risk, [-FORE_AFT_TIP_DEG] * 2, atol=1e-6)
+
+
+def test_now_is_the_chassis_attitude_and_ahead_the_arc_into_a_wall():
+    # Rolled 30 deg, the sideways margin is what is left of the tip angle.
+    rolled = RigidTransform(RollPitchYaw(math.radians(30.0), 0.0, 0.0), [0.0, 0.0, 0.0])
+    assert _risk(flat, rolled, [1.0, 0.0])[0] == pytest.approx(30.0 - SIDEWAYS_TIP_DEG, abs=1e-6)
+    # Straight at the wall, the arc ends on it head-on: 55 deg of the fore-aft tip angle used.
+    now, ahead = _risk(wall_ahead, RigidTransform(), [1.0, 0.0])
+    assert now == pytest.approx(-FORE_AFT_TIP_DEG, abs=1e-6)
+    assert ahead == pytest.approx(55.0 - FORE_AFT_TIP_DEG, abs=0.5)
+    # Turning away at the largest label rate, the arc only grazes the edge, either way.
+    left, right = (_risk(wall_ahead, RigidTransform(), [1.0, w])[1] for w in (0.85, -0.85))
+    assert left == pytest.approx(right, abs=1e-6) and 10.0 - FORE_AFT_TIP_DEG < left < ahead - 5.0
+    # A shorter horizon stops short of the wall.
+    short = _risk(wall_ahead, RigidTransform(), [1.0, 0.0], TipRiskConfig(horizon_s=0.3))[1]
+    assert short == pytest.approx(-FORE_AFT_TIP_DEG, abs=1e-6)
+
+
+def test_an_unknown_map_leaves_the_current_margin():
+    risk = _risk(lambda x, y: np.nan * x, RigidTransform(), [1.0, 0.0])
+    np.testing.assert_allclose(risk, [-FORE_AFT_TIP_DEG] * 2, atol=1e-6)
+
+
+def test_a_horizon_shorter_than_a_control_period_is_refused():
+    with pytest.raises(ConfigError, match="tip_risk horizon_s=0.01"):
+        TipRisk(0, ElevationGrid(), TipRiskConfig(horizon_s=0.01))
+
+
+def test_gate_signals_risk_records_two_more_signals_and_changes_nothing_else(tmp_path, capsys):
+    argv = ["gate-signals", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--rollouts", "1",
+            "--seed", "4", "--time-limit", "8"]
+    assert main([*argv, "--out", str(tmp_path / "plain.npz")]) == 0
+    assert main([*argv, "--risk", "--out", str(tmp_path / "risk.npz")]) == 0
+    assert "tip_risk_ahead" in capsys.readouterr().out
+    plain, risk = load_signals(tmp_path / "plain.npz"), load_signals(tmp_path / "risk.npz")
+    assert risk["signals"] == ["mean_softmax_entropy", "tip_risk_now", "tip_risk_ahead"]
+    for name in ("mean_softmax_entropy", "time_s", "episode", "episode_status", "episode_end_time_s"):
+        np.testing.assert_array_equal(risk[name], plain[name], err_msg=name)
+    for name in ("tip_risk_now", "tip_risk_ahead"):
+        values = risk[name]
+        assert values.shape == (80,) and np.all(np.isfinite(values)) and np.all(values <= 0.0), name
+    # On the flat start the chassis is level; the arc reaches the presumed drop at the edge later.
+    assert risk["tip_risk_now"][10] == pytest.approx(-FORE_AFT_TIP_DEG, abs=1.0)
