@@ -1,18 +1,25 @@
-"""The tip-risk block: minus the tip margin of the chassis now and along the commanded arc, and
-`gate-signals --risk`, which records it beside the uncertainty signals without changing the run."""
+"""The tip-risk block: minus the tip margin of the chassis now and along the commanded arc;
+`gate-signals --risk`, which records it beside the uncertainty signals without changing the run;
+and a shared-control gate that reads it."""
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 from pydrake.math import RigidTransform, RollPitchYaw
+from pydrake.systems.analysis import Simulator
 
 from ditch_drake.cli import main
 from ditch_drake.common.errors import ConfigError
+from ditch_drake.diagrams.controllers import controller_config, get_controller
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig
+from ditch_drake.learning.gate_calibration import FALLBACK, POLICY
 from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.planning.elevation_map import ElevationGrid
 from ditch_drake.spec import robot
-from ditch_drake.systems.tip_risk import TipRisk, TipRiskConfig
+from ditch_drake.systems.tip_risk import TIP_RISK_SIGNALS, TipRisk, TipRiskConfig
 
 FORE_AFT_TIP_DEG = math.degrees(robot.tip_angle_fore_aft_rad())
 SIDEWAYS_TIP_DEG = math.degrees(robot.tip_angle_sideways_rad())
@@ -29,7 +36,7 @@ def _risk(heights_of_xy, X_WB: RigidTransform, command, config: TipRiskConfig | 
     block.GetInputPort("elevation_map").FixValue(context, grid.pack(grid.origin_m(origin), heights))
     block.GetInputPort("body_poses").FixValue(context, [X_WB])
     block.GetInputPort("command").FixValue(context, np.asarray(command, dtype=float))
-    return block.GetOutputPort("tip_risk").Eval(context)
+    return np.array([block.GetOutputPort(name).Eval(context)[0] for name in TIP_RISK_SIGNALS])
 
 
 def flat(x, y):
@@ -87,3 +94,26 @@ def test_gate_signals_risk_records_two_more_signals_and_changes_nothing_else(tmp
         assert values.shape == (80,) and np.all(np.isfinite(values)) and np.all(values <= 0.0), name
     # On the flat start the chassis is level; the arc reaches the presumed drop at the edge later.
     assert risk["tip_risk_now"][10] == pytest.approx(-FORE_AFT_TIP_DEG, abs=1.0)
+
+
+def test_a_risk_gate_reads_the_tip_risk_of_the_policys_command_and_hands_over_near_the_edge():
+    config = controller_config("shared")
+    # Calm while the arc keeps 30 deg of margin, handed over once it would keep less than 20.
+    config = dataclasses.replace(config, gate=dataclasses.replace(
+        config.gate, signal="tip_risk_ahead", upper_threshold=-20.0, lower_threshold=-30.0, fallback="expert"))
+    diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="wide", task=1),
+                                                  controller=get_controller("shared").for_seed(config, 3)))
+    gate, risk, policy = (diagram.GetSubsystemByName(name) for name in ("shared_control", "tip_risk", "learned_policy"))
+    simulator = Simulator(diagram)
+    drivers = []
+    for t in np.arange(0.5, 12.0, 0.5):
+        simulator.AdvanceTo(t)
+        root = simulator.get_context()
+        gate_context, risk_context = gate.GetMyContextFromRoot(root), risk.GetMyContextFromRoot(root)
+        np.testing.assert_array_equal(gate.GetInputPort("uncertainty").Eval(gate_context),
+                                      risk.GetOutputPort("tip_risk_ahead").Eval(risk_context))
+        np.testing.assert_array_equal(risk.GetInputPort("command").Eval(risk_context),
+                                      policy.GetOutputPort("command").Eval(policy.GetMyContextFromRoot(root)))
+        drivers.append(gate.GetOutputPort("who_drives").Eval(gate_context)[0])
+    # Far from the edge the policy drives; its arc nears the wall within the first 12 s.
+    assert drivers[0] == POLICY and FALLBACK in drivers, drivers

@@ -339,25 +339,16 @@ def AddExpert(builder: DiagramBuilder, scene: DitchScene, config: ExpertConfig) 
 
 def AddLearnedController(builder: DiagramBuilder, scene: DitchScene, config: LearnedPolicyConfig) -> OutputPort:
     """The learned policy on its observation blocks; with `config.search` or `config.tip_risk`,
-    an "elevation_mapper" (`ElevationMapper`, on the observation's lidar); with `config.search`,
-    a "window_search" on its map, whose target the goal sensor reads in place of the goal (and
-    the crossing side is told toward); with `config.tip_risk`, a "tip_risk" block on its map and
-    the policy's command."""
+    an "elevation_mapper" (`AddElevationMapper`); with `config.search`, a "window_search" on its
+    map, whose target the goal sensor reads in place of the goal (and the crossing side is told
+    toward); with `config.tip_risk`, a "tip_risk" block on its map and the policy's command."""
     config.validate()
     checkpoint = config.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
     observation = AddObservation(builder, scene, config.observation, goal_input=config.search is not None)
     target_xy = None
     mapper = None
-    chassis = scene.plant.GetBodyByName("chassis", scene.husky).index()
     if config.search is not None or config.tip_risk is not None:
-        schedule = scene.schedule
-        # At the frame stacker's offset, after the lidar's tick: the map fuses this step's cloud.
-        mapper = builder.AddNamedSystem("elevation_mapper", ElevationMapper(
-            chassis, observation.lidar.X_BL, ElevationMapConfig(),
-            period_s=schedule.control_period_s, offset_s=schedule.stacker_offset_s))
-        builder.Connect(observation.lidar.converter.GetOutputPort("organized_points"),
-                        mapper.GetInputPort("point_cloud"))
-        builder.Connect(scene.plant.get_body_poses_output_port(), mapper.GetInputPort("body_poses"))
+        mapper = AddElevationMapper(builder, scene, observation)
     if config.search is not None:
         target_xy = AddWindowSearch(builder, scene, mapper.grid, mapper.GetOutputPort("elevation_map"), config.search,
                                     offset_s=scene.schedule.stacker_offset_s)
@@ -365,11 +356,33 @@ def AddLearnedController(builder: DiagramBuilder, scene: DitchScene, config: Lea
     command = AddLearnedPolicy(builder, scene, observation, checkpoint, config.crossing_side,
                                config.runtime, target_xy=target_xy, precision=config.precision).GetOutputPort("command")
     if config.tip_risk is not None:
-        risk = builder.AddNamedSystem("tip_risk", TipRisk(chassis, mapper.grid, config.tip_risk))
-        builder.Connect(mapper.GetOutputPort("elevation_map"), risk.GetInputPort("elevation_map"))
-        builder.Connect(scene.plant.get_body_poses_output_port(), risk.GetInputPort("body_poses"))
-        builder.Connect(command, risk.GetInputPort("command"))
+        AddTipRisk(builder, scene, mapper, command, config.tip_risk)
     return command
+
+
+def AddElevationMapper(builder: DiagramBuilder, scene: DitchScene, observation: Observation) -> ElevationMapper:
+    """Adds an "elevation_mapper" (`ElevationMapper`, the `mppi` baseline's map) on the
+    observation's lidar, updating at the frame stacker's offset: after the lidar's tick, so that
+    the map fuses this step's cloud."""
+    schedule = scene.schedule
+    mapper = builder.AddNamedSystem("elevation_mapper", ElevationMapper(
+        scene.plant.GetBodyByName("chassis", scene.husky).index(), observation.lidar.X_BL, ElevationMapConfig(),
+        period_s=schedule.control_period_s, offset_s=schedule.stacker_offset_s))
+    builder.Connect(observation.lidar.converter.GetOutputPort("organized_points"), mapper.GetInputPort("point_cloud"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), mapper.GetInputPort("body_poses"))
+    return mapper
+
+
+def AddTipRisk(builder: DiagramBuilder, scene: DitchScene, mapper: ElevationMapper, command: OutputPort,
+               config: TipRiskConfig) -> TipRisk:
+    """Adds a "tip_risk" block (`TipRisk`) on `mapper`'s map, the chassis pose and `command`
+    (the arc it predicts along); returns it."""
+    risk = builder.AddNamedSystem("tip_risk", TipRisk(
+        scene.plant.GetBodyByName("chassis", scene.husky).index(), mapper.grid, config))
+    builder.Connect(mapper.GetOutputPort("elevation_map"), risk.GetInputPort("elevation_map"))
+    builder.Connect(scene.plant.get_body_poses_output_port(), risk.GetInputPort("body_poses"))
+    builder.Connect(command, risk.GetInputPort("command"))
+    return risk
 
 
 def AddWindowSearch(builder: DiagramBuilder, scene: DitchScene, grid: ElevationGrid, elevation_map: OutputPort,

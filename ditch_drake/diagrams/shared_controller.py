@@ -16,7 +16,10 @@ switched and where the handovers began (`RolloutRecord.handover_fraction`, `swit
 
 With `gate.signal` "random" the gate reads a seeded uniform draw each control step (a
 "random_handover_draw" `RandomSource`) in place of the policy's uncertainty: the chance
-handover a gate is compared with (`AddRandomHandoverDraw`).
+handover a gate is compared with (`AddRandomHandoverDraw`). With a risk signal
+("tip_risk_now", "tip_risk_ahead") it reads a "tip_risk" block (`TipRisk`) on an
+"elevation_mapper" of the policy's lidar and the policy's command: how near the robot is to
+tipping, now or along the arc the policy commands, rather than how unsure the policy is.
 """
 
 import dataclasses
@@ -32,9 +35,11 @@ from ditch_drake.diagrams.ditch_scene import DitchScene
 from ditch_drake.diagrams.lidar_rig import AddLidar
 from ditch_drake.diagrams.observation import AddObservation, Observation
 from ditch_drake.diagrams.rollout import (
+    AddElevationMapper,
     AddExpert,
     AddLearnedPolicy,
     AddMppiController,
+    AddTipRisk,
     ExpertConfig,
     LearnedPolicyConfig,
     MppiBaselineConfig,
@@ -42,12 +47,13 @@ from ditch_drake.diagrams.rollout import (
 from ditch_drake.learning.checkpoint import checkpoint_digest, environment_model
 from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.learning.inference import is_ensemble
-from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS
+from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, RISK_SIGNALS
 from ditch_drake.systems.driver_indicator import DriverIndicator
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
 from ditch_drake.systems.policy import DEFAULT_UNCERTAINTY_SIGNAL
 from ditch_drake.systems.shared_control import RANDOM_SIGNAL, SharedControl, SharedControlConfig
 from ditch_drake.systems.teleop import ActionQuantizer
+from ditch_drake.systems.tip_risk import TipRiskConfig
 
 # Where the scene's Meshcat visualizer draws the chassis: the help marker is its child.
 CHASSIS_MESHCAT_PATH = "/drake/illustration/husky/chassis"
@@ -196,8 +202,9 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     if config.gate.calibration:
         check_calibration_policy(config.gate.calibration, checkpoint)
     random_gate = config.gate.signal == RANDOM_SIGNAL
-    # The random gate reads no uncertainty of the policy's; the one every checkpoint has is reported.
-    signal = DEFAULT_UNCERTAINTY_SIGNAL if random_gate else config.gate.signal
+    risk_gate = config.gate.signal in RISK_SIGNALS
+    # These gates read no uncertainty of the policy's; the one every checkpoint has is reported.
+    signal = DEFAULT_UNCERTAINTY_SIGNAL if random_gate or risk_gate else config.gate.signal
     policy = AddLearnedPolicy(builder, scene, observation, checkpoint, config.policy.crossing_side,
                               config.policy.runtime, uncertainty_signal=signal,
                               precision=config.policy.precision)
@@ -209,6 +216,10 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     builder.Connect(policy.GetOutputPort("command"), gate.GetInputPort("policy_command"))
     if random_gate:
         AddRandomHandoverDraw(builder, gate, schedule.control_period_s)
+    elif risk_gate:
+        risk = AddTipRisk(builder, scene, AddElevationMapper(builder, scene, observation), policy.GetOutputPort("command"),
+                          config.policy.tip_risk or TipRiskConfig())
+        builder.Connect(risk.GetOutputPort(config.gate.signal), gate.GetInputPort("uncertainty"))
     else:
         builder.Connect(policy.GetOutputPort("uncertainty"), gate.GetInputPort("uncertainty"))
     builder.Connect(fallback, gate.GetInputPort("fallback_command"))

@@ -88,9 +88,9 @@ class SignalWatch:
             if name in UNCERTAINTY_SIGNALS:
                 self.values[name].append(float(UNCERTAINTY_SIGNALS[name](decision.member_probabilities, self._rates)))
         if self._tip_risk is not None:
-            risk = self._tip_risk.GetOutputPort("tip_risk").Eval(self._tip_risk.GetMyContextFromRoot(root_context))
-            for name, value in zip(TIP_RISK_SIGNALS, risk):
-                self.values[name].append(float(value))
+            risk_context = self._tip_risk.GetMyContextFromRoot(root_context)
+            for name in TIP_RISK_SIGNALS:
+                self.values[name].append(float(self._tip_risk.GetOutputPort(name).Eval(risk_context)[0]))
         return False
 
 

@@ -100,9 +100,12 @@ DISAGREEMENT_SIGNALS = frozenset({"angular_rate_spread", "vote_entropy"})
 # The control for a gate's study: the gate reads a seeded uniform draw in [0, 1) each control
 # step in place of the policy's uncertainty, so it hands over by chance, not by what the policy knows.
 RANDOM_SIGNAL = "random"
+# Signals of the robot's state, not of the members: minus the tip margin now and along the
+# policy's commanded arc on the perceived map (deg; `ditch_drake.systems.tip_risk`).
+RISK_SIGNALS = ("tip_risk_now", "tip_risk_ahead")
 # What a shared-control gate may read (`SharedControlConfig.signal`): the policy's uncertainty
-# signals, or the draw.
-GATE_SIGNALS = (*UNCERTAINTY_SIGNALS, RANDOM_SIGNAL)
+# signals, the risk signals, or the draw.
+GATE_SIGNALS = (*UNCERTAINTY_SIGNALS, *RISK_SIGNALS, RANDOM_SIGNAL)
 
 
 def uncertainty_signal(name: str) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:

@@ -28,11 +28,13 @@ class SharedControlConfig:
 
     Attributes:
         signal: the uncertainty signal the policy reports (`ditch_drake.learning.uncertainty`),
-            or "random" (`RANDOM_SIGNAL`): a uniform draw in [0, 1) each control step, seeded
-            by the episode's seed, in its place (the chance handover a gate is compared with).
+            a risk signal ("tip_risk_now", "tip_risk_ahead": minus the tip margin now or along
+            the policy's commanded arc, `ditch_drake.systems.tip_risk`), or "random"
+            (`RANDOM_SIGNAL`): a uniform draw in [0, 1) each control step, seeded by the
+            episode's seed, in its place (the chance handover a gate is compared with).
         upper_threshold: hand over when the signal is above this (the signal's unit: rad/s for
-            "angular_rate_spread", nats for the entropies, in [0, 1] for "random"). With a
-            budget, set from it.
+            "angular_rate_spread", nats for the entropies, deg for the risk signals, in [0, 1]
+            for "random"). With a budget, set from it.
         lower_threshold: hand back only after the signal has stayed below this ...
         calm_steps: ... for this many consecutive control steps (hysteresis: fewer switches).
         warmup_steps: control steps at each episode's start whose signal the gate ignores (the
@@ -250,7 +252,8 @@ class SharedControl(LeafSystem):
     Ports:
         policy_command: [v m/s, w rad/s] the policy commands.
         uncertainty: [the policy's uncertainty], in the unit of the configured signal; with
-            signal "random", the draw in [0, 1) that `AddSharedControl` connects instead.
+            signal "random", the draw in [0, 1) that `AddSharedControl` connects instead, and
+            with a risk signal the `TipRisk` block's output of that name.
         fallback_command: [v m/s, w rad/s] the fallback commands.
         command: [v m/s, w rad/s] the executed command.
         who_drives: [0] the policy, [1] the fallback (a float).

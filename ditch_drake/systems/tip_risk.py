@@ -17,6 +17,7 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ditch_drake.common.errors import ConfigError
+from ditch_drake.learning.uncertainty import RISK_SIGNALS
 from ditch_drake.planning.attitude import predict_attitude
 from ditch_drake.planning.elevation_map import ElevationGrid, presume_drops
 from ditch_drake.planning.mppi import MppiPlannerConfig, rollout
@@ -24,8 +25,8 @@ from ditch_drake.spec import robot
 from ditch_drake.spec.planar import planar_yaw
 from ditch_drake.systems.episode_monitor import stability_margins_rad
 
-# The outputs' entries, in order.
-TIP_RISK_SIGNALS = ("tip_risk_now", "tip_risk_ahead")
+# The signals, each an output port of `TipRisk` by its name.
+TIP_RISK_SIGNALS = RISK_SIGNALS
 
 
 @dataclass
@@ -65,7 +66,7 @@ def arc_margins_rad(grid: ElevationGrid, heights: np.ndarray, origin_m: np.ndarr
 
 
 class TipRisk(LeafSystem):
-    """Minus the tip margin, now and along the commanded arc (module doc), computed when read.
+    """Minus the tip margin, now and along the commanded arc (module doc), each computed when read.
 
     .. pydrake_system::
 
@@ -75,16 +76,17 @@ class TipRisk(LeafSystem):
         - body_poses
         - command
         output_ports:
-        - tip_risk
+        - tip_risk_now
+        - tip_risk_ahead
 
     Ports:
         elevation_map: [origin_x (m), origin_y (m), heights (m, NaN unknown) row-major] of `grid`,
             as `ElevationMapper` gives it.
         body_poses: the plant's body poses X_WB (vector of RigidTransform).
         command: [v m/s, w rad/s], the command the arc holds.
-        tip_risk: [tip_risk_now, tip_risk_ahead] (deg): minus the static stability margin of the
-            chassis's attitude, and minus the least margin predicted along the arc (the current
-            pose's margin where the map knows no pose of it).
+        tip_risk_now: [deg] minus the static stability margin of the chassis's attitude.
+        tip_risk_ahead: [deg] minus the least margin predicted along the arc (the current pose's
+            margin where the map knows no pose of it).
     """
 
     def __init__(self, chassis_body_index, grid: ElevationGrid, config: TipRiskConfig | None = None):
@@ -99,14 +101,21 @@ class TipRisk(LeafSystem):
         self._map_port = self.DeclareVectorInputPort("elevation_map", 2 + grid.size)
         self._poses_port = self.DeclareAbstractInputPort("body_poses", Value([RigidTransform()]))
         self._command_port = self.DeclareVectorInputPort("command", 2)
-        self.DeclareVectorOutputPort("tip_risk", BasicVector(len(TIP_RISK_SIGNALS)), self._calc_risk)
+        self.DeclareVectorOutputPort("tip_risk_now", BasicVector(1), self._calc_now,
+                                     prerequisites_of_calc={self._poses_port.ticket()})
+        self.DeclareVectorOutputPort("tip_risk_ahead", BasicVector(1), self._calc_ahead)
 
-    def _calc_risk(self, context, output) -> None:
+    def _margin_now_rad(self, context) -> float:
+        return min(stability_margins_rad(self._poses_port.Eval(context)[self._chassis_index].rotation().matrix()))
+
+    def _calc_now(self, context, output) -> None:
+        output.SetAtIndex(0, -math.degrees(self._margin_now_rad(context)))
+
+    def _calc_ahead(self, context, output) -> None:
         X_WB = self._poses_port.Eval(context)[self._chassis_index]
-        now_rad = min(stability_margins_rad(X_WB.rotation().matrix()))
         origin_m, heights = self._grid.unpack(self._map_port.Eval(context))
         v, w = self._command_port.Eval(context)
         pose = np.array([*X_WB.translation()[:2], planar_yaw(X_WB)])
         margins = arc_margins_rad(self._grid, heights, origin_m, pose, v, w, self._config)
-        ahead_rad = float(np.nanmin(margins)) if np.isfinite(margins).any() else now_rad
-        output.SetFromVector([-math.degrees(now_rad), -math.degrees(ahead_rad)])
+        ahead_rad = float(np.nanmin(margins)) if np.isfinite(margins).any() else self._margin_now_rad(context)
+        output.SetAtIndex(0, -math.degrees(ahead_rad))
