@@ -15,11 +15,11 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.controllers import controller_config, get_controller
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig
-from ditch_drake.learning.gate_calibration import FALLBACK, POLICY
-from ditch_drake.learning.gate_calibration import load_signals
+from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, load_signals
+from ditch_drake.learning.uncertainty import RISK_SIGNALS
 from ditch_drake.planning.elevation_map import ElevationGrid
 from ditch_drake.spec import robot
-from ditch_drake.systems.tip_risk import TIP_RISK_SIGNALS, TipRisk, TipRiskConfig
+from ditch_drake.systems.tip_risk import TipRisk, TipRiskConfig
 
 FORE_AFT_TIP_DEG = math.degrees(robot.tip_angle_fore_aft_rad())
 SIDEWAYS_TIP_DEG = math.degrees(robot.tip_angle_sideways_rad())
@@ -36,7 +36,7 @@ def _risk(heights_of_xy, X_WB: RigidTransform, command, config: TipRiskConfig | 
     block.GetInputPort("elevation_map").FixValue(context, grid.pack(grid.origin_m(origin), heights))
     block.GetInputPort("body_poses").FixValue(context, [X_WB])
     block.GetInputPort("command").FixValue(context, np.asarray(command, dtype=float))
-    return np.array([block.GetOutputPort(name).Eval(context)[0] for name in TIP_RISK_SIGNALS])
+    return np.array([block.GetOutputPort(name).Eval(context)[0] for name in RISK_SIGNALS])
 
 
 def flat(x, y):

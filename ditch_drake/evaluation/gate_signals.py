@@ -34,11 +34,11 @@ from ditch_drake.common.parallel import deferred_interrupts
 from ditch_drake.common.progress import log_progress
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.diagrams.rollout import LearnedPolicyConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
-from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, UNCERTAINTY_SIGNALS
+from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, RISK_SIGNALS, UNCERTAINTY_SIGNALS
 from ditch_drake.spec.schedule import ScheduleConfig
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 from ditch_drake.systems.policy import LearnedPolicy
-from ditch_drake.systems.tip_risk import TIP_RISK_SIGNALS, TipRisk, TipRiskConfig
+from ditch_drake.systems.tip_risk import TipRisk, TipRiskConfig
 
 # The policy block's observation inputs, in `LearnedPolicy.decide`'s order.
 STACK_PORTS = ("image_stack", "imu_stack", "distance_stack", "bearing_stack")
@@ -64,7 +64,9 @@ class SignalWatch:
         self._tip_risk = tip_risk
         self._period_s = schedule.control_period_s
         self._offset_s = schedule.controller_offset_s
-        self.signals = supported_signals(policy.members) + (list(TIP_RISK_SIGNALS) if tip_risk is not None else [])
+        self._uncertainty = supported_signals(policy.members)
+        self._risk = list(RISK_SIGNALS) if tip_risk is not None else []
+        self.signals = self._uncertainty + self._risk
         self._rates = policy.action_commands[:, 1]
         self.time_s: list[float] = []
         self.values: dict[str, list[float]] = {name: [] for name in self.signals}
@@ -84,12 +86,11 @@ class SignalWatch:
             raise RuntimeError(f"the policy chose label {label} at {tick_s:.3f} s but its inputs now give "
                                f"{decision.label}: the watch does not see what the policy saw")
         self.time_s.append(tick_s)
-        for name in self.signals:
-            if name in UNCERTAINTY_SIGNALS:
-                self.values[name].append(float(UNCERTAINTY_SIGNALS[name](decision.member_probabilities, self._rates)))
-        if self._tip_risk is not None:
+        for name in self._uncertainty:
+            self.values[name].append(float(UNCERTAINTY_SIGNALS[name](decision.member_probabilities, self._rates)))
+        if self._risk:
             risk_context = self._tip_risk.GetMyContextFromRoot(root_context)
-            for name in TIP_RISK_SIGNALS:
+            for name in self._risk:
                 self.values[name].append(float(self._tip_risk.GetOutputPort(name).Eval(risk_context)[0]))
         return False
 

@@ -17,16 +17,12 @@ from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.learning.uncertainty import RISK_SIGNALS
 from ditch_drake.planning.attitude import predict_attitude
-from ditch_drake.planning.elevation_map import ElevationGrid, presume_drops
-from ditch_drake.planning.mppi import MppiPlannerConfig, rollout
+from ditch_drake.planning.elevation_map import ElevationGrid
+from ditch_drake.planning.mppi import MppiPlanner, rollout
 from ditch_drake.spec import robot
 from ditch_drake.spec.planar import planar_yaw
 from ditch_drake.systems.episode_monitor import stability_margins_rad
-
-# The signals, each an output port of `TipRisk` by its name.
-TIP_RISK_SIGNALS = RISK_SIGNALS
 
 
 @dataclass
@@ -50,17 +46,14 @@ class TipRiskConfig:
 
 
 def arc_margins_rad(grid: ElevationGrid, heights: np.ndarray, origin_m: np.ndarray, pose: np.ndarray,
-                    v: float, w: float, config: TipRiskConfig) -> np.ndarray:
+                    v: float, w: float, horizon_s: float, planner: MppiPlanner | None = None) -> np.ndarray:
     """Predicted stability margins (rad) at the poses of (v, w) held from `pose` (x, y, yaw) for
-    `config.horizon_s`, the pose itself first; NaN where the map does not know enough wheels."""
+    `horizon_s`, the pose itself first; NaN where the map does not know enough wheels. With
+    `planner`, on the map it plans on (`MppiPlanner.planning_heights`: presumed drops)."""
     origin = np.round(np.asarray(origin_m) / grid.resolution).astype(int)
-    if config.presume_drops:
-        planner = MppiPlannerConfig()
-        xs, ys = grid.cell_centers(origin)
-        within = np.hypot(xs[None, :] - pose[0], ys[:, None] - pose[1]) <= planner.presumed_drop_radius_m
-        heights = presume_drops(heights, grid.resolution, planner.presumed_drop_slope_deg, planner.presumed_drop_m,
-                                within)
-    steps = max(1, round(config.horizon_s / robot.CONTROL_PERIOD_S))
+    if planner is not None:
+        heights = planner.planning_heights(grid, heights, origin, pose)
+    steps = max(1, round(horizon_s / robot.CONTROL_PERIOD_S))
     poses = rollout(np.asarray(pose, dtype=float), np.full((1, steps), float(w)), float(v), robot.CONTROL_PERIOD_S)[0]
     return predict_attitude(grid, heights, origin, poses).margin
 
@@ -96,6 +89,7 @@ class TipRisk(LeafSystem):
         super().__init__()
         self._config = config or TipRiskConfig()
         self._config.validate()
+        self._planner = MppiPlanner() if self._config.presume_drops else None
         self._grid = grid
         self._chassis_index = int(chassis_body_index)
         self._map_port = self.DeclareVectorInputPort("elevation_map", 2 + grid.size)
@@ -116,6 +110,6 @@ class TipRisk(LeafSystem):
         origin_m, heights = self._grid.unpack(self._map_port.Eval(context))
         v, w = self._command_port.Eval(context)
         pose = np.array([*X_WB.translation()[:2], planar_yaw(X_WB)])
-        margins = arc_margins_rad(self._grid, heights, origin_m, pose, v, w, self._config)
+        margins = arc_margins_rad(self._grid, heights, origin_m, pose, v, w, self._config.horizon_s, self._planner)
         ahead_rad = float(np.nanmin(margins)) if np.isfinite(margins).any() else self._margin_now_rad(context)
         output.SetAtIndex(0, -math.degrees(ahead_rad))
