@@ -117,3 +117,17 @@ def test_a_risk_gate_reads_the_tip_risk_of_the_policys_command_and_hands_over_ne
         drivers.append(gate.GetOutputPort("who_drives").Eval(gate_context)[0])
     # Far from the edge the policy drives; its arc nears the wall within the first 12 s.
     assert drivers[0] == POLICY and FALLBACK in drivers, drivers
+
+
+def test_a_risk_gate_on_a_recording_without_risk_signals_is_refused_naming_the_option(tmp_path, capsys):
+    out = tmp_path / "plain.npz"
+    argv = ["gate-signals", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--rollouts", "1",
+            "--seed", "4", "--time-limit", "1", "--out", str(out)]
+    assert main(argv) == 0
+    override = ("{controller: !SharedControlControllerConfig {policy: {checkpoint: wide_bc40}, gate: {signal: "
+                f"tip_risk_ahead, budget: 0.05, calibration: {out}}}}}}}")
+    capsys.readouterr()
+    assert main(["evaluate", "--override", override, "--env", "wide", "--task", "1", "--rollouts", "1",
+                 "--out", str(tmp_path / "r.jsonl")]) == 2
+    err = capsys.readouterr().err
+    assert "has no signal 'tip_risk_ahead'" in err and "gate-signals --risk" in err, err
