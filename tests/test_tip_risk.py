@@ -131,3 +131,12 @@ def test_a_risk_gate_on_a_recording_without_risk_signals_is_refused_naming_the_o
                  "--out", str(tmp_path / "r.jsonl")]) == 2
     err = capsys.readouterr().err
     assert "has no signal 'tip_risk_ahead'" in err and "gate-signals --risk" in err, err
+
+
+def test_a_tip_risk_config_beside_a_gate_that_does_not_read_it_is_refused(tmp_path, capsys):
+    override = "{controller: !SharedControlControllerConfig {policy: {tip_risk: {horizon_s: 3.0}}}}"
+    assert main(["evaluate", "--override", override, "--env", "wide", "--task", "1", "--rollouts", "1",
+                 "--out", str(tmp_path / "r.jsonl")]) == 2
+    err = capsys.readouterr().err
+    assert "policy.tip_risk with signal 'mean_softmax_entropy'" in err, err
+    assert not (tmp_path / "r.jsonl").exists()

@@ -124,6 +124,10 @@ class SharedControlControllerConfig:
             raise ConfigError("shared control fallback 'teleop' without a Meshcat: a person steers it on the Meshcat "
                               "page, which batch evaluation and the registered builders have none of; expected "
                               "fallback 'expert' or 'mppi'")
+        if self.policy.tip_risk is not None and self.gate.signal not in RISK_SIGNALS:
+            raise ConfigError(f"shared control policy.tip_risk with signal {self.gate.signal!r}: the tip-risk block "
+                              "only feeds a gate on a risk signal; expected signal one of "
+                              f"{list(RISK_SIGNALS)}, or no policy.tip_risk")
         if self.gate.signal in DISAGREEMENT_SIGNALS and not is_ensemble(self.policy.checkpoint):
             name = self.policy.checkpoint or "the environment's shipped model"
             raise ConfigError(f"shared control signal {self.gate.signal!r} with checkpoint {name!r}, a single clone "
