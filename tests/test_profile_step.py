@@ -58,7 +58,7 @@ def test_the_network_is_counted_layer_by_layer():
     assert convolutions < multiply_adds < convolutions * 1.01
 
 
-def test_the_bench_times_one_clone_an_ensemble_and_the_onnx_runtime():
+def test_the_bench_times_one_clone_an_ensemble_and_the_onnx_runtime_in_float_and_int8():
     from ditch_drake.perf import bench_training
 
     pytest.importorskip("onnxruntime")
@@ -68,3 +68,4 @@ def test_the_bench_times_one_clone_an_ensemble_and_the_onnx_runtime():
     assert 0 < one["policy_step_ms"] <= one["policy_step_max_ms"]
     assert 0 < five["ensemble_policy_step_ms"] <= five["ensemble_policy_step_max_ms"]
     assert 0 < onnx["policy_step_onnxruntime_ms"] <= onnx["policy_step_onnxruntime_max_ms"]
+    assert 0 < onnx["policy_step_onnxruntime_int8_ms"] <= onnx["policy_step_onnxruntime_int8_max_ms"]

@@ -17,6 +17,16 @@ def add_export_policy(commands: Commands) -> None:
                         help="the model format; one of: onnx (opset 17; inputs image, imu, distance, bearing raw, "
                              "output logits, the action table and model config in its metadata)")
     add_out(export, "the file to write (atomically), e.g. policy.onnx")
+    export.add_argument("--quantize", default=ConfigDefault(EXPORT, "quantize"),
+                        help="none (float32) or int8 (the convolutions in 8-bit integers, QDQ format, calibrated "
+                             "on --calibration-data; its labels differ from the float model's on a few samples)")
+    export.add_argument("--calibration-data", action="append", default=[], metavar="DIR",
+                        help="with --quantize int8: a dataset folder (repeatable) holding demonstrations the "
+                             "checkpoint trained on; its validation demonstrations are never drawn")
+    export.add_argument("--calibration-samples", type=int, default=ConfigDefault(EXPORT, "calibration_samples"),
+                        help="with --quantize int8: how many samples, drawn with --seed, set the activations' ranges")
+    export.add_argument("--seed", type=int, default=ConfigDefault(EXPORT, "seed"),
+                        help="with --quantize int8: the seed of the calibration samples' draw")
     export.add_argument("--check-data", action="append", default=[], metavar="DIR",
                         help="after writing, run the written model and the checkpoint on the samples of this "
                              "dataset folder (repeatable) and print how often their labels agree (default: none)")
@@ -30,7 +40,8 @@ def add_export_policy(commands: Commands) -> None:
 def cmd_export_policy(args) -> int:
     from ditch_drake.learning.onnx_policy import export_policy
 
-    report = export_policy(args.checkpoint, args.out, args.format)
+    report = export_policy(args.checkpoint, args.out, args.format, args.quantize, args.calibration_data,
+                           args.calibration_samples, args.seed)
     if args.check_data:
         report["check"] = check_export(args.checkpoint, args.out, args.check_data, args.check_split)
     print(json.dumps(report, indent=2))

@@ -115,10 +115,11 @@ def _runs_section(results: list[str | os.PathLike]) -> list[str]:
 def _models_table(records: list[RolloutRecord]) -> list[str]:
     """Where each evaluated checkpoint came from, read from the file when it is still there
     (and still the file the rollouts used: same hash prefix); an ensemble's row summarises its
-    members (`_ensemble_row`)."""
+    members (`_ensemble_row`), an ONNX policy's names what it was exported from (`_onnx_row`)."""
     from ditch_drake.common.errors import CheckpointError, ConfigError
     from ditch_drake.learning.checkpoint import checkpoint_digest, load_checkpoint, resolve_checkpoint_path
     from ditch_drake.learning.ensemble import is_ensemble_checkpoint, load_ensemble
+    from ditch_drake.learning.onnx_policy import is_onnx_path, read_onnx_policy
 
     lines = ["| model | checkpoint | sha256 | demonstrations (train/val) | epochs (best) | device | training_s |",
              "| --- | --- | --- | --- | --- | --- | --- |"]
@@ -129,7 +130,9 @@ def _models_table(records: list[RolloutRecord]) -> list[str]:
         try:
             if checkpoint_digest(path) == digest:
                 file = resolve_checkpoint_path(path)
-                if is_ensemble_checkpoint(file):
+                if is_onnx_path(file):
+                    row = _onnx_row(read_onnx_policy(file).metadata)
+                elif is_ensemble_checkpoint(file):
                     row = _ensemble_row(load_ensemble(file).members)
                 else:
                     summary = load_checkpoint(file).summary()
@@ -139,6 +142,16 @@ def _models_table(records: list[RolloutRecord]) -> list[str]:
             pass
         lines.append(f"| {label} | {path} | {digest} | " + " | ".join(row) + " |")
     return lines if used else []
+
+
+def _onnx_row(metadata: dict) -> list[str]:
+    """An ONNX policy's Models cells from its metadata: the checkpoint it was exported from (and
+    that checkpoint's hash prefix), and its quantization with the calibration samples."""
+    source = f"ONNX of {metadata.get('source_checkpoint') or '?'} ({metadata.get('source_checkpoint_sha256', '')[:16]})"
+    quantization = metadata.get("quantization")
+    numbers = (f"{quantization.get('scheme')}, {quantization.get('calibration_samples')} calibration samples"
+               if quantization else "float32")
+    return [source, "-", numbers, "-"]
 
 
 def _ensemble_row(members: list) -> list[str]:

@@ -135,10 +135,12 @@ def measure_blocks() -> dict:
     # branch in bfloat16 (`precision: bfloat16_image`; None on a CPU without native bfloat16).
     ensemble = measure_ensemble_policy_step_ms()
     figures.update({key: ensemble[key] for key in ("ensemble_policy_step_ms", "ensemble_policy_step_bfloat16_ms")})
-    # The same network in ONNX Runtime (`runtime: onnxruntime`), where the `onnx` extra is installed.
+    # The same network in ONNX Runtime (`runtime: onnxruntime`), float32 and int8, where the `onnx`
+    # extra is installed.
     onnxruntime_step = measure_onnxruntime_policy_step_ms()
     if onnxruntime_step:
         figures["policy_step_onnxruntime_ms"] = onnxruntime_step["policy_step_onnxruntime_ms"]
+        figures["policy_step_onnxruntime_int8_ms"] = onnxruntime_step["policy_step_onnxruntime_int8_ms"]
     # The DWA baseline on the real lidar: costmap update + local plan apart from the global plan.
     dwa = measure_dwa_ms()
     figures.update({key: dwa[key] for key in ("dwa_update_ms", "dwa_update_cpu_ms", "dwa_update_p90_ms",

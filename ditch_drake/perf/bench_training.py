@@ -187,10 +187,12 @@ def measure_policy_step_ms(repeats: int = 50) -> dict:
 
 def measure_onnxruntime_policy_step_ms(repeats: int = 50) -> dict:
     """`measure_policy_step_ms` with the network run by ONNX Runtime (`runtime: onnxruntime`, one
-    thread); none without the `onnx` extra, which says so on stderr.
+    thread), as exported and quantized to int8 (`export-policy --quantize int8`); none without
+    the `onnx` extra, which says so on stderr.
 
     Returns:
-        {"policy_step_onnxruntime_ms": median, "policy_step_onnxruntime_max_ms": slowest}, or {}.
+        {"policy_step_onnxruntime_ms": median, "policy_step_onnxruntime_max_ms": slowest, and the
+        same with "_int8" before "_ms"}, or {}.
     """
     import importlib.util
 
@@ -203,15 +205,24 @@ def measure_onnxruntime_policy_step_ms(repeats: int = 50) -> dict:
     from ditch_drake.learning.checkpoint import make_checkpoint
     from ditch_drake.learning.inference import OnnxRuntimeInference
     from ditch_drake.learning.model import FourInputClassifier
-    from ditch_drake.learning.onnx_policy import export_onnx
+    from ditch_drake.learning.onnx_policy import INPUT_NAMES, example_inputs, export_onnx
+    from ditch_drake.learning.onnx_quantize import quantize_int8
     from ditch_drake.systems.policy import LearnedPolicy
 
     checkpoint = make_checkpoint(FourInputClassifier())
-    inference = OnnxRuntimeInference(export_onnx(checkpoint, "an untrained network", "0" * 64),
-                                     checkpoint.model_config, checkpoint.action_commands, num_threads=1)
-    times = _policy_update_times(LearnedPolicy(inference), repeats)
-    return {"policy_step_onnxruntime_ms": 1e3 * float(np.median(times)),
-            "policy_step_onnxruntime_max_ms": 1e3 * float(np.max(times))}
+    model = export_onnx(checkpoint, "an untrained network", "0" * 64)
+    # The int8 model is calibrated on seeded synthetic inputs: its speed does not depend on them.
+    calibration = [dict(zip(INPUT_NAMES, (tensor.numpy() for tensor in example_inputs(checkpoint.model_config, 16,
+                                                                                        seed))))
+                   for seed in range(2)]
+    models = {"": model, "_int8": quantize_int8(model, calibration, {"calibration_data": "synthetic"})}
+    figures = {}
+    for suffix, each in models.items():
+        inference = OnnxRuntimeInference(each, checkpoint.model_config, checkpoint.action_commands, num_threads=1)
+        times = _policy_update_times(LearnedPolicy(inference), repeats)
+        figures[f"policy_step_onnxruntime{suffix}_ms"] = 1e3 * float(np.median(times))
+        figures[f"policy_step_onnxruntime{suffix}_max_ms"] = 1e3 * float(np.max(times))
+    return figures
 
 
 def measure_ensemble_policy_step_ms(members: int = 5, repeats: int = 50, noise: float = 0.01) -> dict:
