@@ -384,6 +384,20 @@ def onnxruntime_session(model: bytes, num_threads: int = 1, where: str = "the ON
                               f"{EXPECTED_ONNX}") from error
 
 
+def network_feeds(arrays: ArraySet, rows: np.ndarray, reflect: bool = False) -> list[dict[str, np.ndarray]]:
+    """The network's inputs of `rows` of `arrays` as float32 arrays by input name: one feed,
+    and with `reflect` a second of their left-right reflections (`mirror_left_right`)."""
+    batch = {"image": images_to_float32(arrays.image[rows]),
+             **{name: np.asarray(getattr(arrays, name)[rows], dtype=np.float32)
+                for name in ("imu", "distance", "bearing")}}
+    views = [batch]
+    if reflect:
+        mirrored = {name: value.copy() for name, value in batch.items()}
+        mirror_left_right(mirrored)
+        views.append(mirrored)
+    return [{name: np.ascontiguousarray(view[name]) for name in INPUT_NAMES} for view in views]
+
+
 def label_agreement(checkpoint: PolicyCheckpoint, model: bytes, arrays: ArraySet, rows: np.ndarray | None = None,
                     reflect: bool = False, batch_size: int = 256) -> dict:
     """How often the ONNX model's argmax equals torch's on samples of `arrays`.
@@ -407,17 +421,7 @@ def label_agreement(checkpoint: PolicyCheckpoint, model: bytes, arrays: ArraySet
     samples = agreeing = 0
     max_diff, flipped = 0.0, []
     for start in range(0, len(rows), batch_size):
-        chunk = np.sort(rows[start:start + batch_size])
-        batch = {"image": images_to_float32(arrays.image[chunk]),
-                 **{name: np.asarray(getattr(arrays, name)[chunk], dtype=np.float32)
-                    for name in ("imu", "distance", "bearing")}}
-        views = [batch]
-        if reflect:
-            mirrored = {name: value.copy() for name, value in batch.items()}
-            mirror_left_right(mirrored)
-            views.append(mirrored)
-        for view in views:
-            feed = {name: np.ascontiguousarray(view[name]) for name in INPUT_NAMES}
+        for feed in network_feeds(arrays, np.sort(rows[start:start + batch_size]), reflect):
             with torch.inference_mode():
                 reference = torch_model(*(torch.from_numpy(feed[name]) for name in INPUT_NAMES)).numpy()
             exported = session.run([OUTPUT_NAME], feed)[0]

@@ -31,9 +31,8 @@ import numpy as np
 
 import ditch_drake
 from ditch_drake.common.errors import ConfigError
-from ditch_drake.learning.data import ArraySet, images_to_float32
-from ditch_drake.learning.mirror import mirror_left_right
-from ditch_drake.learning.onnx_policy import INPUT_NAMES, METADATA_KEY, require_module
+from ditch_drake.learning.data import ArraySet
+from ditch_drake.learning.onnx_policy import METADATA_KEY, network_feeds, require_module
 
 QUANTIZATIONS = ("none", "int8")
 QUANTIZED_OPERATORS = ("Conv",)
@@ -64,18 +63,8 @@ def calibration_rows(arrays: ArraySet, val_demo_ids, samples: int, seed: int) ->
 def calibration_batches(arrays: ArraySet, rows: np.ndarray, reflect: bool) -> list[dict]:
     """The network's float32 inputs of `rows` (and of their reflections with `reflect`), in
     batches of `CALIBRATION_BATCH`."""
-    batches = []
-    for start in range(0, len(rows), CALIBRATION_BATCH):
-        chunk = rows[start:start + CALIBRATION_BATCH]
-        batch = {"image": images_to_float32(arrays.image[chunk]),
-                 **{name: np.asarray(getattr(arrays, name)[chunk], dtype=np.float32)
-                    for name in ("imu", "distance", "bearing")}}
-        batches.append(batch)
-        if reflect:
-            mirrored = {name: value.copy() for name, value in batch.items()}
-            mirror_left_right(mirrored)
-            batches.append(mirrored)
-    return [{name: np.ascontiguousarray(batch[name]) for name in INPUT_NAMES} for batch in batches]
+    return [feed for start in range(0, len(rows), CALIBRATION_BATCH)
+            for feed in network_feeds(arrays, rows[start:start + CALIBRATION_BATCH], reflect)]
 
 
 def quantize_int8(model: bytes, batches: list[dict], calibration: dict) -> bytes:
