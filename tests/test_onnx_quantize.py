@@ -101,6 +101,7 @@ def test_the_int8_model_runs_as_a_policy_and_stays_close_to_the_float_network(in
     (["--calibration-data", "{demos}"], "without --quantize int8"),
     (["--quantize", "int8", "--calibration-data", "{demos}", "--calibration-samples", "0"],
      "--calibration-samples 0: expected an integer >= 1"),
+    (["--quantize", "int8", "--calibration-data", "{demos}", "--seed", "-1"], "--seed -1: expected an integer >= 0"),
     (["--quantize", "int8", "--calibration-data", "{tmp}/nothing"], "nothing"),
 ])
 def test_bad_quantization_arguments_are_refused_with_exit_2(demos, tmp_path, capsys, arguments, named):

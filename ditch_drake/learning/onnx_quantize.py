@@ -47,10 +47,13 @@ def calibration_rows(arrays: ArraySet, val_demo_ids, samples: int, seed: int) ->
     not in `val_demo_ids`, sorted.
 
     Raises:
-        ConfigError: `samples` < 1, or no sample outside the validation demonstrations.
+        ConfigError: `samples` < 1, a negative `seed`, or no sample outside the validation
+            demonstrations.
     """
     if not (isinstance(samples, int) and not isinstance(samples, bool) and samples >= 1):
         raise ConfigError(f"--calibration-samples {samples!r}: expected an integer >= 1")
+    if not (isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0):
+        raise ConfigError(f"--seed {seed!r}: expected an integer >= 0 for the calibration samples' draw")
     candidates = np.flatnonzero(~np.isin(arrays.demo_id, list(val_demo_ids)))
     if not len(candidates):
         raise ConfigError(f"the calibration data's {len(np.unique(arrays.demo_id))} demonstrations are all among the "
