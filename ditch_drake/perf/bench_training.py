@@ -216,10 +216,11 @@ def measure_onnxruntime_policy_step_ms(repeats: int = 50) -> dict:
                                                                                         seed))))
                    for seed in range(2)]
     models = {"": model, "_int8": quantize_int8(model, calibration, {"calibration_data": "synthetic"})}
+    # One update of each in turn, so that a busy spell of a shared host slows both alike.
+    policies = [LearnedPolicy(OnnxRuntimeInference(each, checkpoint.model_config, checkpoint.action_commands,
+                                                   num_threads=1)) for each in models.values()]
     figures = {}
-    for suffix, each in models.items():
-        inference = OnnxRuntimeInference(each, checkpoint.model_config, checkpoint.action_commands, num_threads=1)
-        times = _policy_update_times(LearnedPolicy(inference), repeats)
+    for suffix, times in zip(models, _alternating_update_times(policies, repeats), strict=True):
         figures[f"policy_step_onnxruntime{suffix}_ms"] = 1e3 * float(np.median(times))
         figures[f"policy_step_onnxruntime{suffix}_max_ms"] = 1e3 * float(np.max(times))
     return figures
