@@ -17,8 +17,8 @@ checkpoint trained on (never its validation demonstrations), each also reflected
 canonical-side model, which is fed reflections where the crossing turns left.
 
 The labels of an int8 model differ from the float model's on a small share of samples (an
-approximation chosen on purpose: docs/concepts/learning.md has the measured agreement and
-rollouts). The result depends on the CPU's integer kernels: on x86 without VNNI, ONNX
+approximation chosen on purpose: docs/concepts/learning.md has the measured agreement,
+docs/results/performance.md the rollouts and the step time). The result depends on the CPU's integer kernels: on x86 without VNNI, ONNX
 Runtime's uint8 x int8 products can saturate.
 """
 
@@ -36,7 +36,6 @@ from ditch_drake.learning.onnx_policy import METADATA_KEY, network_feeds, requir
 
 QUANTIZATIONS = ("none", "int8")
 QUANTIZED_OPERATORS = ("Conv",)
-DEFAULT_CALIBRATION_SAMPLES = 128
 # Samples per calibration forward pass: ONNX Runtime's MinMax calibration keeps every
 # intermediate output of every pass until the end, so the memory is the total, not the batch.
 CALIBRATION_BATCH = 16
