@@ -7,6 +7,8 @@ import numpy as np
 from ditch_drake.cli.options import Commands, ConfigDefault, add_out
 
 EXPORT = "ditch_drake.learning.onnx_policy:export_policy"
+QUANTIZE = "ditch_drake.learning.onnx_quantize:check_quantization"
+INT8 = "ditch_drake.learning.onnx_quantize:int8_quantizer"
 
 
 def add_export_policy(commands: Commands) -> None:
@@ -17,15 +19,15 @@ def add_export_policy(commands: Commands) -> None:
                         help="the model format; one of: onnx (opset 17; inputs image, imu, distance, bearing raw, "
                              "output logits, the action table and model config in its metadata)")
     add_out(export, "the file to write (atomically), e.g. policy.onnx")
-    export.add_argument("--quantize", default=ConfigDefault(EXPORT, "quantize"),
+    export.add_argument("--quantize", default=ConfigDefault(QUANTIZE, "quantize"),
                         help="none (float32) or int8 (the convolutions in 8-bit integers, QDQ format, calibrated "
                              "on --calibration-data; its labels differ from the float model's on a few samples)")
     export.add_argument("--calibration-data", action="append", default=[], metavar="DIR",
                         help="with --quantize int8: a dataset folder (repeatable) holding demonstrations the "
                              "checkpoint trained on; its validation demonstrations are never drawn")
-    export.add_argument("--calibration-samples", type=int, default=ConfigDefault(EXPORT, "calibration_samples"),
+    export.add_argument("--calibration-samples", type=int, default=ConfigDefault(INT8, "calibration_samples"),
                         help="with --quantize int8: how many samples, drawn with --seed, set the activations' ranges")
-    export.add_argument("--seed", type=int, default=ConfigDefault(EXPORT, "seed"),
+    export.add_argument("--seed", type=int, default=ConfigDefault(INT8, "seed"),
                         help="with --quantize int8: the seed of the calibration samples' draw")
     export.add_argument("--check-data", action="append", default=[], metavar="DIR",
                         help="after writing, run the written model and the checkpoint on the samples of this "
@@ -39,9 +41,16 @@ def add_export_policy(commands: Commands) -> None:
 
 def cmd_export_policy(args) -> int:
     from ditch_drake.learning.onnx_policy import export_policy
+    from ditch_drake.learning.onnx_quantize import check_quantization, int8_quantizer
 
-    report = export_policy(args.checkpoint, args.out, args.format, args.quantize, args.calibration_data,
-                           args.calibration_samples, args.seed)
+    check_quantization(args.quantize, args.calibration_data)
+    quantizer = None
+    if args.quantize == "int8":
+        from ditch_drake.demos.training_set import load_training_set
+
+        quantizer = int8_quantizer(load_training_set(args.calibration_data), args.calibration_data,
+                                   args.calibration_samples, args.seed)
+    report = export_policy(args.checkpoint, args.out, args.format, quantizer)
     if args.check_data:
         report["check"] = check_export(args.checkpoint, args.out, args.check_data, args.check_split)
     print(json.dumps(report, indent=2))

@@ -176,37 +176,21 @@ def export_onnx(checkpoint: PolicyCheckpoint, source: str = "", source_sha256: s
     return proto.SerializeToString()
 
 
-def export_policy(checkpoint: str, out: str | os.PathLike, format: str = "onnx", quantize: str = "none",
-                  calibration_data: list[str] | tuple[str, ...] = (), calibration_samples: int = 128,
-                  seed: int = 0) -> dict:
+def export_policy(checkpoint: str, out: str | os.PathLike, format: str = "onnx", quantizer=None) -> dict:
     """Writes the policy of `checkpoint` (a shipped name or a .pt file) to `out` in `format`,
     atomically; returns a summary (what the command line prints).
 
     Args:
-        quantize: "none" (float32) or "int8" (`ditch_drake.learning.onnx_quantize`).
-        calibration_data: for int8, dataset folders holding demonstrations the checkpoint
-            trained on, numbered in the order given as `train` numbers them.
-        calibration_samples: for int8, how many samples calibrate the activations' ranges.
-        seed: for int8, the draw of the calibration samples.
+        quantizer: None (float32), or a function (checkpoint, model bytes) -> (model bytes,
+            summary) that rewrites the exported model (`onnx_quantize.int8_quantizer`).
 
     Raises:
-        ConfigError: an unknown format or quantization, int8 without calibration data, an
-            unwritable `out`, a .onnx given as the checkpoint, or the onnx package missing.
+        ConfigError: an unknown format, an unwritable `out`, a .onnx given as the checkpoint, or
+            the onnx package missing.
         CheckpointError: no such checkpoint, or one that does not load.
-        DatasetError: a calibration folder that is not a dataset.
     """
-    from ditch_drake.learning.onnx_quantize import QUANTIZATIONS
-
     if format not in POLICY_FORMATS:
         raise ConfigError(f"--format {format!r}: expected one of {list(POLICY_FORMATS)}")
-    if quantize not in QUANTIZATIONS:
-        raise ConfigError(f"--quantize {quantize!r}: expected one of {list(QUANTIZATIONS)}")
-    if quantize == "int8" and not calibration_data:
-        raise ConfigError("--quantize int8 without --calibration-data: expected one or more dataset folders holding "
-                          "demonstrations the checkpoint trained on (e.g. --calibration-data data/demos/wide)")
-    if quantize == "none" and calibration_data:
-        raise ConfigError(f"--calibration-data {list(calibration_data)} without --quantize int8: expected no "
-                          "calibration data for a float32 export")
     if is_onnx_path(checkpoint):
         raise ConfigError(f"checkpoint {str(checkpoint)!r} is already an ONNX model; expected a .pt checkpoint or "
                           "a shipped model name to export")
@@ -216,26 +200,13 @@ def export_policy(checkpoint: str, out: str | os.PathLike, format: str = "onnx",
     sha256 = file_sha256(path)
     policy = load_checkpoint(path)
     model = export_onnx(policy, str(checkpoint), sha256)
-    summary = {}
-    if quantize == "int8":
-        model, summary = _quantized(policy, model, list(calibration_data), calibration_samples, seed)
+    summary = {"quantize": "none"}
+    if quantizer is not None:
+        model, summary = quantizer(policy, model)
     atomic_write_bytes(out, model)
     return {"out": str(out), "format": format, "opset": OPSET, "bytes": len(model), "inputs": list(INPUT_NAMES),
             "output": OUTPUT_NAME, "metadata_key": METADATA_KEY, "source_checkpoint": str(checkpoint),
-            "source_checkpoint_sha256": sha256, "quantize": quantize, **summary}
-
-
-def _quantized(policy: PolicyCheckpoint, model: bytes, folders: list[str], samples: int, seed: int):
-    from ditch_drake.demos.training_set import load_training_set
-    from ditch_drake.learning.onnx_quantize import calibration_batches, calibration_rows, quantize_int8
-
-    require_module("onnxruntime", "quantizing a policy to int8")
-    arrays = load_training_set(folders)
-    rows = calibration_rows(arrays, policy.training.get("val_demo_ids", []), samples, seed)
-    reflect = bool(policy.model_config.canonical_side)
-    calibration = {"calibration_data": folders, "calibration_samples": len(rows), "calibration_seed": seed,
-                   "calibration_reflected": reflect}
-    return quantize_int8(model, calibration_batches(arrays, rows, reflect), calibration), calibration
+            "source_checkpoint_sha256": sha256, **summary}
 
 
 @dataclass

@@ -41,6 +41,53 @@ QUANTIZED_OPERATORS = ("Conv",)
 CALIBRATION_BATCH = 16
 
 
+def check_quantization(quantize: str = "none", calibration_data: list[str] | tuple[str, ...] = ()) -> None:
+    """`export-policy --quantize` and `--calibration-data` together.
+
+    Raises:
+        ConfigError: an unknown quantization, int8 without calibration data, or calibration
+            data without int8.
+    """
+    if quantize not in QUANTIZATIONS:
+        raise ConfigError(f"--quantize {quantize!r}: expected one of {list(QUANTIZATIONS)}")
+    if quantize == "int8" and not calibration_data:
+        raise ConfigError("--quantize int8 without --calibration-data: expected one or more dataset folders holding "
+                          "demonstrations the checkpoint trained on (e.g. --calibration-data data/demos/wide)")
+    if quantize == "none" and calibration_data:
+        raise ConfigError(f"--calibration-data {list(calibration_data)} without --quantize int8: expected no "
+                          "calibration data for a float32 export")
+
+
+def int8_quantizer(arrays: ArraySet, calibration_data: list[str], calibration_samples: int = 128, seed: int = 0):
+    """The `export_policy` quantizer of `--quantize int8`: `calibration_samples` samples of
+    `arrays` (the folders `calibration_data`, numbered as `train` numbers them) drawn with `seed`
+    from the checkpoint's training demonstrations (`calibration_rows`), reflected too for a
+    canonical-side model, calibrate `quantize_int8`.
+
+    Raises:
+        ConfigError: `calibration_samples` < 1 or a negative `seed` (here); when it runs, no
+            sample outside the checkpoint's validation demonstrations.
+    """
+    _check_draw(calibration_samples, seed)
+
+    def quantize(policy, model: bytes) -> tuple[bytes, dict]:
+        rows = calibration_rows(arrays, policy.training.get("val_demo_ids", []), calibration_samples, seed)
+        reflect = bool(policy.model_config.canonical_side)
+        calibration = {"calibration_data": list(calibration_data), "calibration_samples": len(rows),
+                       "calibration_seed": seed, "calibration_reflected": reflect}
+        batches = calibration_batches(arrays, rows, reflect)
+        return quantize_int8(model, batches, calibration), {"quantize": "int8", **calibration}
+
+    return quantize
+
+
+def _check_draw(samples: int, seed: int) -> None:
+    if not (isinstance(samples, int) and not isinstance(samples, bool) and samples >= 1):
+        raise ConfigError(f"--calibration-samples {samples!r}: expected an integer >= 1")
+    if not (isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0):
+        raise ConfigError(f"--seed {seed!r}: expected an integer >= 0 for the calibration samples' draw")
+
+
 def calibration_rows(arrays: ArraySet, val_demo_ids, samples: int, seed: int) -> np.ndarray:
     """`samples` rows of `arrays` drawn without replacement (seeded) from the demonstrations
     not in `val_demo_ids`, sorted.
@@ -49,10 +96,7 @@ def calibration_rows(arrays: ArraySet, val_demo_ids, samples: int, seed: int) ->
         ConfigError: `samples` < 1, a negative `seed`, or no sample outside the validation
             demonstrations.
     """
-    if not (isinstance(samples, int) and not isinstance(samples, bool) and samples >= 1):
-        raise ConfigError(f"--calibration-samples {samples!r}: expected an integer >= 1")
-    if not (isinstance(seed, int) and not isinstance(seed, bool) and seed >= 0):
-        raise ConfigError(f"--seed {seed!r}: expected an integer >= 0 for the calibration samples' draw")
+    _check_draw(samples, seed)
     candidates = np.flatnonzero(~np.isin(arrays.demo_id, list(val_demo_ids)))
     if not len(candidates):
         raise ConfigError(f"the calibration data's {len(np.unique(arrays.demo_id))} demonstrations are all among the "
