@@ -115,6 +115,41 @@ def test_the_random_gate_is_offered_to_recording_commands():
         assert (gate.signal, gate.upper_threshold, gate.lower_threshold) == ("random", 0.95, 0.8)
 
 
+def test_recording_commands_take_the_gate_from_a_budget(tmp_path):
+    from ditch_drake.cli.main import build_parser
+    from ditch_drake.cli.shared_options import shared_config_from_options
+    from ditch_drake.learning.checkpoint import checkpoint_digest
+    from ditch_drake.learning.gate_calibration import save_signals
+
+    values = np.linspace(0.0, 1.0, 101)
+    signals = tmp_path / "signals.npz"
+    save_signals(signals, "wide", checkpoint_digest("wide"), {"mean_softmax_entropy": values},
+                 {"time_s": values, "episode": [0] * 101},
+                 {"episode_environment": ["wide"], "episode_task": [1], "episode_seed": [0],
+                  "episode_status": ["timeout"], "episode_end_time_s": [10.0]})
+    for command in (["collect", "--shared", "--out", "d"], ["teleop", "--shared", "--out", "d"]):
+        args = build_parser().parse_args([*command, "--signal", "mean_softmax_entropy", "--budget", "0.1",
+                                          "--calibration", str(signals), "--calm-steps", "1"])
+        gate = shared_config_from_options(args, "wide", fallback="expert").gate
+        assert (gate.budget, gate.calibration) == (0.1, str(signals))
+        resolved = gate.resolved()
+        assert resolved.upper_threshold == pytest.approx(0.9) and resolved.lower_threshold == pytest.approx(0.8)
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--budget", "0.1"], "budget 0.1 without a calibration"),
+    (["--budget", "1.5", "--calibration", "x.npz"], "budget 1.5: expected a share of control steps in (0, 1)"),
+    (["--calibration", "x.npz"], "calibration 'x.npz' without a budget"),
+    (["--budget", "0.1", "--calibration", "missing.npz"], "missing.npz: cannot read it"),
+])
+def test_bad_budgets_of_a_shared_collection_exit_2(tmp_path, capsys, extra, message):
+    code = main(["collect", "--shared", "--env", "wide", "--demos", "1", "--workers", "0",
+                 "--out", str(tmp_path / "d"), *extra])
+    err = capsys.readouterr().err
+    assert code == 2 and message in err, err
+    assert not (tmp_path / "d").exists()
+
+
 def test_a_checkpoint_without_shared_is_refused(tmp_path, capsys):
     assert main(["collect", "--checkpoint", "wide", "--out", str(tmp_path / "d"), "--demos", "1"]) == 2
     assert "--checkpoint wide: a gated policy drives only with --shared" in capsys.readouterr().err

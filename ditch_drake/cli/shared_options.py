@@ -23,6 +23,13 @@ def add_gate_options(sub: argparse.ArgumentParser, fallbacks: list[str]) -> None
                            "(default %(default)s)")
     gate.add_argument("--calm-steps", type=int, default=ConfigDefault(SHARED, "gate.calm_steps"),
                       help="control steps below the lower threshold before handing back (default %(default)s)")
+    gate.add_argument("--budget", type=float, default=None,
+                      help="the share of control steps the fallback may drive, in (0, 1): both thresholds then "
+                           "come from --calibration, the gated policy's own validation rollouts (in place of "
+                           "--upper-threshold and --lower-threshold; with --signal random, from no file)")
+    gate.add_argument("--calibration", default="", metavar="SIGNALS_NPZ",
+                      help="with --budget: the signals file of `ditch-drake gate-signals` for the gated policy "
+                           "(with --risk for a risk signal)")
     if len(fallbacks) > 1:
         gate.add_argument("--fallback", choices=fallbacks, default=fallbacks[0],
                           help="who takes over where the policy is unsure (default %(default)s)")
@@ -42,6 +49,9 @@ def shared_config_from_options(args, checkpoint: str | None, fallback: str | Non
     config = SharedControlControllerConfig().with_checkpoint(checkpoint or "")
     gate = dataclasses.replace(config.gate, signal=args.signal, upper_threshold=args.upper_threshold,
                                lower_threshold=args.lower_threshold, calm_steps=args.calm_steps,
-                               fallback=fallback or args.fallback)
+                               fallback=fallback or args.fallback, budget=args.budget,
+                               calibration=args.calibration)
     gate.validate()
+    if gate.budget is not None:
+        gate.resolved()
     return dataclasses.replace(config, gate=gate)
