@@ -6,6 +6,7 @@ from collections import Counter
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 import yaml
@@ -17,8 +18,9 @@ from ditch_drake.diagrams.rollout import LearnedPolicyConfig
 from ditch_drake.evaluation.model_labels import controller_labels
 from ditch_drake.evaluation.results import RolloutRecord, read_records
 from ditch_drake.evaluation.runs import read_runs
-from ditch_drake.learning.checkpoint import make_checkpoint
+from ditch_drake.learning.checkpoint import load_checkpoint, make_checkpoint, resolve_checkpoint_path
 from ditch_drake.learning.ensemble import EnsembleCheckpoint, load_ensemble, save_ensemble
+from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.learning.model import FourInputClassifier
 from ditch_drake.pipelines.experiment import (
     ModelSpec,
@@ -56,16 +58,23 @@ studies:
 def test_the_paper_study_plans_a_k5_ensemble_per_ditch_its_gates_their_random_controls_and_the_ensemble_alone():
     config = load_experiment("experiments/paper.yaml")
     models, evaluations = plan(config, only_studies=["shared_control"])
-    assert models == [ModelSpec((env,), 40, 5) for env in PAPER]
-    assert [str(model_path(config, m)) for m in models] == [f"models/paper/{env}_40_k5.pt" for env in PAPER]
-    assert [str(gate_signals_path(config, m)) for m in models] == [f"results/paper/gate/{env}_40_k5.npz"
-                                                                    for env in PAPER]
-    # Per ditch: the ensemble alone, and per budget and fallback the gate and random handover.
-    assert Counter(e.environment for e in evaluations) == dict.fromkeys(PAPER, 1 + 5 * 2 * 2)
+    ensembles = [ModelSpec((env,), 40, 5) for env in PAPER]
+    assert models == [m for env, ensemble in zip(PAPER, ensembles) for m in (
+        ensemble, ModelSpec((env,), 40), ModelSpec((env,), 40, intervention_weight=1.0),
+        ModelSpec((env,), 40, intervention_weight=3.0))]
+    assert [str(model_path(config, m)) for m in ensembles] == [f"models/paper/{env}_40_k5.pt" for env in PAPER]
+    assert [str(gate_signals_path(config, m)) for m in ensembles] == [f"results/paper/gate/{env}_40_k5.npz"
+                                                                       for env in PAPER]
+    # Per ditch: the ensemble alone, per budget and fallback the gate and random handover, and
+    # the aggregation round's clone before and after it (two weights), ungated.
+    assert Counter(e.environment for e in evaluations) == dict.fromkeys(PAPER, 1 + 5 * 2 * 2 + 3)
     assert {e.study for e in evaluations} == {"shared_control"} and {e.seed for e in evaluations} == {300}
-    for env, model in zip(PAPER, models):
+    for env, model in zip(PAPER, ensembles):
         here = [e for e in evaluations if e.environment == env]
         checkpoint = f"models/paper/{env}_40_k5.pt"
+        *here, clone, uniform, weighted = here
+        assert [(e.controller, e.config.checkpoint) for e in (clone, uniform, weighted)] == [
+            ("learned", f"models/paper/{env}_40{suffix}.pt") for suffix in ("", "_round_w1", "_round_w3")]
         assert {e.model for e in here} == {model}
         alone, *gated = here
         assert (alone.controller, alone.config) == ("learned", LearnedPolicyConfig(checkpoint=checkpoint))
@@ -79,9 +88,10 @@ def test_the_paper_study_plans_a_k5_ensemble_per_ditch_its_gates_their_random_co
         assert {(g.calibration, g.calm_steps) for g in gates if g.signal != "random"} == {(calibration, 5)}
         assert {(g.calibration, g.lower_threshold, g.calm_steps) for g in gates if g.signal == "random"} == {
             ("", 0.8, 5)}
-    # --only wide keeps wide's ensemble and its 21 evaluations.
+    # --only wide keeps wide's ensemble, its clone before and after the round, and its 24 evaluations.
     models, evaluations = plan(config, only=["wide"], only_studies=["shared_control"])
-    assert models == [ModelSpec(("wide",), 40, 5)] and len(evaluations) == 21
+    assert [m.name for m in models] == ["wide_40_k5", "wide_40", "wide_40_round_w1", "wide_40_round_w3"]
+    assert len(evaluations) == 24
 
 
 def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_its_name():
@@ -92,11 +102,14 @@ def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_it
                                                      "amalgam": 1, "must_cross": 32}
     assert all(e.config is None and e.seed is None for e in evaluations)
     assert ModelSpec(("wide",), 40) == ModelSpec(("wide",), 40, 1) and ModelSpec(("wide",), 40).name == "wide_40"
-    # A shared-control study of single clones gates the generalization study's own files.
+    # A shared-control study of single clones gates the generalization study's own files, and
+    # its aggregation round evaluates each clone once.
     single = replace(config.studies.shared_control, ensemble=1, signal="mean_softmax_entropy")
-    models, _ = plan(replace(config, studies=replace(config.studies, shared_control=single)),
-                     only_studies=["shared_control"])
-    assert [str(model_path(config, m)) for m in models] == [f"models/paper/{env}_40.pt" for env in PAPER]
+    models, evaluations = plan(replace(config, studies=replace(config.studies, shared_control=single)),
+                               only_studies=["shared_control"])
+    assert [str(model_path(config, m)) for m in models if m.intervention_weight is None] == [
+        f"models/paper/{env}_40.pt" for env in PAPER]
+    assert Counter(e.environment for e in evaluations if e.controller == "learned") == dict.fromkeys(PAPER, 3)
 
 
 @pytest.mark.parametrize("values, message", [
@@ -110,6 +123,15 @@ def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_it
     ("seed: 5", r"studies\.shared_control\.seed=5: its seeds 5-5 overlap the calibration's 0-9"),
     ("calibration_rollouts: 0", r"studies\.shared_control\.calibration_rollouts=0"),
     ("budgets: [0.05], random_lower_threshold: 1.5", r"studies\.shared_control: random handover at budget 0\.05.*lower_threshold"),
+    ("aggregation: {signal: angular_rate_spread}",
+     r"aggregation\.signal='angular_rate_spread': expected one a single clone gives"),
+    ("aggregation: {budget: 0}", r"aggregation\.budget=0\.0: expected a share of control steps in \(0, 1\)"),
+    ("aggregation: {fallback: teleop}", r"aggregation\.fallback='teleop'"),
+    ("aggregation: {rollouts: 0}", r"aggregation\.rollouts=0: expected an integer >= 1"),
+    ("aggregation: {intervention_weights: [1, -2]}", r"aggregation\.intervention_weights=\[1\.0, -2\.0\]: expected positive"),
+    ("aggregation: {intervention_weights: []}", r"aggregation\.intervention_weights=\[\]"),
+    ("aggregation: {seed: 295}", r"aggregation\.seed=295: its seeds 295-314 overlap the study's test seeds 300-300"),
+    ("aggregation: {seed: 9}", r"aggregation\.seed=9: its seeds 9-28 overlap the calibration's 0-9"),
 ])
 def test_bad_study_values_are_refused_naming_the_key(tmp_path, values, message):
     path = tmp_path / "bad.yaml"
@@ -194,6 +216,51 @@ def test_the_train_stage_trains_the_ensemble_that_train_ensemble_does(tmp_path, 
     for ours, theirs in zip(staged.members, commanded.members, strict=True):
         assert ours.training["train_config"] == theirs.training["train_config"]
         assert all(torch.equal(ours.state_dict[key], theirs.state_dict[key]) for key in theirs.state_dict)
+
+
+def test_the_aggregation_round_gates_the_clone_records_its_handovers_and_retrains_as_the_commands_do(
+        tmp_path, random_demonstration):
+    store = DatasetStore.create(tmp_path / "demos" / "wide")
+    for index, steps in enumerate((9, 6)):
+        store.append(random_demonstration(index, steps))
+    path = tmp_path / "round.yaml"
+    path.write_text(TINY.format(root=tmp_path).replace(
+        "ensemble: 2,", "ensemble: 1, signal: mean_softmax_entropy,").replace(
+        "seed: 5}", "seed: 5, aggregation: {signal: tip_risk_ahead, budget: 0.1, rollouts: 1, seed: 20, "
+                    "intervention_weights: [3]}}")
+                    + "training: {epochs: 1, patience: 1, batches_per_epoch: 1, synthetic_fraction: 0.5}\n")
+    config = load_experiment(path)
+    models, evaluations = plan(config)
+    assert [m.name for m in models] == ["wide_2", "wide_2_round_w3"]
+    assert [e.config.checkpoint for e in evaluations if e.controller == "learned"] == [
+        str(tmp_path / "models" / f"wide_2{suffix}.pt") for suffix in ("", "_round_w3")]
+    # The clone is the shipped wide model, so that the gated episode crosses in a few seconds.
+    clone = tmp_path / "models" / "wide_2.pt"
+    clone.parent.mkdir()
+    clone.write_bytes(resolve_checkpoint_path("wide").read_bytes())
+
+    run_experiment(config, stages=("train",), progress=False)
+    signals = tmp_path / "results" / "gate" / "wide_2_risk.npz"
+    assert "tip_risk_ahead" in load_signals(signals)["signals"]
+    handovers = DatasetStore.open(tmp_path / "demos" / "handovers" / "wide_2")
+    (episode,) = handovers.episodes()
+    gate = episode.metadata["shared_gate"]
+    assert (gate["signal"], gate["budget"], gate["calibration"], gate["fallback"]) == (
+        "tip_risk_ahead", 0.1, str(signals), "expert")
+    assert episode.metadata["learner"] == str(clone) and episode.metadata["expert_style"]["reaction_delay_steps"] == 0
+    flags = np.asarray(handovers.read(episode, ["intervention"])["intervention"])
+    assert flags.sum() == episode.metadata["intervened_steps"]
+
+    by_command = tmp_path / "by_command.pt"
+    assert main(["train", "--data", str(tmp_path / "demos" / "wide"), "--data", str(handovers.root),
+                 "--intervention-weight", "3", "--seed", "0", "--epochs", "1", "--patience", "1",
+                 "--batches-per-epoch", "1", "--synthetic-fraction", "0.5", "--out", str(by_command)]) == 0
+    staged, commanded = load_checkpoint(tmp_path / "models" / "wide_2_round_w3.pt"), load_checkpoint(by_command)
+    assert staged.training["train_config"]["intervention_weight"] == 3.0
+    assert staged.training["train_config"] == commanded.training["train_config"]
+    # The clone's two demonstrations and the round's episode.
+    assert sorted(staged.training["train_demo_ids"] + staged.training["val_demo_ids"]) == [0, 1, 2]
+    assert all(torch.equal(staged.state_dict[key], commanded.state_dict[key]) for key in commanded.state_dict)
 
 
 def test_a_gated_records_label_names_its_gate_whatever_the_yaml_style_and_others_keep_theirs():

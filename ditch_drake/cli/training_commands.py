@@ -74,7 +74,7 @@ def cmd_collect(args) -> int:
         raise ConfigError(f"--checkpoint {args.checkpoint}: a gated policy drives only with --shared")
     from dataclasses import replace
 
-    from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect
+    from ditch_drake.demos.collect import LABELLER_VARIATION, CollectConfig, collect, with_labelling_expert
 
     config = CollectConfig(environment=args.env, demos=args.demos, seed=args.seed, out=args.out, workers=args.workers,
                            environments_file=args.environments or "", backend=args.backend, address=args.address)
@@ -83,10 +83,7 @@ def cmd_collect(args) -> int:
         config = replace(config, learner=args.learner, variation=replace(
             LABELLER_VARIATION, replan_each_step=args.labeller == "replanning", lead_in=args.lead_in))
     if args.shared:
-        # The expert fallback takes over as a DAgger labeller labels: its middle style, no delay, no noise.
-        shared = shared_config_from_options(args, args.checkpoint)
-        shared = replace(shared, expert=replace(shared.expert, variation=replace(LABELLER_VARIATION,
-                                                                                 lead_in=args.lead_in)))
+        shared = with_labelling_expert(shared_config_from_options(args, args.checkpoint), args.lead_in)
         config = replace(config, shared=shared, shared_labels=args.shared_labels)
     report = collect(config)
     print(json.dumps(report, indent=2))

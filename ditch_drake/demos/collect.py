@@ -299,6 +299,15 @@ def record_demonstration(environment: str, task: int, seed: int,
     return _run_and_record(rig, environment, task, seed, expert_style=draw_expert_style(seed, variation), **driver)
 
 
+def with_labelling_expert(shared: SharedControlControllerConfig, lead_in: bool = False
+                          ) -> SharedControlControllerConfig:
+    """`shared` with its expert fallback taking over as DAgger's labeller labels
+    (`LABELLER_VARIATION`: the demonstrators' middle style, no delay, no noise), as a shared
+    collection records it."""
+    variation = replace(LABELLER_VARIATION, lead_in=lead_in)
+    return replace(shared, expert=replace(shared.expert, variation=variation))
+
+
 def record_shared_demonstration(environment: str, task: int, seed: int, shared: SharedControlControllerConfig,
                                 shared_labels: str = "executed", observation_config: ObservationConfig | None = None,
                                 rig: DemonstrationRig | None = None, environments_file: str = "",

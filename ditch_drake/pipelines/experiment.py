@@ -7,13 +7,16 @@ baseline (the DWA in every environment), amalgam (one model trained on several
 environments, evaluated in another), must_cross (issue 20: the classical controllers and
 the learned models, like for like, in walled environments where every route crosses the
 ditch) and shared_control (an ensemble of clones gated by its uncertainty, with a fallback
-where it is unsure, beside the ensemble alone and random handover at the same budget).
+where it is unsure, beside the ensemble alone and random handover at the same budget; and
+optionally one round of learning from the handovers, `AggregationRound`).
 `run_experiment` turns it into work:
 
 1. collect: `collect` the missing demonstrations of every environment a model trains on;
 2. train: every distinct model (environments, number of demonstrations, ensemble members),
    skipping a finished checkpoint and resuming an interrupted one (a single clone from its
-   `.resume` file, an ensemble from its finished members);
+   `.resume` file, an ensemble from its finished members); a clone retrained after the
+   aggregation round first runs the round where it is unfinished (its clone's signals file,
+   then its gated episodes, each resumable);
 3. evaluate: the signals files the shared-control gates are calibrated on, where missing
    (`<results_dir>/gate/<model>.npz`, resumable as `ditch-drake gate-signals`), then every
    study's rollouts, appended to `<results_dir>/<study>.jsonl` (finished rollouts are skipped);
@@ -148,6 +151,42 @@ STUDY_FALLBACKS = ("expert", "mppi")
 
 
 @dataclass
+class AggregationRound:
+    """One round of learning from the gate's handovers (ThriftyDAgger-style), on each
+    environment's single paper-method clone (`<models_dir>/<env>_<demos>.pt`, the
+    generalization study's file): the clone, gated by `signal` at `budget` with `fallback`
+    taking over, drives `rollouts` episodes on training seeds (as `ditch-drake collect --shared`,
+    into `<demos_dir>/handovers/<env>_<demos>`, each step flagged where the fallback drove),
+    and a clone is retrained on the first `demos` demonstrations and those episodes for each
+    weight of `intervention_weights` (`<env>_<demos>_round_w<W>.pt`, as `ditch-drake train
+    --intervention-weight W`: 1 is uniform aggregation, above 1 Sirius-style weighting). The
+    study then evaluates the clone and each retrained one ungated, on its test seeds.
+
+    The gate's budget is calibrated on the clone's own validation rollouts (the study's
+    calibration seeds; `<results_dir>/gate/<env>_<demos>_risk.npz` with the tip-risk signals
+    for a risk signal, as `ditch-drake gate-signals --risk`).
+
+    Attributes:
+        signal: what the gate reads on one clone: a risk signal ("tip_risk_ahead",
+            "tip_risk_now", deg) or "mean_softmax_entropy" (nats); a disagreement signal needs
+            an ensemble.
+        budget: the share of control steps the fallback may drive, in (0, 1).
+        fallback: who takes over, and labels the steps it drove: "expert" or "mppi".
+        rollouts: gated episodes per environment.
+        seed: the first episode's seed (training seeds: apart from the calibration's and the
+            test seeds).
+        intervention_weights: one retrained clone per weight, each > 0 (dimensionless; 1 uniform).
+    """
+
+    signal: str = "tip_risk_ahead"
+    budget: float = 0.1
+    fallback: str = "expert"
+    rollouts: int = 20
+    seed: int = 20000
+    intervention_weights: list[float] = field(default_factory=lambda: [1.0, 3.0])
+
+
+@dataclass
 class SharedControlStudy:
     """An ensemble gated by its uncertainty, with a fallback where it is unsure, against the
     ensemble alone and against random handover at the same budget: results in
@@ -177,7 +216,8 @@ class SharedControlStudy:
         random_lower_threshold: the random gate's lower threshold on its draw in [0, 1)
             (dimensionless); its upper one is set by the budget.
         calm_steps: control steps (0.1 s each) the signal must stay below the lower threshold
-            before a gate hands back, for both gates.
+            before a gate hands back, for both gates (and the aggregation round's).
+        aggregation: None, or one round of learning from the handovers (`AggregationRound`).
     """
 
     environments: list[str] = field(default_factory=lambda: list(PAPER_ENVIRONMENTS))
@@ -191,6 +231,7 @@ class SharedControlStudy:
     seed: int = 300
     random_lower_threshold: float = 0.8
     calm_steps: int = 5
+    aggregation: AggregationRound | None = None
 
 
 @dataclass
@@ -245,16 +286,26 @@ class ExperimentConfig:
 @dataclass(frozen=True)
 class ModelSpec:
     """A model to train: its environments and the first `demos` demonstrations of each, and
-    `ensemble` clones (K > 1: an ensemble, `ditch_drake.learning.ensemble_training`)."""
+    `ensemble` clones (K > 1: an ensemble, `ditch_drake.learning.ensemble_training`).
+    `intervention_weight`: None, or a single clone retrained after the shared-control study's
+    aggregation round with this weight on the fallback's steps (`AggregationRound`)."""
 
     environments: tuple[str, ...]
     demos: int
     ensemble: int = 1
+    intervention_weight: float | None = None
 
     @property
     def name(self) -> str:
         name = f"{'+'.join(self.environments)}_{self.demos}"
+        if self.intervention_weight is not None:
+            return f"{name}_round_w{self.intervention_weight:g}"
         return f"{name}_k{self.ensemble}" if self.ensemble > 1 else name
+
+    @property
+    def before_the_round(self) -> "ModelSpec":
+        """The clone the aggregation round gates (itself if this is not a retrained one)."""
+        return replace(self, intervention_weight=None)
 
 
 def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
@@ -365,12 +416,46 @@ def _check_shared_control(config: ExperimentConfig, path: Path) -> None:
         raise ConfigError(f"{where}.seed={study.seed}: its seeds {study.seed}-{tests.stop - 1} overlap the "
                           f"calibration's {calibration.start}-{calibration.stop - 1} (calibration_seed, "
                           "calibration_rollouts); expected test seeds that the thresholds never saw")
+    if study.aggregation:
+        _check_aggregation(study, where, tests, calibration)
     for gate in study_gates(study, "calibration.npz"):  # Random handover: what its hysteresis can hold.
         try:
             gate.validate()
         except ConfigError as error:
             raise ConfigError(f"{where}: random handover at budget {gate.budget} with random_lower_threshold "
                               f"{study.random_lower_threshold} and calm_steps {study.calm_steps}: {error}") from error
+
+
+def _check_aggregation(study: SharedControlStudy, where: str, tests: range, calibration: range) -> None:
+    """Refuses an aggregation round naming a signal one clone cannot give (a disagreement
+    signal), a bad budget, fallback or count, weights that are not positive numbers, or
+    episode seeds among the calibration's or the test seeds."""
+    from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, RISK_SIGNALS, UNCERTAINTY_SIGNALS
+
+    round_ = study.aggregation
+    where = f"{where}.aggregation"
+    signals = [name for name in (*UNCERTAINTY_SIGNALS, *RISK_SIGNALS) if name not in DISAGREEMENT_SIGNALS]
+    if round_.signal not in signals:
+        raise ConfigError(f"{where}.signal={round_.signal!r}: expected one a single clone gives, one of {signals}")
+    if round_.fallback not in STUDY_FALLBACKS:
+        raise ConfigError(f"{where}.fallback={round_.fallback!r}: expected one of {list(STUDY_FALLBACKS)}")
+    budget = round_.budget
+    if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0.0 < budget < 1.0:
+        raise ConfigError(f"{where}.budget={budget!r}: expected a share of control steps in (0, 1)")
+    for key in ("rollouts", "seed"):
+        value = getattr(round_, key)
+        if isinstance(value, bool) or not isinstance(value, int) or value < (1 if key == "rollouts" else 0):
+            raise ConfigError(f"{where}.{key}={value!r}: expected an integer >= {1 if key == 'rollouts' else 0}")
+    weights = round_.intervention_weights
+    if not weights or any(isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 < w < math.inf
+                          for w in weights):
+        raise ConfigError(f"{where}.intervention_weights={weights!r}: expected positive finite loss weights (1: "
+                          "uniform aggregation)")
+    episodes = range(round_.seed, round_.seed + round_.rollouts)
+    for seeds, what in ((tests, "the study's test seeds"), (calibration, "the calibration's")):
+        if episodes.start < seeds.stop and seeds.start < episodes.stop:
+            raise ConfigError(f"{where}.seed={round_.seed}: its seeds {episodes.start}-{episodes.stop - 1} overlap "
+                              f"{what} {seeds.start}-{seeds.stop - 1}; expected training seeds of their own")
 
 
 def _study_environments(config: ExperimentConfig):
@@ -506,6 +591,12 @@ def _shared_control_evaluations(config: ExperimentConfig, study: SharedControlSt
         evaluations += [Evaluation("shared_control", "shared", model, env,
                                    SharedControlControllerConfig(policy=policy, gate=gate), study.seed)
                         for gate in study_gates(study, str(gate_signals_path(config, model)))]
+        if study.aggregation:  # The clone before the round (unless it is the model above) and after it.
+            clone = ModelSpec((env,), study.demos)
+            retrained = [replace(clone, intervention_weight=float(w)) for w in study.aggregation.intervention_weights]
+            evaluations += [Evaluation("shared_control", "learned", m, env,
+                                       LearnedPolicyConfig(checkpoint=str(model_path(config, m))), study.seed)
+                            for m in ([clone] if clone != model else []) + retrained]
     return evaluations
 
 
@@ -516,6 +607,22 @@ def model_path(config: ExperimentConfig, model: ModelSpec) -> Path:
 def gate_signals_path(config: ExperimentConfig, model: ModelSpec) -> Path:
     """The signals file of `model`'s own validation rollouts, which its gates are calibrated on."""
     return Path(config.results_dir) / "gate" / f"{model.name}.npz"
+
+
+def round_signals_path(config: ExperimentConfig, clone: ModelSpec) -> Path:
+    """The signals file the aggregation round's gate on `clone` is calibrated on: the study's
+    own (`gate_signals_path`) for an uncertainty signal, a recording with the tip-risk signals
+    beside it for a risk signal."""
+    from ditch_drake.learning.uncertainty import RISK_SIGNALS
+
+    path = gate_signals_path(config, clone)
+    return path.with_name(f"{clone.name}_risk.npz") if config.studies.shared_control.aggregation.signal in (
+        RISK_SIGNALS) else path
+
+
+def handovers_folder(config: ExperimentConfig, clone: ModelSpec) -> Path:
+    """The dataset folder of the aggregation round's gated episodes of `clone`."""
+    return Path(config.demos_dir) / "handovers" / clone.name
 
 
 def _calibration(evaluation: Evaluation) -> str:
@@ -637,11 +744,69 @@ def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
                                device=device, precision=training_precision(device, settings.precision),
                                max_batches_per_epoch=settings.batches_per_epoch, balancing=settings.balancing,
                                smote=replace(defaults.smote, max_synthetic_fraction=settings.synthetic_fraction))
+    if model.intervention_weight is not None:
+        _train_after_the_round(config, model, replace(train_config, intervention_weight=model.intervention_weight),
+                               progress)
+        return
     if model.ensemble > 1:
         train_ensemble_or_resume(model_path(config, model), model.name, directories, model.demos, train_config,
                                  model.ensemble, progress)
     else:
         train_or_resume(model_path(config, model), model.name, samples, train_config, progress)
+
+
+def _train_after_the_round(config: ExperimentConfig, model: ModelSpec, train_config, progress: bool) -> None:
+    """Trains `model` (a clone retrained after the aggregation round) on its clone's first
+    demonstrations and the round's gated episodes, running the round first where it is
+    unfinished."""
+    from ditch_drake.demos.training_set import dataset_episodes, training_set
+
+    clone = model.before_the_round
+    if not model_path(config, model).exists() and not _aggregation_round(config, clone, progress):
+        return
+
+    def samples():  # The clone's demonstrations, then the round's episodes, as `train --data D --data H`.
+        demonstrations = Path(config.demos_dir) / clone.environments[0]
+        return training_set([*dataset_episodes(demonstrations, clone.demos),
+                             *dataset_episodes(handovers_folder(config, clone))])
+
+    train_or_resume(model_path(config, model), model.name, samples, train_config, progress)
+
+
+def _aggregation_round(config: ExperimentConfig, clone: ModelSpec, progress: bool) -> bool:
+    """The shared-control study's aggregation round on `clone` (`AggregationRound`), each step
+    skipped where an earlier run finished it: the clone trained, its signals file recorded,
+    its gated episodes collected (`handovers_folder`). False (logged): the clone could not be
+    trained, as with no demonstrations."""
+    from ditch_drake.demos.collect import CollectConfig, with_labelling_expert
+    from ditch_drake.diagrams.rollout import LearnedPolicyConfig
+    from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
+    from ditch_drake.learning.uncertainty import RISK_SIGNALS
+    from ditch_drake.systems.shared_control import SharedControlConfig
+
+    study = config.studies.shared_control
+    round_ = study.aggregation
+    checkpoint = model_path(config, clone)
+    if not checkpoint.exists():
+        _train(config, clone, progress)
+    if not checkpoint.exists():
+        log_progress(progress, f"aggregation round on {clone.name}: no checkpoint {checkpoint}; skipped")
+        return False
+    env = clone.environments[0]
+    signals = round_signals_path(config, clone)
+    tasks = config.tasks or range(len(get_environment(env, config.environments_file or None).tasks))
+    record_signals_or_resume(signals, str(checkpoint), [(env, task) for task in tasks], study.calibration_rollouts,
+                             study.calibration_seed, config.time_limit_s, config.environments_file, progress,
+                             risk=round_.signal in RISK_SIGNALS)
+    gate = SharedControlConfig(signal=round_.signal, budget=round_.budget, calibration=str(signals),
+                               calm_steps=study.calm_steps, fallback=round_.fallback)
+    shared = with_labelling_expert(SharedControlControllerConfig(
+        policy=LearnedPolicyConfig(checkpoint=str(checkpoint)), gate=gate))
+    collect_demonstrations(CollectConfig(environment=env, demos=round_.rollouts, seed=round_.seed,
+                                         out=str(handovers_folder(config, clone)),
+                                         workers=config.workers, environments_file=config.environments_file,
+                                         shared=shared), f"{env} (gated {clone.name})", progress)
+    return True
 
 
 def _calibrate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool) -> None:

@@ -128,11 +128,12 @@ def train_ensemble_or_resume(out: str | os.PathLike, name: str, directories: lis
 
 
 def record_signals_or_resume(out: str | os.PathLike, checkpoint: str, runs: list[tuple[str, int]], rollouts: int,
-                             seed: int, time_limit_s: float, environments_file: str, progress: bool) -> None:
+                             seed: int, time_limit_s: float, environments_file: str, progress: bool,
+                             risk: bool = False) -> None:
     """Records the signals file `out` of `checkpoint`'s ungated rollouts as `ditch-drake
     gate-signals` does (`record_gate_signals` on each (environment, task) of `runs`, seeds
-    seed .. seed + rollouts - 1), with its AUC report beside it (`<out>.auc.json`), unless an
-    earlier run finished it.
+    seed .. seed + rollouts - 1; `risk`: the tip-risk signals too, as `--risk`), with its AUC
+    report beside it (`<out>.auc.json`), unless an earlier run finished it.
 
     Each episode is kept in `<out>.parts/` as it finishes and one kept before is not run
     again; the file is written when all have finished, then the folder is removed. A stop keeps
@@ -167,7 +168,7 @@ def record_signals_or_resume(out: str | os.PathLike, checkpoint: str, runs: list
                 return
             try:
                 recorded, _ = write_signals_file(out, checkpoint, digest, runs, rollouts, seed, time_limit_s,
-                                                 environments_file, progress=progress)
+                                                 environments_file, progress=progress, risk=risk)
             except KeyboardInterrupt:
                 log_progress(progress, f"calibrate {checkpoint}: interrupted; the finished episodes are kept in "
                                        f"{folder}")
