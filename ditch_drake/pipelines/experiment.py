@@ -759,18 +759,20 @@ def _train_after_the_round(config: ExperimentConfig, model: ModelSpec, train_con
     """Trains `model` (a clone retrained after the aggregation round) on its clone's first
     demonstrations and the round's gated episodes, running the round first where it is
     unfinished."""
+    from ditch_drake.demos.interventions import episode_interventions
     from ditch_drake.demos.training_set import dataset_episodes, training_set
 
     clone = model.before_the_round
     if not model_path(config, model).exists() and not _aggregation_round(config, clone, progress):
         return
 
-    def samples():  # The clone's demonstrations, then the round's episodes, as `train --data D --data H`.
+    def episodes():  # The clone's demonstrations, then the round's episodes, as `train --data D --data H`.
         demonstrations = Path(config.demos_dir) / clone.environments[0]
-        return training_set([*dataset_episodes(demonstrations, clone.demos),
-                             *dataset_episodes(handovers_folder(config, clone))])
+        return [*dataset_episodes(demonstrations, clone.demos), *dataset_episodes(handovers_folder(config, clone))]
 
-    train_or_resume(model_path(config, model), model.name, samples, train_config, progress)
+    weighted = train_config.intervention_weight != 1.0  # As `train`: W = 1 reads no flags.
+    train_or_resume(model_path(config, model), model.name, lambda: training_set(episodes()), train_config, progress,
+                    interventions=(lambda: episode_interventions(episodes())) if weighted else None)
 
 
 def _aggregation_round(config: ExperimentConfig, clone: ModelSpec, progress: bool) -> bool:

@@ -68,9 +68,10 @@ def collect_demonstrations(config, name: str, progress: bool) -> dict:
 
 
 def train_or_resume(out: str | os.PathLike, name: str, samples: Callable[[], object], config,
-                    progress: bool) -> None:
+                    progress: bool, interventions: Callable[[], object] | None = None) -> None:
     """Trains `config` (a `TrainConfig`) on `samples()` (an `ArraySet`, loaded only when training
-    runs) into the checkpoint `out`, unless an earlier run finished it.
+    runs) into the checkpoint `out`, unless an earlier run finished it. `interventions()`: the
+    samples' intervention flags, which `config.intervention_weight` weighs (None: none).
 
     A finished checkpoint at `out` is kept; one from an interrupted run, or one that does not
     load, is trained again; a `.resume` file beside `out` (`train`'s state after its last
@@ -90,7 +91,8 @@ def train_or_resume(out: str | os.PathLike, name: str, samples: Callable[[], obj
         except CheckpointError as error:
             log_progress(progress, f"train {name}: {error}; training again")
     out.parent.mkdir(parents=True, exist_ok=True)
-    result = train(samples(), config, progress=progress, output_path=out, resume=True)
+    result = train(samples(), config, progress=progress, output_path=out, resume=True,
+                   intervention=interventions() if interventions is not None else None)
     if result.interrupted:
         pass_on_stop(result.exit_code)
 
