@@ -122,12 +122,12 @@ def test_the_paper_protocol_plans_13_models_and_29_evaluations_and_32_where_the_
     config = load_experiment("experiments/paper.yaml")
     models, evaluations = plan(config)
     # 4 x (10, 20, 40) + the amalgam; must_cross's 40-demonstration models are among them (+ shared_control's
-    # ensembles, and its clones retrained after the aggregation round, two per environment).
+    # ensembles, and its clones retrained after the aggregation round, four per environment).
     assert len([m for m in models if m.ensemble == 1 and m.intervention_weight is None]) == 13
-    assert len([m for m in models if m.intervention_weight is not None]) == 8
+    assert len([m for m in models if m.intervention_weight is not None]) == 16
     studies = Counter(e.study for e in evaluations)
     assert studies == {"scalability": 12, "generalization": 12, "baseline": 4, "amalgam": 1, "must_cross": 32,
-                       "shared_control": 96}
+                       "shared_control": 104}
     models, evaluations = plan(config, only=["wide"])
     assert {m.name for m in models} >= {"wide_10", "wide_20", "wide_40", "crater+narrow+sine_40"}
     assert all("wide" in (e.environment, e.environment.removesuffix("_walled"),

@@ -60,21 +60,23 @@ def test_the_paper_study_plans_a_k5_ensemble_per_ditch_its_gates_their_random_co
     models, evaluations = plan(config, only_studies=["shared_control"])
     ensembles = [ModelSpec((env,), 40, 5) for env in PAPER]
     assert models == [m for env, ensemble in zip(PAPER, ensembles) for m in (
-        ensemble, ModelSpec((env,), 40), ModelSpec((env,), 40, intervention_weight=1.0),
-        ModelSpec((env,), 40, intervention_weight=3.0))]
+        ensemble, ModelSpec((env,), 40), *(ModelSpec((env,), 40, intervention_weight=w, round_labels=labels)
+                                          for labels in ("executed", "expert") for w in (1.0, 3.0)))]
     assert [str(model_path(config, m)) for m in ensembles] == [f"models/paper/{env}_40_k5.pt" for env in PAPER]
     assert [str(gate_signals_path(config, m)) for m in ensembles] == [f"results/paper/gate/{env}_40_k5.npz"
                                                                        for env in PAPER]
     # Per ditch: the ensemble alone, per budget and fallback the gate and random handover, and
-    # the aggregation round's clone before and after it (two weights), ungated.
-    assert Counter(e.environment for e in evaluations) == dict.fromkeys(PAPER, 1 + 5 * 2 * 2 + 3)
+    # the aggregation round's clone before and after it (two labels x two weights), ungated.
+    assert Counter(e.environment for e in evaluations) == dict.fromkeys(PAPER, 1 + 5 * 2 * 2 + 5)
     assert {e.study for e in evaluations} == {"shared_control"} and {e.seed for e in evaluations} == {300}
     for env, model in zip(PAPER, ensembles):
         here = [e for e in evaluations if e.environment == env]
         checkpoint = f"models/paper/{env}_40_k5.pt"
-        *here, clone, uniform, weighted = here
-        assert [(e.controller, e.config.checkpoint) for e in (clone, uniform, weighted)] == [
-            ("learned", f"models/paper/{env}_40{suffix}.pt") for suffix in ("", "_round_w1", "_round_w3")]
+        *here, clone, uniform, weighted, expert_uniform, expert_weighted = here
+        assert [(e.controller, e.config.checkpoint) for e in (clone, uniform, weighted, expert_uniform,
+                                                              expert_weighted)] == [
+            ("learned", f"models/paper/{env}_40{suffix}.pt")
+            for suffix in ("", "_round_w1", "_round_w3", "_round_expert_w1", "_round_expert_w3")]
         assert {e.model for e in here} == {model}
         alone, *gated = here
         assert (alone.controller, alone.config) == ("learned", LearnedPolicyConfig(checkpoint=checkpoint))
@@ -88,10 +90,11 @@ def test_the_paper_study_plans_a_k5_ensemble_per_ditch_its_gates_their_random_co
         assert {(g.calibration, g.calm_steps) for g in gates if g.signal != "random"} == {(calibration, 5)}
         assert {(g.calibration, g.lower_threshold, g.calm_steps) for g in gates if g.signal == "random"} == {
             ("", 0.8, 5)}
-    # --only wide keeps wide's ensemble, its clone before and after the round, and its 24 evaluations.
+    # --only wide keeps wide's ensemble, its clone before and after the round, and its 26 evaluations.
     models, evaluations = plan(config, only=["wide"], only_studies=["shared_control"])
-    assert [m.name for m in models] == ["wide_40_k5", "wide_40", "wide_40_round_w1", "wide_40_round_w3"]
-    assert len(evaluations) == 24
+    assert [m.name for m in models] == ["wide_40_k5", "wide_40", "wide_40_round_w1", "wide_40_round_w3",
+                                        "wide_40_round_expert_w1", "wide_40_round_expert_w3"]
+    assert len(evaluations) == 26
 
 
 def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_its_name():
@@ -109,7 +112,7 @@ def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_it
                                only_studies=["shared_control"])
     assert [str(model_path(config, m)) for m in models if m.intervention_weight is None] == [
         f"models/paper/{env}_40.pt" for env in PAPER]
-    assert Counter(e.environment for e in evaluations if e.controller == "learned") == dict.fromkeys(PAPER, 3)
+    assert Counter(e.environment for e in evaluations if e.controller == "learned") == dict.fromkeys(PAPER, 5)
 
 
 @pytest.mark.parametrize("values, message", [
@@ -132,6 +135,8 @@ def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_it
     ("aggregation: {intervention_weights: []}", r"aggregation\.intervention_weights=\[\]"),
     ("aggregation: {seed: 295}", r"aggregation\.seed=295: its seeds 295-314 overlap the study's test seeds 300-300"),
     ("aggregation: {seed: 9}", r"aggregation\.seed=9: its seeds 9-28 overlap the calibration's 0-9"),
+    ("aggregation: {labels: [executed, person]}", r"aggregation\.labels=\['executed', 'person'\]: expected some of"),
+    ("aggregation: {labels: [expert], fallback: mppi}", r"aggregation\.labels=\['expert'\] with fallback 'mppi'"),
 ])
 def test_bad_study_values_are_refused_naming_the_key(tmp_path, values, message):
     path = tmp_path / "bad.yaml"
@@ -227,13 +232,13 @@ def test_the_aggregation_round_gates_the_clone_records_its_handovers_and_retrain
     path.write_text(TINY.format(root=tmp_path).replace(
         "demos: 2, ensemble: 2,", "demos: 6, ensemble: 1, signal: mean_softmax_entropy,").replace(
         "seed: 5}", "seed: 5, aggregation: {signal: tip_risk_ahead, budget: 0.5, rollouts: 1, seed: 20, "
-                    "intervention_weights: [3]}}")
+                    "intervention_weights: [3], labels: [executed, expert]}}")
                     + "training: {epochs: 1, patience: 1, batches_per_epoch: 1, synthetic_fraction: 0.5}\n")
     config = load_experiment(path)
     models, evaluations = plan(config)
-    assert [m.name for m in models] == ["wide_6", "wide_6_round_w3"]
+    assert [m.name for m in models] == ["wide_6", "wide_6_round_w3", "wide_6_round_expert_w3"]
     assert [e.config.checkpoint for e in evaluations if e.controller == "learned"] == [
-        str(tmp_path / "models" / f"wide_6{suffix}.pt") for suffix in ("", "_round_w3")]
+        str(tmp_path / "models" / f"wide_6{suffix}.pt") for suffix in ("", "_round_w3", "_round_expert_w3")]
     # The clone is the shipped wide model, so that the gated episode crosses in a few seconds. Its
     # calibration is one second on flat ground, so only a large budget gives a finite threshold.
     clone = tmp_path / "models" / "wide_6.pt"
@@ -251,6 +256,15 @@ def test_the_aggregation_round_gates_the_clone_records_its_handovers_and_retrain
     assert episode.metadata["learner"] == str(clone) and episode.metadata["expert_style"]["reaction_delay_steps"] == 0
     flags = np.asarray(handovers.read(episode, ["intervention"])["intervention"])
     assert 0 < flags.sum() == episode.metadata["intervened_steps"] < len(flags)
+    # The expert-labelled copy: the same episode step for step, the expert's label at each.
+    relabelled = DatasetStore.open(tmp_path / "demos" / "handovers" / "wide_6_expert")
+    (copy,) = relabelled.episodes()
+    assert copy.metadata["shared_labels"] == "expert" and copy.steps == episode.steps
+    copied = relabelled.read(copy, ["intervention", "imu_stack", "label"])
+    executed = handovers.read(episode, ["imu_stack", "label"])
+    assert np.array_equal(copied["intervention"], flags) and np.array_equal(copied["imu_stack"], executed["imu_stack"])
+    assert np.array_equal(copied["label"][flags], executed["label"][flags])  # Where the expert drove, its own.
+    assert (tmp_path / "models" / "wide_6_round_expert_w3.pt").is_file()
 
     by_command = tmp_path / "by_command.pt"
     assert main(["train", "--data", str(tmp_path / "demos" / "wide"), "--data", str(handovers.root),

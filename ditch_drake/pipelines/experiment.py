@@ -159,8 +159,11 @@ class AggregationRound:
     into `<demos_dir>/handovers/<env>_<demos>`, each step flagged where the fallback drove),
     and a clone is retrained on the first `demos` demonstrations and those episodes for each
     weight of `intervention_weights` (`<env>_<demos>_round_w<W>.pt`, as `ditch-drake train
-    --intervention-weight W`: 1 is uniform aggregation, above 1 Sirius-style weighting). The
-    study then evaluates the clone and each retrained one ungated, on its test seeds.
+    --intervention-weight W`: 1 is uniform aggregation, above 1 Sirius-style weighting). With
+    "expert" among `labels` the same episodes are recorded again with the expert's label at
+    every step (`collect --shared-labels expert`, into `..._expert`) and a clone retrained on
+    them for each weight too (`<env>_<demos>_round_expert_w<W>.pt`). The study then evaluates
+    the clone and each retrained one ungated, on its test seeds.
 
     The gate's budget is calibrated on the clone's own validation rollouts (the study's
     calibration seeds; `<results_dir>/gate/<env>_<demos>_risk.npz` with the tip-risk signals
@@ -176,6 +179,9 @@ class AggregationRound:
         seed: the first episode's seed (training seeds: apart from the calibration's and the
             test seeds).
         intervention_weights: one retrained clone per weight, each > 0 (dimensionless; 1 uniform).
+        labels: the labels the round's steps are retrained on, some of `SHARED_LABELS`:
+            "executed" (what the robot did: the clone's where it drove, the fallback's where it
+            took over) and "expert" (the expert fallback's answer at every step).
     """
 
     signal: str = "tip_risk_ahead"
@@ -184,6 +190,7 @@ class AggregationRound:
     rollouts: int = 20
     seed: int = 20000
     intervention_weights: list[float] = field(default_factory=lambda: [1.0, 3.0])
+    labels: list[str] = field(default_factory=lambda: ["executed"])
 
 
 @dataclass
@@ -288,24 +295,27 @@ class ModelSpec:
     """A model to train: its environments and the first `demos` demonstrations of each, and
     `ensemble` clones (K > 1: an ensemble, `ditch_drake.learning.ensemble_training`).
     `intervention_weight`: None, or a single clone retrained after the shared-control study's
-    aggregation round with this weight on the fallback's steps (`AggregationRound`)."""
+    aggregation round with this weight on the fallback's steps (`AggregationRound`), on the
+    round's steps labelled as `round_labels` says."""
 
     environments: tuple[str, ...]
     demos: int
     ensemble: int = 1
     intervention_weight: float | None = None
+    round_labels: str = "executed"
 
     @property
     def name(self) -> str:
         name = f"{'+'.join(self.environments)}_{self.demos}"
         if self.intervention_weight is not None:
-            return f"{name}_round_w{self.intervention_weight:g}"
+            labels = "" if self.round_labels == "executed" else f"_{self.round_labels}"
+            return f"{name}_round{labels}_w{self.intervention_weight:g}"
         return f"{name}_k{self.ensemble}" if self.ensemble > 1 else name
 
     @property
     def before_the_round(self) -> "ModelSpec":
         """The clone the aggregation round gates (itself if this is not a retrained one)."""
-        return replace(self, intervention_weight=None)
+        return replace(self, intervention_weight=None, round_labels="executed")
 
 
 def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
@@ -430,6 +440,7 @@ def _check_aggregation(study: SharedControlStudy, where: str, tests: range, cali
     """Refuses an aggregation round naming a signal one clone cannot give (a disagreement
     signal), a bad budget, fallback or count, weights that are not positive numbers, or
     episode seeds among the calibration's or the test seeds."""
+    from ditch_drake.demos.collect import SHARED_LABELS
     from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, RISK_SIGNALS, UNCERTAINTY_SIGNALS
 
     round_ = study.aggregation
@@ -451,6 +462,11 @@ def _check_aggregation(study: SharedControlStudy, where: str, tests: range, cali
                           for w in weights):
         raise ConfigError(f"{where}.intervention_weights={weights!r}: expected positive finite loss weights (1: "
                           "uniform aggregation)")
+    if not round_.labels or any(labels not in SHARED_LABELS for labels in round_.labels):
+        raise ConfigError(f"{where}.labels={round_.labels!r}: expected some of {list(SHARED_LABELS)}")
+    if "expert" in round_.labels and round_.fallback != "expert":
+        raise ConfigError(f"{where}.labels={round_.labels!r} with fallback {round_.fallback!r}: the expert's labels "
+                          "come from the expert fallback; expected fallback 'expert'")
     episodes = range(round_.seed, round_.seed + round_.rollouts)
     for seeds, what in ((tests, "the study's test seeds"), (calibration, "the calibration's")):
         if episodes.start < seeds.stop and seeds.start < episodes.stop:
@@ -593,7 +609,8 @@ def _shared_control_evaluations(config: ExperimentConfig, study: SharedControlSt
                         for gate in study_gates(study, str(gate_signals_path(config, model)))]
         if study.aggregation:  # The clone before the round (unless it is the model above) and after it.
             clone = ModelSpec((env,), study.demos)
-            retrained = [replace(clone, intervention_weight=float(w)) for w in study.aggregation.intervention_weights]
+            retrained = [replace(clone, intervention_weight=float(w), round_labels=labels)
+                         for labels in study.aggregation.labels for w in study.aggregation.intervention_weights]
             evaluations += [Evaluation("shared_control", "learned", m, env,
                                        LearnedPolicyConfig(checkpoint=str(model_path(config, m))), study.seed)
                             for m in ([clone] if clone != model else []) + retrained]
@@ -620,9 +637,10 @@ def round_signals_path(config: ExperimentConfig, clone: ModelSpec) -> Path:
         RISK_SIGNALS) else path
 
 
-def handovers_folder(config: ExperimentConfig, clone: ModelSpec) -> Path:
-    """The dataset folder of the aggregation round's gated episodes of `clone`."""
-    return Path(config.demos_dir) / "handovers" / clone.name
+def handovers_folder(config: ExperimentConfig, clone: ModelSpec, labels: str = "executed") -> Path:
+    """The dataset folder of the aggregation round's gated episodes of `clone`, their steps
+    labelled as `labels` says."""
+    return Path(config.demos_dir) / "handovers" / (clone.name if labels == "executed" else f"{clone.name}_{labels}")
 
 
 def _calibration(evaluation: Evaluation) -> str:
@@ -762,24 +780,25 @@ def _train_after_the_round(config: ExperimentConfig, model: ModelSpec, train_con
     from ditch_drake.demos.interventions import episode_interventions
     from ditch_drake.demos.training_set import dataset_episodes, training_set
 
-    clone = model.before_the_round
-    if not model_path(config, model).exists() and not _aggregation_round(config, clone, progress):
+    clone, labels = model.before_the_round, model.round_labels
+    if not model_path(config, model).exists() and not _aggregation_round(config, clone, labels, progress):
         return
 
     def episodes():  # The clone's demonstrations, then the round's episodes, as `train --data D --data H`.
         demonstrations = Path(config.demos_dir) / clone.environments[0]
-        return [*dataset_episodes(demonstrations, clone.demos), *dataset_episodes(handovers_folder(config, clone))]
+        return [*dataset_episodes(demonstrations, clone.demos),
+                *dataset_episodes(handovers_folder(config, clone, labels))]
 
     weighted = train_config.intervention_weight != 1.0  # As `train`: W = 1 reads no flags.
     train_or_resume(model_path(config, model), model.name, lambda: training_set(episodes()), train_config, progress,
                     interventions=(lambda: episode_interventions(episodes())) if weighted else None)
 
 
-def _aggregation_round(config: ExperimentConfig, clone: ModelSpec, progress: bool) -> bool:
+def _aggregation_round(config: ExperimentConfig, clone: ModelSpec, labels: str, progress: bool) -> bool:
     """The shared-control study's aggregation round on `clone` (`AggregationRound`), each step
     skipped where an earlier run finished it: the clone trained, its signals file recorded,
-    its gated episodes collected (`handovers_folder`). False (logged): the clone could not be
-    trained, as with no demonstrations."""
+    its gated episodes collected with their steps labelled as `labels` says (`handovers_folder`).
+    False (logged): the clone could not be trained, as with no demonstrations."""
     from ditch_drake.demos.collect import CollectConfig, with_labelling_expert
     from ditch_drake.diagrams.rollout import LearnedPolicyConfig
     from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
@@ -805,9 +824,10 @@ def _aggregation_round(config: ExperimentConfig, clone: ModelSpec, progress: boo
     shared = with_labelling_expert(SharedControlControllerConfig(
         policy=LearnedPolicyConfig(checkpoint=str(checkpoint)), gate=gate))
     collect_demonstrations(CollectConfig(environment=env, demos=round_.rollouts, seed=round_.seed,
-                                         out=str(handovers_folder(config, clone)),
+                                         out=str(handovers_folder(config, clone, labels)),
                                          workers=config.workers, environments_file=config.environments_file,
-                                         shared=shared), f"{env} (gated {clone.name})", progress)
+                                         shared=shared, shared_labels=labels),
+                           f"{env} (gated {clone.name}, {labels} labels)", progress)
     return True
 
 
