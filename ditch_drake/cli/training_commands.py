@@ -155,7 +155,7 @@ def add_train(commands: Commands) -> None:
     training.add_argument("--precision", choices=["auto", "fp32", "bf16"], default="auto",
                           help="bf16: training steps under bfloat16 autocast; auto: bf16 on a CPU with native "
                                "bf16 (AVX512-BF16 or AMX), else fp32")
-    from ditch_drake.learning.config import BALANCING_METHODS  # No torch: `--help` stays fast.
+    from ditch_drake.learning.config import BALANCING_METHODS, SHARED_STEPS  # No torch: `--help` stays fast.
 
     training.add_argument("--balancing", choices=BALANCING_METHODS, default=ConfigDefault(TRAIN, "balancing"),
                           help="class balancing of the training split (ditch_drake/learning/balance.py)")
@@ -165,6 +165,11 @@ def add_train(commands: Commands) -> None:
                           help="loss weight of the steps a supervisor took over (the dataset's intervention flag: "
                                "collect --shared, teleop --shared), relative to 1 for the others (Sirius); "
                                "1: uniform (default %(default)s)")
+    training.add_argument("--shared-steps", choices=list(SHARED_STEPS), default=ConfigDefault(TRAIN, "shared_steps"),
+                          help="which steps of a shared episode (collect --shared, teleop --shared) to learn: all "
+                               "(the policy's own and the supervisor's, as Sirius) or interventions (the "
+                               "supervisor's only, as HG-DAgger and ThriftyDAgger); other episodes are used whole "
+                               "(default %(default)s)")
     training.add_argument("--resume", action="store_true",
                           help="continue an interrupted run from its .resume file beside --out")
     training.add_argument("--ensemble", type=int, nargs="?", const=ConfigDefault(ENSEMBLE, "members"), default=None,
@@ -184,10 +189,10 @@ def cmd_train(args) -> int:
         epochs=args.epochs, seed=args.seed, patience=args.patience, batch_size=args.batch_size,
         max_batches_per_epoch=args.batches_per_epoch, synthetic_fraction=args.synthetic_fraction,
         num_threads=args.threads, balancing=args.balancing, num_workers=args.loader_workers,
-        intervention_weight=args.intervention_weight)
+        intervention_weight=args.intervention_weight, shared_steps=args.shared_steps)
     if args.max_demos is not None and args.max_demos < 1:
         raise ConfigError(f"--max-demos {args.max_demos}: expected >= 1 demonstrations per directory")
-    from ditch_drake.demos.interventions import episode_interventions
+    from ditch_drake.demos.interventions import episode_interventions, kept_steps
     from ditch_drake.demos.training_set import dataset_episodes, training_set
     from ditch_drake.learning.train import train
     from ditch_drake.pipelines.stages import training_device, training_precision
@@ -199,8 +204,9 @@ def cmd_train(args) -> int:
         return _train_ensemble(args, config)
     # Several directories train the amalgam model; a dataset folder's images stay on disk.
     episodes = [episode for directory in args.data for episode in dataset_episodes(directory, args.max_demos)]
-    intervention = episode_interventions(episodes) if config.intervention_weight != 1.0 else None
-    result = train(training_set(episodes), config, output_path=args.out, resume=args.resume,
+    steps = kept_steps(episodes, config.shared_steps)
+    intervention = episode_interventions(episodes, steps) if config.intervention_weight != 1.0 else None
+    result = train(training_set(episodes, steps=steps), config, output_path=args.out, resume=args.resume,
                    intervention=intervention)
     best = next((record for record in result.history if record["epoch"] == result.best_epoch), {})
     print(json.dumps({"out": str(result.output_path) if result.output_path else None,
@@ -217,17 +223,23 @@ def cmd_train(args) -> int:
 
 def _train_ensemble(args, config) -> int:
     """`train --ensemble K`: K clones on bootstrap resamples of the demonstrations, one file."""
-    from ditch_drake.demos.interventions import episode_interventions
+    from ditch_drake.demos.interventions import episode_interventions, kept_steps
     from ditch_drake.demos.training_set import named_dataset_episodes, training_set
     from ditch_drake.learning.bootstrap import check_member_count
     from ditch_drake.learning.ensemble_training import train_ensemble
 
     members = check_member_count(args.ensemble)
     episodes, names = named_dataset_episodes(args.data, args.max_demos)
+    steps = kept_steps(episodes, config.shared_steps)
+
+    def chosen(indices):  # A member's resample: its episodes, and the steps kept of each.
+        return [episodes[i] for i in indices], None if steps is None else [steps[i] for i in indices]
+
     weighted = config.intervention_weight != 1.0
-    result = train_ensemble(lambda indices: training_set([episodes[i] for i in indices]), names, args.out, config,
-                            members, interventions_of=(lambda indices: episode_interventions(
-                                [episodes[i] for i in indices])) if weighted else None)
+    result = train_ensemble(lambda indices: training_set(chosen(indices)[0], steps=chosen(indices)[1]), names,
+                            args.out, config, members,
+                            interventions_of=(lambda indices: episode_interventions(*chosen(indices)))
+                            if weighted else None)
     print(json.dumps({"out": str(result.output_path) if result.output_path else None,
                       "members_folder": str(result.members_folder), "trained": result.trained,
                       "skipped": result.skipped, "interrupted": result.interrupted,

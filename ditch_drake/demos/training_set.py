@@ -118,7 +118,7 @@ def _reflect_masks(reflect, counts: np.ndarray) -> list[np.ndarray]:
 
 
 def training_set(episodes: list[DatasetEpisode], strides: list[int] | None = None, reflect: list | None = None,
-                 first_demo_id: int = 0) -> ArraySet:
+                 first_demo_id: int = 0, steps: list | None = None) -> ArraySet:
     """The samples of `episodes` as one training `ArraySet`: `to_array_set`'s, with reflections.
 
     With every episode in a store, its images stay on disk (a `LazyImageStack`); otherwise the
@@ -131,6 +131,9 @@ def training_set(episodes: list[DatasetEpisode], strides: list[int] | None = Non
             holds the frames of the steps just before it, as the `FrameStacker` gives them.
         reflect: per entry, False, True (every kept step) or a bool array over its kept steps:
             the samples to reflect left to right (`ditch_drake.learning.mirror`). None: none.
+        steps: per entry, None (its steps by `strides`) or the indices of the steps to keep, in
+            order, for a stored episode (`ditch_drake.demos.interventions.kept_steps`). None:
+            every entry by its stride.
 
     Raises:
         DatasetError: no episodes, strides or reflect flags that do not match the episodes,
@@ -141,7 +144,13 @@ def training_set(episodes: list[DatasetEpisode], strides: list[int] | None = Non
     strides = [1] * len(episodes) if strides is None else list(strides)
     if len(strides) != len(episodes) or min(strides) < 1:
         raise DatasetError(f"strides={strides}: expected one stride >= 1 per demonstration ({len(episodes)})")
-    kept = [np.arange(0, episode.steps, stride) for episode, stride in zip(episodes, strides, strict=True)]
+    steps = [None] * len(episodes) if steps is None else list(steps)
+    if len(steps) != len(episodes) or any(chosen is not None and not episode.stored
+                                          for episode, chosen in zip(episodes, steps, strict=True)):
+        raise DatasetError(f"steps has {len(steps)} entries; expected one per demonstration ({len(episodes)}), "
+                           "and step indices only for a dataset folder's episodes")
+    kept = [np.arange(0, episode.steps, stride) if chosen is None else np.asarray(chosen, dtype=np.int64)
+            for episode, stride, chosen in zip(episodes, strides, steps, strict=True)]
     counts = np.array([len(steps) for steps in kept])
     masks = _reflect_masks(reflect, counts)
     flags = np.concatenate(masks)

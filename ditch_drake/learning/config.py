@@ -128,6 +128,8 @@ class SmoteConfig:
 
 
 PRECISIONS = ("fp32", "bf16")
+SHARED_STEPS = ("all", "interventions")
+"""Which steps of a shared episode training uses (`TrainConfig.shared_steps`)."""
 # The class balancing methods (`TrainConfig.balancing`); `ditch_drake.learning.balance.BALANCING`
 # implements them (a test keeps the two in step).
 BALANCING_METHODS = ("smote", "oversample", "weighted_sampler", "class_weights", "ordinal_soft_labels", "none")
@@ -145,6 +147,7 @@ _OPTIONS = {
     "balancing": "--balancing",
     "num_workers": "--loader-workers",
     "intervention_weight": "--intervention-weight",
+    "shared_steps": "--shared-steps",
 }
 # Torch device strings a training run can use ("cuda:1" picks a GPU).
 _DEVICE_PATTERN = re.compile(r"(cpu|cuda|mps|xpu)(:\d+)?")
@@ -216,6 +219,11 @@ class TrainConfig:
             class's weight, as torch's weighted cross-entropy). 1 (the default) is uniform
             aggregation: training is exactly as without the field, and a checkpoint's
             `train_config` does not list it. Validation loss stays unweighted.
+        shared_steps: which steps of a shared episode (one the gated policy drove, recorded
+            by `collect --shared` or `teleop --shared`) are trained on, one of `SHARED_STEPS`:
+            "all" (the policy's own and the supervisor's: Sirius's data) or "interventions"
+            (the supervisor's only: HG-DAgger's and ThriftyDAgger's). Other episodes are used
+            whole. "all" (the default) is recorded in no checkpoint, as before the field.
         model: the network's shape.
     """
 
@@ -239,6 +247,7 @@ class TrainConfig:
     max_batches_per_epoch: int | None = 96
     model: ModelConfig = field(default_factory=ModelConfig)
     intervention_weight: float = 1.0
+    shared_steps: str = "all"
 
     def __post_init__(self):
         """Checks every field, so a bad setting fails when the config is made, before any data loads.
@@ -288,6 +297,8 @@ class TrainConfig:
         if not (_is_number(self.intervention_weight) and self.intervention_weight > 0):
             raise _bad_field("intervention_weight", self.intervention_weight,
                              "a finite number > 0 (the loss weight of an intervention sample; 1: uniform)")
+        if self.shared_steps not in SHARED_STEPS:
+            raise _bad_field("shared_steps", self.shared_steps, f"one of {SHARED_STEPS}")
 
     @classmethod
     def from_options(cls, synthetic_fraction: float | None = None, **fields) -> "TrainConfig":

@@ -233,6 +233,8 @@ def _config_dict(config: TrainConfig) -> dict:
     values = asdict(config)
     if values["intervention_weight"] == 1.0:  # Uniform: recorded as before the field existed.
         del values["intervention_weight"]
+    if values["shared_steps"] == "all":  # Every step: recorded as before the field existed.
+        del values["shared_steps"]
     return to_plain(values, "train_config")
 
 
