@@ -235,9 +235,12 @@ def _train_ensemble(args, config) -> int:
     def chosen(indices):  # A member's resample: its episodes, and the steps kept of each.
         return [episodes[i] for i in indices], None if steps is None else [steps[i] for i in indices]
 
+    def member_samples(indices):
+        resample, kept = chosen(indices)
+        return training_set(resample, steps=kept)
+
     weighted = config.intervention_weight != 1.0
-    result = train_ensemble(lambda indices: training_set(chosen(indices)[0], steps=chosen(indices)[1]), names,
-                            args.out, config, members,
+    result = train_ensemble(member_samples, names, args.out, config, members,
                             interventions_of=(lambda indices: episode_interventions(*chosen(indices)))
                             if weighted else None)
     print(json.dumps({"out": str(result.output_path) if result.output_path else None,

@@ -30,6 +30,7 @@ which the report shows.
 """
 
 import datetime
+import functools
 import json
 import math
 import os
@@ -384,6 +385,15 @@ def _check_must_cross(config: ExperimentConfig, path: Path) -> None:
             raise ConfigError(f"experiment file {path}: studies.must_cross.shipped_models: {error}") from error
 
 
+def _is_integer(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_share(value) -> bool:
+    """A share of control steps strictly between 0 and 1, as a budget is."""
+    return not isinstance(value, bool) and isinstance(value, (int, float)) and 0.0 < value < 1.0
+
+
 def _check_shared_control(config: ExperimentConfig, path: Path) -> None:
     """Refuses a shared_control study whose evaluations could not run (environment names are
     checked before), naming the key: a signal that is no uncertainty signal, a disagreement
@@ -397,28 +407,25 @@ def _check_shared_control(config: ExperimentConfig, path: Path) -> None:
         return
     where = f"experiment file {path}: studies.shared_control"
 
-    def integer(value) -> bool:
-        return isinstance(value, int) and not isinstance(value, bool)
-
     if study.signal not in UNCERTAINTY_SIGNALS:
         raise ConfigError(f"{where}.signal={study.signal!r}: expected one of {list(UNCERTAINTY_SIGNALS)} (random "
                           "handover runs beside it anyway)")
-    if not integer(study.ensemble) or study.ensemble < 1:
+    if not _is_integer(study.ensemble) or study.ensemble < 1:
         raise ConfigError(f"{where}.ensemble={study.ensemble!r}: expected an integer >= 1 clones")
     if study.signal in DISAGREEMENT_SIGNALS and study.ensemble < 2:
         raise ConfigError(f"{where}.ensemble={study.ensemble}: the signal {study.signal!r} is the members' "
                           "disagreement; expected K >= 2")
-    bad = [b for b in study.budgets if isinstance(b, bool) or not isinstance(b, (int, float)) or not 0.0 < b < 1.0]
+    bad = [b for b in study.budgets if not _is_share(b)]
     if bad or not study.budgets:
         raise ConfigError(f"{where}.budgets={study.budgets!r}: expected shares of control steps in (0, 1)")
     bad = [fallback for fallback in study.fallbacks if fallback not in STUDY_FALLBACKS]
     if bad or not study.fallbacks:
         raise ConfigError(f"{where}.fallbacks={study.fallbacks!r}: expected some of {list(STUDY_FALLBACKS)}")
     for key in ("demos", "calibration_rollouts", "calm_steps"):
-        if not integer(getattr(study, key)) or getattr(study, key) < 1:
+        if not _is_integer(getattr(study, key)) or getattr(study, key) < 1:
             raise ConfigError(f"{where}.{key}={getattr(study, key)!r}: expected an integer >= 1")
     for key in ("seed", "calibration_seed"):
-        if not integer(getattr(study, key)) or getattr(study, key) < 0:
+        if not _is_integer(getattr(study, key)) or getattr(study, key) < 0:
             raise ConfigError(f"{where}.{key}={getattr(study, key)!r}: expected an integer >= 0")
     calibration = range(study.calibration_seed, study.calibration_seed + study.calibration_rollouts)
     tests = range(study.seed, study.seed + config.rollouts)
@@ -450,13 +457,12 @@ def _check_aggregation(study: SharedControlStudy, where: str, tests: range, cali
         raise ConfigError(f"{where}.signal={round_.signal!r}: expected one a single clone gives, one of {signals}")
     if round_.fallback not in STUDY_FALLBACKS:
         raise ConfigError(f"{where}.fallback={round_.fallback!r}: expected one of {list(STUDY_FALLBACKS)}")
-    budget = round_.budget
-    if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0.0 < budget < 1.0:
-        raise ConfigError(f"{where}.budget={budget!r}: expected a share of control steps in (0, 1)")
-    for key in ("rollouts", "seed"):
+    if not _is_share(round_.budget):
+        raise ConfigError(f"{where}.budget={round_.budget!r}: expected a share of control steps in (0, 1)")
+    for key, least in (("rollouts", 1), ("seed", 0)):
         value = getattr(round_, key)
-        if isinstance(value, bool) or not isinstance(value, int) or value < (1 if key == "rollouts" else 0):
-            raise ConfigError(f"{where}.{key}={value!r}: expected an integer >= {1 if key == 'rollouts' else 0}")
+        if not _is_integer(value) or value < least:
+            raise ConfigError(f"{where}.{key}={value!r}: expected an integer >= {least}")
     weights = round_.intervention_weights
     if not weights or any(isinstance(w, bool) or not isinstance(w, (int, float)) or not 0 < w < math.inf
                           for w in weights):
@@ -784,6 +790,7 @@ def _train_after_the_round(config: ExperimentConfig, model: ModelSpec, train_con
     if not model_path(config, model).exists() and not _aggregation_round(config, clone, labels, progress):
         return
 
+    @functools.cache  # Read once for the samples and their intervention flags.
     def episodes():  # The clone's demonstrations, then the round's episodes, as `train --data D --data H`.
         demonstrations = Path(config.demos_dir) / clone.environments[0]
         return [*dataset_episodes(demonstrations, clone.demos),
