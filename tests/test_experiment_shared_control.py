@@ -137,6 +137,8 @@ def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_it
     ("aggregation: {seed: 9}", r"aggregation\.seed=9: its seeds 9-28 overlap the calibration's 0-9"),
     ("aggregation: {labels: [executed, person]}", r"aggregation\.labels=\['executed', 'person'\]: expected some of"),
     ("aggregation: {labels: [expert], fallback: mppi}", r"aggregation\.labels=\['expert'\] with fallback 'mppi'"),
+    ("aggregation: {shared_steps: [supervised]}", r"aggregation\.shared_steps=\['supervised'\]: expected some of"),
+    ("aggregation: {shared_steps: []}", r"aggregation\.shared_steps=\[\]: expected some of"),
 ])
 def test_bad_study_values_are_refused_naming_the_key(tmp_path, values, message):
     path = tmp_path / "bad.yaml"
@@ -232,13 +234,14 @@ def test_the_aggregation_round_gates_the_clone_records_its_handovers_and_retrain
     path.write_text(TINY.format(root=tmp_path).replace(
         "demos: 2, ensemble: 2,", "demos: 6, ensemble: 1, signal: mean_softmax_entropy,").replace(
         "seed: 5}", "seed: 5, aggregation: {signal: tip_risk_ahead, budget: 0.5, rollouts: 1, seed: 20, "
-                    "intervention_weights: [3], labels: [executed, expert]}}")
+                    "intervention_weights: [3], labels: [executed, expert], shared_steps: [all, interventions]}}")
                     + "training: {epochs: 1, patience: 1, batches_per_epoch: 1, synthetic_fraction: 0.5}\n")
     config = load_experiment(path)
     models, evaluations = plan(config)
-    assert [m.name for m in models] == ["wide_6", "wide_6_round_w3", "wide_6_round_expert_w3"]
+    suffixes = ("", "_round_w3", "_round_interventions_w3", "_round_expert_w3", "_round_expert_interventions_w3")
+    assert [m.name for m in models] == [f"wide_6{suffix}" for suffix in suffixes]
     assert [e.config.checkpoint for e in evaluations if e.controller == "learned"] == [
-        str(tmp_path / "models" / f"wide_6{suffix}.pt") for suffix in ("", "_round_w3", "_round_expert_w3")]
+        str(tmp_path / "models" / f"wide_6{suffix}.pt") for suffix in suffixes]
     # The clone is the shipped wide model, so that the gated episode crosses in a few seconds. Its
     # calibration is one second on flat ground, so only a large budget gives a finite threshold.
     clone = tmp_path / "models" / "wide_6.pt"
@@ -277,6 +280,21 @@ def test_the_aggregation_round_gates_the_clone_records_its_handovers_and_retrain
     # The clone's six demonstrations and the round's episode, its interventions weighed as the command weighs them.
     assert sorted(staged.training["train_demo_ids"] + staged.training["val_demo_ids"]) == list(range(7))
     assert staged.training["intervention_train_samples"] == commanded.training["intervention_train_samples"]
+    assert all(torch.equal(staged.state_dict[key], commanded.state_dict[key]) for key in commanded.state_dict)
+
+    # Only the expert's steps of the round's episode (HG-DAgger), as `train --shared-steps interventions`.
+    assert main(["train", "--data", str(tmp_path / "demos" / "wide"), "--data", str(handovers.root),
+                 "--intervention-weight", "3", "--shared-steps", "interventions", "--seed", "0", "--epochs", "1",
+                 "--patience", "1", "--batches-per-epoch", "1", "--synthetic-fraction", "0.5",
+                 "--out", str(by_command)]) == 0
+    staged = load_checkpoint(tmp_path / "models" / "wide_6_round_interventions_w3.pt")
+    commanded = load_checkpoint(by_command)
+    assert staged.training["train_config"]["shared_steps"] == "interventions"
+    assert staged.training["train_config"] == commanded.training["train_config"]
+    assert staged.training["intervention_train_samples"] == commanded.training["intervention_train_samples"] > 0
+    assert staged.training["num_train_samples"] + staged.training["num_val_samples"] < (
+        load_checkpoint(tmp_path / "models" / "wide_6_round_w3.pt").training["num_train_samples"]
+        + load_checkpoint(tmp_path / "models" / "wide_6_round_w3.pt").training["num_val_samples"])
     assert all(torch.equal(staged.state_dict[key], commanded.state_dict[key]) for key in commanded.state_dict)
 
 

@@ -47,7 +47,7 @@ from ditch_drake.common.parallel import check_workers
 from ditch_drake.common.progress import log_progress
 from ditch_drake.evaluation.results import RolloutSpec
 from ditch_drake.evaluation.runs import record_run
-from ditch_drake.learning.config import BALANCING_METHODS
+from ditch_drake.learning.config import BALANCING_METHODS, SHARED_STEPS
 from ditch_drake.pipelines.stages import (
     collect_demonstrations,
     pass_on_stop,
@@ -183,6 +183,9 @@ class AggregationRound:
         labels: the labels the round's steps are retrained on, some of `SHARED_LABELS`:
             "executed" (what the robot did: the clone's where it drove, the fallback's where it
             took over) and "expert" (the expert fallback's answer at every step).
+        shared_steps: which of the round's steps each retrained clone learns from, some of
+            `SHARED_STEPS` (as `train --shared-steps`): "all" (Sirius) and "interventions" (only
+            the steps the fallback drove: HG-DAgger, ThriftyDAgger; named `..._interventions_w<W>`).
     """
 
     signal: str = "tip_risk_ahead"
@@ -192,6 +195,7 @@ class AggregationRound:
     seed: int = 20000
     intervention_weights: list[float] = field(default_factory=lambda: [1.0, 3.0])
     labels: list[str] = field(default_factory=lambda: ["executed"])
+    shared_steps: list[str] = field(default_factory=lambda: ["all"])
 
 
 @dataclass
@@ -297,26 +301,28 @@ class ModelSpec:
     `ensemble` clones (K > 1: an ensemble, `ditch_drake.learning.ensemble_training`).
     `intervention_weight`: None, or a single clone retrained after the shared-control study's
     aggregation round with this weight on the fallback's steps (`AggregationRound`), on the
-    round's steps labelled as `round_labels` says."""
+    round's steps labelled as `round_labels` says, those of them `round_steps` keeps."""
 
     environments: tuple[str, ...]
     demos: int
     ensemble: int = 1
     intervention_weight: float | None = None
     round_labels: str = "executed"
+    round_steps: str = "all"
 
     @property
     def name(self) -> str:
         name = f"{'+'.join(self.environments)}_{self.demos}"
         if self.intervention_weight is not None:
             labels = "" if self.round_labels == "executed" else f"_{self.round_labels}"
-            return f"{name}_round{labels}_w{self.intervention_weight:g}"
+            steps = "" if self.round_steps == "all" else f"_{self.round_steps}"
+            return f"{name}_round{labels}{steps}_w{self.intervention_weight:g}"
         return f"{name}_k{self.ensemble}" if self.ensemble > 1 else name
 
     @property
     def before_the_round(self) -> "ModelSpec":
         """The clone the aggregation round gates (itself if this is not a retrained one)."""
-        return replace(self, intervention_weight=None, round_labels="executed")
+        return replace(self, intervention_weight=None, round_labels="executed", round_steps="all")
 
 
 def load_experiment(path: str | os.PathLike) -> ExperimentConfig:
@@ -470,6 +476,8 @@ def _check_aggregation(study: SharedControlStudy, where: str, tests: range, cali
                           "uniform aggregation)")
     if not round_.labels or any(labels not in SHARED_LABELS for labels in round_.labels):
         raise ConfigError(f"{where}.labels={round_.labels!r}: expected some of {list(SHARED_LABELS)}")
+    if not round_.shared_steps or any(steps not in SHARED_STEPS for steps in round_.shared_steps):
+        raise ConfigError(f"{where}.shared_steps={round_.shared_steps!r}: expected some of {list(SHARED_STEPS)}")
     if "expert" in round_.labels and round_.fallback != "expert":
         raise ConfigError(f"{where}.labels={round_.labels!r} with fallback {round_.fallback!r}: the expert's labels "
                           "come from the expert fallback; expected fallback 'expert'")
@@ -615,8 +623,9 @@ def _shared_control_evaluations(config: ExperimentConfig, study: SharedControlSt
                         for gate in study_gates(study, str(gate_signals_path(config, model)))]
         if study.aggregation:  # The clone before the round (unless it is the model above) and after it.
             clone = ModelSpec((env,), study.demos)
-            retrained = [replace(clone, intervention_weight=float(w), round_labels=labels)
-                         for labels in study.aggregation.labels for w in study.aggregation.intervention_weights]
+            retrained = [replace(clone, intervention_weight=float(w), round_labels=labels, round_steps=steps)
+                         for labels in study.aggregation.labels for steps in study.aggregation.shared_steps
+                         for w in study.aggregation.intervention_weights]
             evaluations += [Evaluation("shared_control", "learned", m, env,
                                        LearnedPolicyConfig(checkpoint=str(model_path(config, m))), study.seed)
                             for m in ([clone] if clone != model else []) + retrained]
@@ -769,8 +778,8 @@ def _train(config: ExperimentConfig, model: ModelSpec, progress: bool) -> None:
                                max_batches_per_epoch=settings.batches_per_epoch, balancing=settings.balancing,
                                smote=replace(defaults.smote, max_synthetic_fraction=settings.synthetic_fraction))
     if model.intervention_weight is not None:
-        _train_after_the_round(config, model, replace(train_config, intervention_weight=model.intervention_weight),
-                               progress)
+        _train_after_the_round(config, model, replace(train_config, intervention_weight=model.intervention_weight,
+                                                      shared_steps=model.round_steps), progress)
         return
     if model.ensemble > 1:
         train_ensemble_or_resume(model_path(config, model), model.name, directories, model.demos, train_config,
@@ -783,7 +792,7 @@ def _train_after_the_round(config: ExperimentConfig, model: ModelSpec, train_con
     """Trains `model` (a clone retrained after the aggregation round) on its clone's first
     demonstrations and the round's gated episodes, running the round first where it is
     unfinished."""
-    from ditch_drake.demos.interventions import episode_interventions
+    from ditch_drake.demos.interventions import episode_interventions, kept_steps
     from ditch_drake.demos.training_set import dataset_episodes, training_set
 
     clone, labels = model.before_the_round, model.round_labels
@@ -796,9 +805,13 @@ def _train_after_the_round(config: ExperimentConfig, model: ModelSpec, train_con
         return [*dataset_episodes(demonstrations, clone.demos),
                 *dataset_episodes(handovers_folder(config, clone, labels))]
 
+    def steps():  # As `train --shared-steps`.
+        return kept_steps(episodes(), train_config.shared_steps)
+
     weighted = train_config.intervention_weight != 1.0  # As `train`: W = 1 reads no flags.
-    train_or_resume(model_path(config, model), model.name, lambda: training_set(episodes()), train_config, progress,
-                    interventions=(lambda: episode_interventions(episodes())) if weighted else None)
+    train_or_resume(model_path(config, model), model.name, lambda: training_set(episodes(), steps=steps()),
+                    train_config, progress,
+                    interventions=(lambda: episode_interventions(episodes(), steps())) if weighted else None)
 
 
 def _aggregation_round(config: ExperimentConfig, clone: ModelSpec, labels: str, progress: bool) -> bool:
