@@ -256,6 +256,16 @@ def test_a_search_that_holds_its_way_is_its_own_marked_row():
     assert label(keeping_off) == "mppi (window search, way held 0.5 m, off seen drops)"
 
 
+def test_a_search_with_another_first_leg_is_its_own_marked_row():
+    default = _record(controller="mppi", controller_sha256="d", controller_config=(
+        "search: {first_leg_m: 8.0, max_search_m: 60.0, hold_way_m: 0.5}\n"))
+    longer = _record(controller="mppi", controller_sha256="l", controller_config=(
+        "search: {first_leg_m: 40.0, max_search_m: 60.0, hold_way_m: 0.5}\n"))
+    label = controller_labels([default, longer])
+    assert label(default) == "mppi (window search, way held 0.5 m)"
+    assert label(longer) == "mppi (window search, first leg 40 m, way held 0.5 m)"
+
+
 def test_the_benchmark_page_gives_time_and_path_length_paired_with_the_most_successful_controller(tmp_path):
     expert = [_record(environment="wide", task=task, time_s=30.0 + task, path_length_m=10.0) for task in range(3)]
     mppi = [_record(controller="mppi", controller_config="planner: {}\n", controller_sha256="m", environment="wide",

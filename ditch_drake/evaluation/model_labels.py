@@ -5,7 +5,8 @@ Every results table names its rows by `controller_labels`, which marks a row in 
 label, then in brackets where a side-conditioned clone was told its crossing side ("perceived
 side", "oracle side": `RolloutRecord.crossing_side_source`), what the controller declared it
 reads beyond its sensors, pose and goal ("privileged: analytic terrain":
-`RolloutRecord.privileged`), a window search ("window search", "window search, way held 0.5 m, off seen drops"),
+`RolloutRecord.privileged`), a window search ("window search", "window search, first leg 40 m, way held
+0.5 m, off seen drops"),
 an MPPI's nose-up threshold where set ("climb margin 11 deg")
 and, for a gated policy, its gate's signal, budget and fallback, e.g. "expert (privileged:
 analytic terrain)", "generalist (oracle side; privileged: analytic terrain)" or "crater_40_k5
@@ -20,6 +21,7 @@ from pathlib import Path
 
 from ditch_drake.diagrams.controllers import privileged_words
 from ditch_drake.evaluation.results import RolloutRecord
+from ditch_drake.systems.window_search import WindowSearchConfig
 
 # What a page says beside a table with a marked row.
 MARKS_NOTE = ("A row marked \"privileged: ...\" is a controller that reads what the robot cannot sense (it declares "
@@ -41,14 +43,18 @@ def searches(record: RolloutRecord) -> bool:
 
 
 def search_words(record: RolloutRecord) -> str:
-    """A searching record's mark: "window search", with ", way held 0.5 m" where its search held
-    a crossing's way along (`WindowSearchConfig.hold_way_m`) and ", off seen drops" where it kept
-    off the drops it saw (`keep_off_seen_drops`; both written only when set); "" for a record
-    that did not search."""
+    """A searching record's mark: "window search", with ", first leg 40 m" where its first leg
+    was not the default's (`WindowSearchConfig.first_leg_m`), ", way held 0.5 m" where its
+    search held a crossing's way along (`hold_way_m`) and ", off seen drops" where it kept off
+    the drops it saw (`keep_off_seen_drops`; both written only when set); "" for a record that
+    did not search."""
     if not searches(record):
         return ""
     config = record.controller_config or ""
     words = "window search"
+    found = re.search(r"first_leg_m: ([-+.0-9eE]+)", config)
+    if found and float(found.group(1)) != WindowSearchConfig.first_leg_m:
+        words += f", first leg {float(found.group(1)):g} m"
     if found := re.search(r"hold_way_m: ([-+.0-9eE]+)", config):
         words += f", way held {float(found.group(1)):g} m"
     if re.search(r"keep_off_seen_drops: true", config):
