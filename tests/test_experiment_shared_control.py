@@ -292,9 +292,9 @@ def test_the_aggregation_round_gates_the_clone_records_its_handovers_and_retrain
     assert staged.training["train_config"]["shared_steps"] == "interventions"
     assert staged.training["train_config"] == commanded.training["train_config"]
     assert staged.training["intervention_train_samples"] == commanded.training["intervention_train_samples"] > 0
-    assert staged.training["num_train_samples"] + staged.training["num_val_samples"] < (
-        load_checkpoint(tmp_path / "models" / "wide_6_round_w3.pt").training["num_train_samples"]
-        + load_checkpoint(tmp_path / "models" / "wide_6_round_w3.pt").training["num_val_samples"])
+    every_step = load_checkpoint(tmp_path / "models" / "wide_6_round_w3.pt").training
+    assert (staged.training["num_train_samples"] + staged.training["num_val_samples"]
+            < every_step["num_train_samples"] + every_step["num_val_samples"])
     assert all(torch.equal(staged.state_dict[key], commanded.state_dict[key]) for key in commanded.state_dict)
 
 

@@ -805,6 +805,7 @@ def _train_after_the_round(config: ExperimentConfig, model: ModelSpec, train_con
         return [*dataset_episodes(demonstrations, clone.demos),
                 *dataset_episodes(handovers_folder(config, clone, labels))]
 
+    @functools.cache  # Read once for the samples and their flags.
     def steps():  # As `train --shared-steps`.
         return kept_steps(episodes(), train_config.shared_steps)
 
