@@ -225,6 +225,37 @@ def test_window_search_turns_back_twice_as_far_out_each_time():
     assert [x for x, _ in turns[1:]] == [-8.0, 16.0, -32.0]
 
 
+def test_window_search_turned_at_the_ditchs_end_searches_the_other_side():
+    """The ditch ends at x -5 (beyond it, level ground; the hinge recedes over its last 3 m, a
+    rounded end), on the first leg's side. The search turns back there; the robot, turning, carries
+    on 2 m past the end, where the ground 1-3 m ahead the new way is still the end's level ground.
+    That is no end of the new side: the search goes on along it instead of giving up."""
+    block = _search_block()
+    grid = ElevationGrid()
+    context = block.CreateDefaultContext()
+    simulator = Simulator(block, context)
+    end_x, taper_m = -5.0, 3.0
+
+    def map_at(x):
+        origin, heights = _map_of_a_ditch((-90.0, -89.0), robot_xy=(x, -4.0), size_m=12.0)
+        xs, ys = windows.cell_centres(heights, origin, RESOLUTION_M)
+        hinge_y = STEEP_HINGE_Y + np.clip(end_x + taper_m - xs, 0.0, None)
+        return origin, np.where((xs < end_x) | (ys <= hinge_y), 0.0, heights)
+
+    phases, headings = [], []
+    for x in [0.0, *np.arange(-1.0, -8.0, -1.0), *np.arange(-6.0, 4.0, 1.0)]:
+        yaw = math.pi / 2 if x == 0.0 else 0.0
+        block.GetInputPort("body_poses").FixValue(context, [RigidTransform(RollPitchYaw(0, 0, yaw), [x, -4.0, 0.3])])
+        block.GetInputPort("elevation_map").FixValue(context, grid.pack(*map_at(x)))
+        simulator.AdvanceTo(context.get_time() + 0.1)
+        phases.append(SearchPhase(int(block.GetOutputPort("phase").Eval(context)[0])))
+        headings.append(math.copysign(1.0, block.GetOutputPort("target_xy").Eval(context)[0] - x))
+    assert phases == [SearchPhase.SEARCH_IN] * len(phases)
+    turned = headings.index(1.0)
+    assert headings[:turned] == [-1.0] * turned and headings[turned:] == [1.0] * (len(headings) - turned)
+    assert turned <= 5  # At x -4 or before: the end seen ahead, not reached by the reach of the leg (-8).
+
+
 @pytest.mark.parametrize("hold_way_m, turned_at_x", [(None, -7.0), (0.5, -12.0)])
 def test_window_search_on_the_top_turns_back_at_the_windows_end_only_when_holding_its_way(hold_way_m, turned_at_x):
     """Committed to the window from x -12 to -2 m and driving along the top toward -x: chosen

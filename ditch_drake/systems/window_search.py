@@ -134,8 +134,8 @@ class _View:
 
 # Layout of the bookkeeping state.
 (_PHASE, _DIRECTION, _FRAME_X, _FRAME_Y, _FRAME_ANGLE, _TOP_Z, _FLOOR_Z, _ORIGIN, _DONE_SIDES, _BEST, _STALL,
- _WINDOW_FROM, _WINDOW_TO, _FAR_FOOT, _REACH, _UNDER_WAY) = range(16)
-_STATE_SIZE = 16
+ _WINDOW_FROM, _WINDOW_TO, _FAR_FOOT, _REACH, _UNDER_WAY, _LEG_FROM) = range(17)
+_STATE_SIZE = 17
 
 
 class WindowSearch(LeafSystem):
@@ -380,7 +380,7 @@ class WindowSearch(LeafSystem):
 
     @staticmethod
     def _start_leg(state: np.ndarray, s_robot: float) -> None:
-        state[_BEST] = state[_DIRECTION] * s_robot
+        state[_BEST] = state[_LEG_FROM] = state[_DIRECTION] * s_robot
         state[_STALL] = 0.0
 
     @staticmethod
@@ -399,6 +399,8 @@ class WindowSearch(LeafSystem):
             state[_STALL] += self._period_s
         out_m = state[_DIRECTION] * (s_robot - state[_ORIGIN])
         done = int(state[_DONE_SIDES])
+        # Just after a turn at the ditch's end, the ground ahead is still that end's.
+        ended = ended and progress >= state[_LEG_FROM] + c.lookahead_m
         if ended or state[_STALL] >= c.stall_s or out_m >= c.max_search_m:
             done |= self._side_bit(state[_DIRECTION])
         elif out_m < state[_REACH] or done & self._side_bit(-state[_DIRECTION]):
