@@ -231,3 +231,24 @@ def test_a_rollout_that_cannot_import_a_module_stops_the_run_naming_it(tmp_path,
         evaluate(SPECS, out, workers=0, progress=False)
     [record] = read_records(out)[0]  # The first rollout's error is kept; the second never ran.
     assert record.status == "error"
+
+
+def test_a_rerun_naming_the_environments_file_another_way_resumes_instead_of_running_again(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    import ditch_drake.world
+
+    folder = Path(ditch_drake.world.__file__).parent
+    monkeypatch.chdir(folder)
+    out = tmp_path / "runs.jsonl"
+    relative = make_specs("expert", "", "wide", [0], rollouts=2, seed=3, time_limit_s=1.5,
+                          environments_file="environments.yaml")
+    assert evaluate(relative, out, workers=0, progress=False).recorded == 2
+    absolute = make_specs("expert", "", "wide", [0], rollouts=2, seed=3, time_limit_s=1.5,
+                          environments_file=str(folder / "environments.yaml"))
+    assert {spec.key for spec in absolute}.isdisjoint(spec.key for spec in relative)
+    again = evaluate(absolute, out, workers=0, progress=False)
+    assert (again.recorded, again.skipped) == (0, 2)
+    assert [record.environments_file for record in read_records(out)[0]] == ["environments.yaml"] * 2
+    assert [spec.key for spec in batch.spelled_as_recorded(absolute, read_records(out)[0])] == \
+        [spec.key for spec in relative]

@@ -66,9 +66,9 @@ def add_evaluate(commands: Commands) -> None:
 def cmd_evaluate(args) -> int:
     """Seeded rollouts of one controller in one or more environments, appended to a results file."""
     check_workers(args.workers, "--workers")
-    from ditch_drake.evaluation.batch import evaluate, load_results, make_specs
+    from ditch_drake.evaluation.batch import evaluate, load_results, make_specs, spelled_as_recorded
     from ditch_drake.evaluation.model_labels import with_marks
-    from ditch_drake.evaluation.results import current_records
+    from ditch_drake.evaluation.results import current_records, read_records
     from ditch_drake.evaluation.summary import group_by, summarize
     from ditch_drake.systems.episode_monitor import EpisodeConfig
     from ditch_drake.world.environments import environment_names, get_environment
@@ -109,6 +109,7 @@ def cmd_evaluate(args) -> int:
         plan.append(f"{environment}: {tasks} tasks x {args.rollouts} rollouts = {tasks * args.rollouts}")
     print(f"{specs[0].controller}: " + "; ".join(plan) + f" (seeds {args.seed}..{args.seed + args.rollouts - 1})",
           file=sys.stderr, flush=True)
+    specs = spelled_as_recorded(specs, read_records(args.out)[0])  # The summary's keys are the records'.
     report = evaluate(specs, args.out, workers=args.workers, backend=args.backend, address=args.address)
     for warning in report.warnings:
         print(f"warning: {warning}", file=sys.stderr)
@@ -177,8 +178,8 @@ def cmd_benchmark(args) -> int:
     check_workers(args.workers, "--workers")
     from ditch_drake.benchmark.run import BenchmarkConfig, benchmark_specs, run_benchmark
     from ditch_drake.benchmark.splits import check_split
-    from ditch_drake.evaluation.batch import load_results
-    from ditch_drake.evaluation.results import current_records
+    from ditch_drake.evaluation.batch import load_results, spelled_as_recorded
+    from ditch_drake.evaluation.results import current_records, read_records
     from ditch_drake.evaluation.summary import summarize
 
     check_split(args.split)
@@ -190,7 +191,7 @@ def cmd_benchmark(args) -> int:
                              backend=args.backend, address=args.address)
     if args.rollouts < 1:
         raise ConfigError(f"--rollouts {args.rollouts}: expected a positive integer")
-    specs = benchmark_specs(config)
+    specs = spelled_as_recorded(benchmark_specs(config), read_records(args.out)[0])  # The summary's keys are the records'.
     environments = sorted({spec.environment for spec in specs})
     print(f"{specs[0].controller} on split {args.split}: {len(environments)} ditches x 3 tasks x {args.rollouts} "
           f"rollouts = {len(specs)} (seeds {args.seed}..{args.seed + args.rollouts - 1})", file=sys.stderr, flush=True)

@@ -29,7 +29,7 @@ import sys
 import time
 from concurrent.futures import as_completed
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from tqdm import tqdm
@@ -154,6 +154,22 @@ def make_specs(controller, checkpoint: str, environment: str, tasks: list[int] |
             for task in tasks for i in range(rollouts)]
 
 
+def spelled_as_recorded(specs: list[RolloutSpec], records: list[RolloutRecord]) -> list[RolloutSpec]:
+    """`specs`, each environments file spelled as `records` (a results file's) spell the same
+    file. A key holds the path as given, so a run given another spelling of it (absolute where the
+    records have it relative, say) would find none of its rollouts done, run them all again and
+    append them beside the first ones."""
+    recorded = sorted({record.environments_file for record in records if record.environments_file})
+
+    def spelling(path: str) -> str:
+        if not path or path in recorded or not os.path.exists(path):
+            return path
+        return next((known for known in recorded if os.path.exists(known) and os.path.samefile(known, path)), path)
+
+    spellings = {path: spelling(path) for path in {spec.environments_file for spec in specs}}
+    return [replace(spec, environments_file=spellings[spec.environments_file]) for spec in specs]
+
+
 def check_checkpoint(checkpoint: str) -> str:
     """The checkpoint's digest ("" for none), after loading it once (a .pt checkpoint, an ensemble
     file or a .onnx policy: `check_policy_file`).
@@ -218,6 +234,7 @@ def _evaluate_locked(specs: list[RolloutSpec], results_path: str | os.PathLike, 
     """`evaluate`, once this process holds the results file."""
     start = time.perf_counter()
     existing, warnings = read_records(results_path)
+    specs = spelled_as_recorded(specs, existing)
     done = finished_keys(existing)
     pending = list({spec.key: spec for spec in specs if spec.key not in done}.values())
     requested = {spec.key for spec in specs}
