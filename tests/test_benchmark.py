@@ -407,6 +407,25 @@ def test_train_generalist_refuses_to_resume_a_work_dir_made_with_other_settings(
     assert "train_ranges.crater_diameter_m=[9.0, 12.0]: expected [8.0, 12.0]" in capsys.readouterr().err
 
 
+def test_a_generalist_work_dir_keeps_its_class_balancing_and_one_made_before_it_was_recorded_is_smotes(tmp_path, capsys):
+    from ditch_drake.benchmark.ranges import packaged_ranges_path
+    from ditch_drake.pipelines.generalist import GENERALIST_TRAIN_RANGES, RECIPE_FILE, GeneralistConfig, _check_recipe
+
+    ranges = load_ranges(packaged_ranges_path(GENERALIST_TRAIN_RANGES))
+    work = tmp_path / "generalist"
+    work.mkdir()
+    _check_recipe(work, GeneralistConfig(balancing="oversample"), ranges)
+    assert json.loads((work / RECIPE_FILE).read_text())["balancing"] == "oversample"
+    assert main(["train-generalist", "--work-dir", str(work), "--out", str(tmp_path / "g.pt")]) == 2
+    assert "balancing=smote: expected oversample, the setting" in capsys.readouterr().err
+    made_before = json.loads((work / RECIPE_FILE).read_text())
+    del made_before["balancing"]
+    (work / RECIPE_FILE).write_text(json.dumps(made_before))
+    _check_recipe(work, GeneralistConfig(), ranges)  # SMOTE, as every run then trained.
+    with pytest.raises(ConfigError, match="balancing=oversample: expected smote"):
+        _check_recipe(work, GeneralistConfig(balancing="oversample"), ranges)
+
+
 def test_the_generalist_trains_on_the_benchmark_ranges_with_craters_from_8_m():
     from dataclasses import asdict
 

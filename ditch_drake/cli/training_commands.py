@@ -273,6 +273,10 @@ def add_train_generalist(commands: Commands) -> None:
                             help="train on every k-th control step of the DAgger rollouts (memory)")
     generalist.add_argument("--epochs", type=int, default=ConfigDefault(GENERALIST, "epochs"),
                             help="most epochs per training")
+    from ditch_drake.learning.config import BALANCING_METHODS  # No torch: `--help` stays fast.
+
+    generalist.add_argument("--balancing", choices=BALANCING_METHODS, default=ConfigDefault(GENERALIST, "balancing"),
+                            help="class balancing of every round's training (ditch_drake/learning/balance.py)")
     generalist.add_argument("--mirror", action="store_true",
                             help="also train on the left-right reflection of each rollout whose crossing turns "
                                  "clearly to one side (ditch_drake/pipelines/generalist.py)")
@@ -304,7 +308,7 @@ def cmd_train_generalist(args) -> int:
     config = GeneralistConfig(out=args.out, work_dir=args.work_dir, train_geometries=args.train_geometries,
                               demos_per_task=args.demos_per_task, dagger_rounds=args.dagger_rounds,
                               val_geometries=args.val_geometries, dagger_stride=args.dagger_stride,
-                              epochs=args.epochs, seed=args.seed, mirror=args.mirror,
+                              epochs=args.epochs, balancing=args.balancing, seed=args.seed, mirror=args.mirror,
                               canonical_side=args.canonical_side, workers=args.workers,
                               ranges=args.ranges or "", train_ranges=args.train_ranges or "",
                               backend=args.backend, address=args.address)

@@ -20,8 +20,8 @@ Stages, each skipping what an earlier run finished (so the command resumes):
    (`<work>/val.jsonl`); the most successful (the later round on a tie) is copied to `out`.
 
 A work dir records the settings that shape its data and rounds (`recipe.json`: the train
-ranges, demonstrations per task, DAgger stride, mirror, canonical side, seed) and refuses to be
-resumed with others. The test split plays no part.
+ranges, demonstrations per task, DAgger stride, mirror, canonical side, seed, class balancing)
+and refuses to be resumed with others. The test split plays no part.
 """
 
 import json
@@ -61,6 +61,8 @@ MIRROR_MARGIN_DEG = 5.0
 GENERALIST_TRAIN_RANGES = "generalist_train_ranges.yaml"
 # The settings a work dir's demonstrations and rounds were made with (`_check_recipe`).
 RECIPE_FILE = "recipe.json"
+# What a work dir's recipe made before a setting was recorded was made with.
+_RECIPE_BEFORE = {"balancing": "smote"}
 
 
 @dataclass
@@ -83,6 +85,9 @@ class GeneralistConfig:
             the recipe, and its rounds, stay as they were. Streaming from the dataset folders,
             memory no longer depends on it.
         epochs, patience: training's.
+        balancing: training's class balancing (`TrainConfig.balancing`; the shipped generalist
+            was trained with SMOTE, the default). Every round after the first is collected
+            by the round before it, so a work dir keeps one (`recipe.json`).
         mirror: also train on the left-right reflection (`ditch_drake.learning.mirror`) of each
             demonstration and DAgger rollout whose task turns at least the expert's
             `straight_across_deg` + `MIRROR_MARGIN_DEG` from square across
@@ -118,6 +123,7 @@ class GeneralistConfig:
     dagger_stride: int = 3
     epochs: int = 12
     patience: int = 6
+    balancing: str = "smote"
     mirror: bool = False
     canonical_side: bool = False
     seed: int = 0
@@ -204,6 +210,7 @@ def _train(config: GeneralistConfig, data: list[Path], ditches: str, out: Path, 
 
     device = training_device("auto")
     train_config = TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, device=device,
+                               balancing=config.balancing,
                                model=ModelConfig(canonical_side=config.canonical_side),
                                precision=training_precision(device))
     train_or_resume(out, out.stem, lambda: _training_samples(config, data, ditches, progress), train_config,
@@ -220,7 +227,7 @@ def _check_recipe(work: Path, config: GeneralistConfig, train_ranges: BenchmarkR
     ranges = {f"train_ranges.{name}": value for name, value in asdict(train_ranges).items()}
     recipe = json.loads(json.dumps(ranges | {"demos_per_task": config.demos_per_task, "dagger_stride": config.dagger_stride,
                                              "mirror": config.mirror, "canonical_side": config.canonical_side,
-                                             "seed": config.seed}))
+                                             "seed": config.seed, "balancing": config.balancing}))
     path = work / RECIPE_FILE
     if not path.exists():
         atomic_write_text(path, json.dumps(recipe, indent=2) + "\n")
@@ -234,8 +241,9 @@ def _check_recipe(work: Path, config: GeneralistConfig, train_ranges: BenchmarkR
         raise ConfigError(f"{path} holds a JSON {type(made_with).__name__}; expected the JSON object of the "
                           "settings this work dir was made with (or pass a fresh --work-dir)")
     for name, value in recipe.items():
-        if made_with.get(name) != value:
-            raise ConfigError(f"{name}={value}: expected {made_with.get(name)}, the setting {work} was made with "
+        expected = made_with.get(name, _RECIPE_BEFORE.get(name))
+        if expected != value:
+            raise ConfigError(f"{name}={value}: expected {expected}, the setting {work} was made with "
                               f"({path}); pass the same to resume it, or a fresh --work-dir")
 
 
