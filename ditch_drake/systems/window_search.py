@@ -44,7 +44,8 @@ class WindowSearchConfig:
         bin_m: the wall's slope is estimated in bins this long along the edge.
         memory_m: the bins remembered span this much along the edge each side of where it was found.
         edge_standoff_m: the search drives this far short of the edge line.
-        lookahead_m: a search's target lies this far ahead along the edge (or the floor).
+        lookahead_m: a search's target lies this far ahead along the edge (or the floor); the
+            ditch's end seen ahead counts once the robot has gone this far along its side.
         first_leg_m: the search goes first toward the goal's along and this far beyond it,
             then turns back and goes twice as far past its start the other way, and so on,
             each turn twice as far out (a way near either side is found before one far off).
@@ -153,7 +154,8 @@ class WindowSearch(LeafSystem):
     inside its window; back at the top's height, the goal. A search goes toward the goal's
     along and `first_leg_m` beyond, then turns back, each turn twice as far from its start; a side is done at
     `max_search_m`, a stall or where the ditch ends ahead (the ground across the edge seen
-    level, or the floor rising ahead), and with both done it gives up for the goal. It reads the
+    level, or the floor rising ahead, once `lookahead_m` along that side: just after a turn at
+    an end, the ground ahead is still that end's), and with both done it gives up for the goal. It reads the
     robot's sensors (the map), its pose and the goal: nothing privileged.
 
     .. pydrake_system::
