@@ -246,24 +246,20 @@ def test_an_mppi_with_a_climb_threshold_is_its_own_marked_row():
     assert (label(searching), label(climbing)) == ("mppi (window search)", "mppi (window search; climb margin 11 deg)")
 
 
-def test_a_search_that_holds_its_way_is_its_own_marked_row():
-    holding = _record(controller="mppi", controller_sha256="h", controller_config=(
-        "planner: {climb_fore_aft_margin_threshold_deg: 11.0}\nsearch: {edge_standoff_m: 0.8, hold_way_m: 0.5}\n"))
-    keeping_off = _record(controller="mppi", controller_sha256="k", controller_config=(
-        "search: {hold_way_m: 0.5, keep_off_seen_drops: true}\n"))
-    label = controller_labels([holding, keeping_off])
-    assert label(holding) == "mppi (window search, way held 0.5 m; climb margin 11 deg)"
-    assert label(keeping_off) == "mppi (window search, way held 0.5 m, off seen drops)"
-
-
-def test_a_search_with_another_first_leg_is_its_own_marked_row():
-    default = _record(controller="mppi", controller_sha256="d", controller_config=(
-        "search: {first_leg_m: 8.0, max_search_m: 60.0, hold_way_m: 0.5}\n"))
-    longer = _record(controller="mppi", controller_sha256="l", controller_config=(
-        "search: {first_leg_m: 40.0, max_search_m: 60.0, hold_way_m: 0.5}\n"))
-    label = controller_labels([default, longer])
-    assert label(default) == "mppi (window search, way held 0.5 m)"
-    assert label(longer) == "mppi (window search, first leg 40 m, way held 0.5 m)"
+@pytest.mark.parametrize("configs, labels", [
+    (("planner: {climb_fore_aft_margin_threshold_deg: 11.0}\nsearch: {edge_standoff_m: 0.8, hold_way_m: 0.5}\n",
+      "search: {hold_way_m: 0.5, keep_off_seen_drops: true}\n"),
+     ("mppi (window search, way held 0.5 m; climb margin 11 deg)",
+      "mppi (window search, way held 0.5 m, off seen drops)")),
+    (("search: {first_leg_m: 8.0, max_search_m: 60.0, hold_way_m: 0.5}\n",
+      "search: {first_leg_m: 40.0, max_search_m: 60.0, hold_way_m: 0.5}\n"),
+     ("mppi (window search, way held 0.5 m)", "mppi (window search, first leg 40 m, way held 0.5 m)")),
+], ids=["way held, off seen drops", "first leg"])
+def test_a_search_setting_off_its_default_is_its_own_marked_row(configs, labels):
+    records = [_record(controller="mppi", controller_sha256=str(i), controller_config=config)
+               for i, config in enumerate(configs)]
+    label = controller_labels(records)
+    assert [label(record) for record in records] == list(labels)
 
 
 def test_the_benchmark_page_gives_time_and_path_length_paired_with_the_most_successful_controller(tmp_path):
