@@ -373,7 +373,7 @@ def test_the_paper_split_runs_the_four_packaged_ditches_and_its_report_has_a_col
 
 
 @pytest.mark.parametrize("option, value", [("--dagger-stride", "0"), ("--dagger-rounds", "-1"),
-                                           ("--demos-per-task", "0")])
+                                           ("--demos-per-task", "0"), ("--ensemble", "1")])
 def test_train_generalist_refuses_a_bad_count_before_any_work(tmp_path, capsys, option, value):
     work = tmp_path / "generalist"
     assert main(["train-generalist", option, value, "--work-dir", str(work), "--out", str(tmp_path / "g.pt")]) == 2

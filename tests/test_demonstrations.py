@@ -188,6 +188,52 @@ def test_the_generalist_also_learns_the_reflection_of_crossings_that_turn_clearl
     assert len(_training_samples(GeneralistConfig(mirror=True), [tmp_path / "demos"], ditches).label) == 6
 
 
+def test_an_ensemble_of_the_generalist_resamples_whole_rollouts_with_their_reflections(tmp_path):
+    from importlib import resources
+
+    from ditch_drake.pipelines.generalist import GeneralistConfig, _training_entries
+
+    # As above: demo_000 turns clearly (it and its reflection), demo_001 runs square across.
+    for index, task in enumerate((1, 0)):
+        demonstration = _numbered_frames(3)
+        demonstration.metadata.update(task={"index": task, "name": "t"},
+                                      expert_style={"driver": {"straight_across_deg": 15.0}})
+        save_demonstration(tmp_path / "demos" / f"demo_{index:03d}.npz", demonstration)
+    ditches = str(resources.files("ditch_drake.world") / "environments.yaml")
+    entries = _training_entries(GeneralistConfig(mirror=True), [tmp_path / "demos"], ditches)
+    assert entries.names == [f"{tmp_path / 'demos'}[0]", f"{tmp_path / 'demos'}[1]"]
+    assert entries.demonstration.tolist() == [0, 0, 1]
+    # A resample drawing demo_001 once and demo_000 twice: each draw keeps its reflection, and
+    # its position in the resample is its id, so validation holds out a rollout with its reflection.
+    samples = entries.samples(np.array([1, 0, 0]))
+    assert samples.label.tolist() == [0, 1, 2] + [0, 1, 2, 16, 15, 14] * 2
+    assert samples.demo_id.tolist() == [0] * 3 + [1] * 6 + [2] * 6
+    # The rounds' own training set is as it always was: a reflection has an id of its own.
+    assert entries.samples().demo_id.tolist() == [0] * 3 + [1] * 3 + [2] * 3
+
+
+def test_the_generalists_ensemble_stage_trains_k_members_of_its_data_once(tmp_path, random_demonstration, capsys):
+    from ditch_drake.demos.store import DatasetStore
+    from ditch_drake.learning.ensemble import load_ensemble
+    from ditch_drake.pipelines.generalist import GeneralistConfig, _train_ensemble
+
+    for name, lengths in (("demos", (9, 6, 11)), ("dagger1", (8, 7))):
+        store = DatasetStore.create(tmp_path / name)
+        for index, steps in enumerate(lengths):
+            store.append(random_demonstration(index, steps))
+    config = GeneralistConfig(epochs=1, patience=1, dagger_stride=2, ensemble=2, balancing="oversample")
+    out = tmp_path / "ensemble.pt"
+    _train_ensemble(config, [tmp_path / "demos", tmp_path / "dagger1"], "", out, progress=False)
+    ensemble = load_ensemble(out)
+    assert len(ensemble.members) == 2
+    assert ensemble.bootstrap["demonstrations"] == [f"{tmp_path / 'demos'}[{i}]" for i in range(3)] + [
+        f"{tmp_path / 'dagger1'}[{i}]" for i in range(2)]
+    assert [member.training["train_config"]["balancing"] for member in ensemble.members] == ["oversample"] * 2
+    written = out.stat().st_mtime_ns
+    _train_ensemble(config, [tmp_path / "demos", tmp_path / "dagger1"], "", out, progress=True)
+    assert out.stat().st_mtime_ns == written and "exists, kept" in capsys.readouterr().err
+
+
 def test_the_canonical_side_generalist_reflects_the_steps_that_cross_turned_left(tmp_path):
     from importlib import resources
 

@@ -286,6 +286,10 @@ def add_train_generalist(commands: Commands) -> None:
                                  "systems/perceived_crossing_side.py)")
     generalist.add_argument("--seed", type=int, default=ConfigDefault(GENERALIST, "seed"),
                             help="seeds demonstrations, training and val rollouts")
+    generalist.add_argument("--ensemble", type=int, default=ConfigDefault(GENERALIST, "ensemble"), metavar="K",
+                            help="then K clones of the chosen round's data, each on a bootstrap resample of its "
+                                 "rollouts, into <work dir>/ensemble.pt (the shared controller's gated policy); "
+                                 "0: none (default %(default)s)")
     generalist.add_argument("--ranges", default=ConfigDefault(GENERALIST, "ranges"),
                             help="the val split's ranges YAML file (default: the benchmark's)")
     generalist.add_argument("--train-ranges", default=ConfigDefault(GENERALIST, "train_ranges"),
@@ -309,6 +313,7 @@ def cmd_train_generalist(args) -> int:
                               demos_per_task=args.demos_per_task, dagger_rounds=args.dagger_rounds,
                               val_geometries=args.val_geometries, dagger_stride=args.dagger_stride,
                               epochs=args.epochs, balancing=args.balancing, seed=args.seed, mirror=args.mirror,
+                              ensemble=args.ensemble,
                               canonical_side=args.canonical_side, workers=args.workers,
                               ranges=args.ranges or "", train_ranges=args.train_ranges or "",
                               backend=args.backend, address=args.address)

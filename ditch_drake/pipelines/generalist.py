@@ -17,7 +17,10 @@ Stages, each skipping what an earlier run finished (so the command resumes):
    `canonical_side`, every step whose crossing turns left along the edge is reflected, and
    the clone is told the side to cross on (`GeneralistConfig.canonical_side`);
 5. every round's clone runs the val split's first `val_geometries` ditches
-   (`<work>/val.jsonl`); the most successful (the later round on a tie) is copied to `out`.
+   (`<work>/val.jsonl`); the most successful (the later round on a tie) is copied to `out`;
+6. with `ensemble` K, K clones of the chosen round's data, each on a bootstrap resample of its
+   demonstrations and DAgger rollouts (as `ditch-drake train --ensemble`), in `<work>/ensemble.pt`:
+   the gated policy of the `shared` controller.
 
 A work dir records the settings that shape its data and rounds (`recipe.json`: the train
 ranges, demonstrations per task, DAgger stride, mirror, canonical side, seed, class balancing)
@@ -39,6 +42,7 @@ from ditch_drake.common.progress import log_progress
 from ditch_drake.common.ray_tasks import check_backend
 from ditch_drake.evaluation.batch import load_results
 from ditch_drake.evaluation.results import current_records
+from ditch_drake.learning.bootstrap import MIN_MEMBERS
 from ditch_drake.pipelines.stages import (
     collect_demonstrations,
     pass_on_stop,
@@ -63,6 +67,8 @@ GENERALIST_TRAIN_RANGES = "generalist_train_ranges.yaml"
 RECIPE_FILE = "recipe.json"
 # What a work dir's recipe made before a setting was recorded was made with.
 _RECIPE_BEFORE = {"balancing": "smote"}
+# The ensemble of the chosen round's data, in the work dir (`GeneralistConfig.ensemble`).
+ENSEMBLE_FILE = "ensemble.pt"
 
 
 @dataclass
@@ -104,6 +110,11 @@ class GeneralistConfig:
             clone's choice but a command, as a route planner's turn command conditions a
             driving policy; the paper's clone has no such input. Not with `mirror`.
         seed: seeds the demonstrations, training and the val rollouts.
+        ensemble: 0, or K >= 2: after the choice, train K clones on the chosen round's data
+            (`<work_dir>/ensemble.pt`), member k on a bootstrap resample of its demonstrations
+            and DAgger rollouts (whole rollouts, with their reflections) with seed `seed` + k,
+            under the recipe's training settings (`ditch_drake.learning.ensemble_training`;
+            resumed member by member).
         workers: processes for collection and evaluation (None: one per core).
         ranges: the val split's ranges YAML file ("": the benchmark's, `ranges.yaml`).
         train_ranges: the train ditches' ranges YAML file ("": `generalist_train_ranges.yaml`).
@@ -127,6 +138,7 @@ class GeneralistConfig:
     mirror: bool = False
     canonical_side: bool = False
     seed: int = 0
+    ensemble: int = 0
     workers: int | None = None
     ranges: str = ""
     train_ranges: str = ""
@@ -147,6 +159,65 @@ def _collect(config: GeneralistConfig, names: list[str], ditches: str, out: Path
                            str(out), progress)
 
 
+def _training_entries(config: GeneralistConfig, data: list[Path], ditches: str):
+    """The training entries of the demonstrations of data[0] and every dagger_stride-th step of
+    the rest: each episode (followed by its reflection where `config.mirror` asks for one), its
+    stride, its reflect flags (reflected where it crosses turned left with
+    `config.canonical_side`), the index of the demonstration it comes from, and each
+    demonstration's name (`<directory>[<index>]`, as an ensemble's bootstrap names them)."""
+    from ditch_drake.demos.training_set import dataset_episodes
+
+    environments = dict(load_environments(ditches, prove_walls=False)) if (
+        config.mirror or config.canonical_side) else {}
+    episodes, strides, reflect, demonstration, names = [], [], [], [], []
+    for index, directory in enumerate(data):
+        stride = 1 if index == 0 else config.dagger_stride
+        for position, episode in enumerate(dataset_episodes(directory)):
+            names.append(f"{directory}[{position}]")
+            episodes.append(episode)
+            strides.append(stride)
+            demonstration.append(len(names) - 1)
+            if config.canonical_side:
+                pose = episode.read(["pose"])["pose"]
+                reflect.append(_crossing_sides(episode.metadata, pose, environments)[::stride] < 0.0)
+            else:
+                reflect.append(False)
+            if config.mirror and _turns_clearly(episode.metadata, environments):
+                episodes.append(episode)
+                strides.append(stride)
+                reflect.append(True)
+                demonstration.append(len(names) - 1)
+    return TrainingEntries(episodes, strides, reflect, np.asarray(demonstration, dtype=np.int64), names)
+
+
+@dataclass
+class TrainingEntries:
+    """`_training_entries`'s lists, entry i of each belonging together."""
+
+    episodes: list
+    strides: list[int]
+    reflect: list
+    demonstration: np.ndarray
+    names: list[str]
+
+    def samples(self, demonstrations: np.ndarray | None = None):
+        """The training `ArraySet` of every entry, demo_id the entry's index (None), or of the
+        given demonstrations' entries, in that order, a demonstration given twice giving its
+        samples twice, demo_id the demonstration's position in `demonstrations` (so that a
+        reflection is held out for validation with its demonstration)."""
+        from ditch_drake.demos.training_set import training_set
+
+        if demonstrations is None:  # As the rounds were always trained: a reflection has an id of its own.
+            return training_set(self.episodes, self.strides, self.reflect)
+        chosen = [(position, entry) for position, index in enumerate(demonstrations)
+                  for entry in np.flatnonzero(self.demonstration == index)]
+        arrays = training_set([self.episodes[entry] for _, entry in chosen],
+                              [self.strides[entry] for _, entry in chosen],
+                              [self.reflect[entry] for _, entry in chosen])
+        positions = np.asarray([position for position, _ in chosen], dtype=np.int64)
+        return replace(arrays, demo_id=positions[arrays.demo_id])
+
+
 def _training_samples(config: GeneralistConfig, data: list[Path], ditches: str, progress: bool = False):
     """The demonstrations of data[0] and every dagger_stride-th step of the rest, each followed
     by its reflection where `config.mirror` asks for one, or reflected where it crosses turned
@@ -157,28 +228,10 @@ def _training_samples(config: GeneralistConfig, data: list[Path], ditches: str, 
     older format is loaded into memory (every step's frames: 4.6 GiB for the demonstrations and
     five DAgger rounds here).
     """
-    from ditch_drake.demos.training_set import dataset_episodes, training_set
-
-    environments = dict(load_environments(ditches, prove_walls=False)) if (
-        config.mirror or config.canonical_side) else {}
-    episodes, strides, reflect = [], [], []
-    for index, directory in enumerate(data):
-        stride = 1 if index == 0 else config.dagger_stride
-        for episode in dataset_episodes(directory):
-            episodes.append(episode)
-            strides.append(stride)
-            if config.canonical_side:
-                pose = episode.read(["pose"])["pose"]
-                reflect.append(_crossing_sides(episode.metadata, pose, environments)[::stride] < 0.0)
-            else:
-                reflect.append(False)
-            if config.mirror and _turns_clearly(episode.metadata, environments):
-                episodes.append(episode)
-                strides.append(stride)
-                reflect.append(True)
-    arrays = training_set(episodes, strides, reflect)
+    entries = _training_entries(config, data, ditches)
+    arrays = entries.samples()
     if config.canonical_side:
-        left = int(sum(np.count_nonzero(flags) for flags in reflect))
+        left = int(sum(np.count_nonzero(flags) for flags in entries.reflect))
         log_progress(progress, f"canonical side: {left} of {len(arrays)} samples reflected (their crossings turn left)")
     return arrays
 
@@ -202,19 +255,43 @@ def _turns_clearly(metadata: dict, environments: dict) -> bool:
     return abs(turn) >= convention_deg + MIRROR_MARGIN_DEG
 
 
+def _train_config(config: GeneralistConfig):
+    """Every round's (and ensemble member's) `TrainConfig`."""
+    from ditch_drake.learning.config import ModelConfig, TrainConfig
+
+    device = training_device("auto")
+    return TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, device=device,
+                       balancing=config.balancing, model=ModelConfig(canonical_side=config.canonical_side),
+                       precision=training_precision(device))
+
+
 def _train(config: GeneralistConfig, data: list[Path], ditches: str, out: Path, progress: bool) -> None:
     """Trains on the demonstrations of data[0] and every dagger_stride-th step of the rest
     (and their reflections, `GeneralistConfig.mirror`, or in one side's frame,
     `GeneralistConfig.canonical_side`), in the ditches of the file `ditches`."""
-    from ditch_drake.learning.config import ModelConfig, TrainConfig
-
-    device = training_device("auto")
-    train_config = TrainConfig(epochs=config.epochs, patience=config.patience, seed=config.seed, device=device,
-                               balancing=config.balancing,
-                               model=ModelConfig(canonical_side=config.canonical_side),
-                               precision=training_precision(device))
-    train_or_resume(out, out.stem, lambda: _training_samples(config, data, ditches, progress), train_config,
+    train_or_resume(out, out.stem, lambda: _training_samples(config, data, ditches, progress), _train_config(config),
                     progress)
+
+
+def _train_ensemble(config: GeneralistConfig, data: list[Path], ditches: str, out: Path, progress: bool) -> None:
+    """Trains `config.ensemble` clones of what `_train` trains on, each on a bootstrap resample of
+    its demonstrations and DAgger rollouts, into the ensemble file `out`, unless an earlier run
+    finished it (an interrupted one resumes with its finished members kept)."""
+    from ditch_drake.common.errors import CheckpointError
+    from ditch_drake.learning.ensemble import load_ensemble
+    from ditch_drake.learning.ensemble_training import train_ensemble
+
+    if out.exists():
+        try:
+            load_ensemble(out)
+            log_progress(progress, f"train ensemble: {out} exists, kept")
+            return
+        except (CheckpointError, ConfigError) as error:
+            log_progress(progress, f"train ensemble: {error}; training again")
+    entries = _training_entries(config, data, ditches)
+    result = train_ensemble(entries.samples, entries.names, out, _train_config(config), config.ensemble, progress)
+    if result.interrupted:
+        pass_on_stop(result.exit_code)
 
 
 def _check_recipe(work: Path, config: GeneralistConfig, train_ranges: BenchmarkRanges) -> None:
@@ -266,6 +343,10 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
         if getattr(config, name) < lowest:
             raise ConfigError(f"{name}={getattr(config, name)}: expected an integer >= {lowest} "
                               f"(--{name.replace('_', '-')})")
+    if config.ensemble != 0 and (isinstance(config.ensemble, bool) or not isinstance(config.ensemble, int)
+                                 or config.ensemble < MIN_MEMBERS):
+        raise ConfigError(f"ensemble={config.ensemble!r}: expected an integer >= {MIN_MEMBERS} members, or 0 for "
+                          "none (--ensemble; an ensemble's uncertainty is its members' disagreement)")
     if config.mirror and config.canonical_side:
         raise ConfigError("mirror and canonical_side: expected at most one (--mirror, --canonical-side); a clone "
                           "that learns only right-turned crossings has no use for their reflections")
@@ -307,6 +388,11 @@ def train_generalist(config: GeneralistConfig, progress: bool = True) -> dict:
     summary = {"config": asdict(config), "val_success": {k: list(v) for k, v in scores.items()},
                "chosen": str(chosen), "out": str(out)}
     atomic_write_text(work / "choice.json", json.dumps(summary, indent=2) + "\n")
+    if config.ensemble:
+        ensemble = work / ENSEMBLE_FILE
+        _train_ensemble(config, data[:candidates.index(chosen) + 1], ditches_path, ensemble, progress)
+        summary["ensemble"] = str(ensemble)
+        atomic_write_text(work / "choice.json", json.dumps(summary, indent=2) + "\n")
     return summary
 
 
