@@ -252,3 +252,31 @@ def test_a_rerun_naming_the_environments_file_another_way_resumes_instead_of_run
     assert [record.environments_file for record in read_records(out)[0]] == ["environments.yaml"] * 2
     assert [spec.key for spec in batch.spelled_as_recorded(absolute, read_records(out)[0])] == \
         [spec.key for spec in relative]
+
+
+def test_a_rerun_naming_the_checkpoint_another_way_resumes_instead_of_running_again(tmp_path, monkeypatch):
+    from pathlib import Path
+
+    import ditch_drake
+
+    folder = Path(ditch_drake.__file__).parent
+    monkeypatch.chdir(folder)
+    out = tmp_path / "runs.jsonl"
+    relative = make_specs("learned", "models/wide.pt", "wide", [1], rollouts=2, seed=3, time_limit_s=0.3)
+    assert evaluate(relative, out, workers=0, progress=False).recorded == 2
+    for spelling in (str(folder / "models" / "wide.pt"), "./models/wide.pt"):
+        other = make_specs("learned", spelling, "wide", [1], rollouts=2, seed=3, time_limit_s=0.3)
+        # The path is in the key and in the controller's config, whose digest is in the key too.
+        assert {spec.key for spec in other}.isdisjoint(spec.key for spec in relative)
+        assert [spec.key for spec in batch.spelled_as_recorded(other, read_records(out)[0])] == \
+            [spec.key for spec in relative]
+        assert batch.spelled_as_recorded(other, []) == other  # Nothing recorded: as given.
+        again = evaluate(other, out, workers=0, progress=False)
+        assert (again.recorded, again.skipped) == (0, 2)
+    assert [record.checkpoint for record in read_records(out)[0]] == ["models/wide.pt"] * 2
+    # Another config of the same checkpoint is not the records' rollout: it keeps its spelling.
+    from ditch_drake.diagrams.rollout import LearnedPolicyConfig
+
+    oracle = make_specs(LearnedPolicyConfig(checkpoint=str(folder / "models" / "wide.pt"), crossing_side="oracle"),
+                        "", "wide", [1], rollouts=1, seed=3, time_limit_s=0.3)
+    assert batch.spelled_as_recorded(oracle, read_records(out)[0]) == oracle

@@ -155,19 +155,43 @@ def make_specs(controller, checkpoint: str, environment: str, tasks: list[int] |
 
 
 def spelled_as_recorded(specs: list[RolloutSpec], records: list[RolloutRecord]) -> list[RolloutSpec]:
-    """`specs`, each environments file spelled as `records` (a results file's) spell the same
-    file. A key holds the path as given, so a run given another spelling of it (absolute where the
-    records have it relative, say) would find none of its rollouts done, run them all again and
-    append them beside the first ones."""
+    """`specs`, each environments file and checkpoint spelled as `records` (a results file's)
+    spell the same file. A key holds the paths as given (a checkpoint's also inside the
+    controller's config and its digest), so a run given another spelling of one (absolute where
+    the records have it relative, say) would find none of its rollouts done, run them all again
+    and append them beside the first ones. A checkpoint is respelled only where the respelled
+    config is one the records ran."""
     recorded = sorted({record.environments_file for record in records if record.environments_file})
+    spellings = {path: _recorded_spelling(path, recorded) for path in {spec.environments_file for spec in specs}}
+    specs = [replace(spec, environments_file=spellings[spec.environments_file]) for spec in specs]
+    checkpoints = sorted({record.checkpoint for record in records if record.checkpoint})
+    configs = {record.controller_sha256 for record in records}
+    respelled = {}  # By checkpoint and config: the fields that respell them ({}: none).
+    for spec in specs:
+        if spec.checkpoint and (spec.checkpoint, spec.controller_sha256) not in respelled:
+            respelled[spec.checkpoint, spec.controller_sha256] = _recorded_checkpoint_fields(spec, checkpoints, configs)
+    return [replace(spec, **respelled.get((spec.checkpoint, spec.controller_sha256), {})) for spec in specs]
 
-    def spelling(path: str) -> str:
-        if not path or path in recorded or not os.path.exists(path):
-            return path
-        return next((known for known in recorded if os.path.exists(known) and os.path.samefile(known, path)), path)
 
-    spellings = {path: spelling(path) for path in {spec.environments_file for spec in specs}}
-    return [replace(spec, environments_file=spellings[spec.environments_file]) for spec in specs]
+def _recorded_spelling(path: str, recorded: list[str]) -> str:
+    """The spelling among `recorded` of the file `path` names, else `path`."""
+    if not path or path in recorded or not os.path.exists(path):
+        return path
+    return next((known for known in recorded if os.path.exists(known) and os.path.samefile(known, path)), path)
+
+
+def _recorded_checkpoint_fields(spec: RolloutSpec, checkpoints: list[str], configs: set[str]) -> dict:
+    """The spec fields that spell its checkpoint as among `checkpoints` where the config so
+    respelled is among `configs` (one the records ran), else {}."""
+    from ditch_drake.evaluation.rollout_worker import spec_config
+
+    spelling = _recorded_spelling(spec.checkpoint, checkpoints)
+    if spelling == spec.checkpoint:
+        return {}
+    config = with_checkpoint(spec_config(spec), spelling)
+    if config_checkpoint(config) != spelling or config_digest(config) not in configs:
+        return {}
+    return {"checkpoint": spelling, "controller_config": config_to_yaml(config), "controller_sha256": config_digest(config)}
 
 
 def check_checkpoint(checkpoint: str) -> str:

@@ -31,8 +31,8 @@ MAX_WORKER_RIGS = 4
 _WORKER_RIGS: collections.OrderedDict[tuple, tuple] = collections.OrderedDict()
 
 
-def spec_controller_config(spec: RolloutSpec):
-    """The controller config a spec names, as the episode of its seed builds it.
+def spec_config(spec: RolloutSpec):
+    """The controller config a spec names, as recorded (before its seed's draws).
 
     Its class is imported by its "module:Class" path, so a controller registered by a
     user's module (imported there) is found in a fresh worker process too.
@@ -41,7 +41,12 @@ def spec_controller_config(spec: RolloutSpec):
     kind = importlib.import_module(module)
     for part in qualified_name.split("."):
         kind = getattr(kind, part)
-    config = config_from_yaml(kind, spec.controller_config, f"controller config of {spec.controller!r}")
+    return config_from_yaml(kind, spec.controller_config, f"controller config of {spec.controller!r}")
+
+
+def spec_controller_config(spec: RolloutSpec):
+    """The controller config a spec names, as the episode of its seed builds it."""
+    config = spec_config(spec)
     return entry_for_config(config).for_seed(config, spec.seed)
 
 
