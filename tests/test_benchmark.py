@@ -414,16 +414,17 @@ def test_a_generalist_work_dir_keeps_its_class_balancing_and_one_made_before_it_
     ranges = load_ranges(packaged_ranges_path(GENERALIST_TRAIN_RANGES))
     work = tmp_path / "generalist"
     work.mkdir()
-    _check_recipe(work, GeneralistConfig(balancing="oversample"), ranges)
-    assert json.loads((work / RECIPE_FILE).read_text())["balancing"] == "oversample"
-    assert main(["train-generalist", "--work-dir", str(work), "--out", str(tmp_path / "g.pt")]) == 2
+    _check_recipe(work, GeneralistConfig(), ranges)
+    assert json.loads((work / RECIPE_FILE).read_text())["balancing"] == "oversample"  # The default.
+    assert main(["train-generalist", "--balancing", "smote", "--work-dir", str(work),
+                 "--out", str(tmp_path / "g.pt")]) == 2
     assert "balancing=smote: expected oversample, the setting" in capsys.readouterr().err
     made_before = json.loads((work / RECIPE_FILE).read_text())
     del made_before["balancing"]
     (work / RECIPE_FILE).write_text(json.dumps(made_before))
-    _check_recipe(work, GeneralistConfig(), ranges)  # SMOTE, as every run then trained.
+    _check_recipe(work, GeneralistConfig(balancing="smote"), ranges)  # SMOTE, as every run then trained.
     with pytest.raises(ConfigError, match="balancing=oversample: expected smote"):
-        _check_recipe(work, GeneralistConfig(balancing="oversample"), ranges)
+        _check_recipe(work, GeneralistConfig(), ranges)
 
 
 def test_the_generalist_trains_on_the_benchmark_ranges_with_craters_from_8_m():

@@ -143,7 +143,7 @@ def test_defaults_are_the_config_dataclasses():
     config = GeneralistConfig()
     assert all(getattr(generalist, name) == getattr(config, name)
                for name in ("out", "work_dir", "train_geometries", "demos_per_task", "dagger_rounds", "val_geometries",
-                            "dagger_stride", "epochs", "seed", "workers", "ranges", "train_ranges"))
+                            "dagger_stride", "epochs", "balancing", "seed", "workers", "ranges", "train_ranges"))
     demo = build_parser().parse_args(["demo"])
     assert (demo.env, demo.task, demo.seed) == (Scenario().environment, Scenario().task, Scenario().seed)
 

@@ -217,7 +217,7 @@ def test_the_train_stage_trains_the_ensemble_that_train_ensemble_does(tmp_path, 
     by_command = tmp_path / "by_command.pt"
     assert main(["train", "--data", str(tmp_path / "demos" / "wide"), "--max-demos", "4", "--seed", "0",
                  "--ensemble", "2", "--epochs", "1", "--patience", "1", "--batches-per-epoch", "1",
-                 "--synthetic-fraction", "0.5", "--out", str(by_command)]) == 0
+                 "--synthetic-fraction", "0.5", "--balancing", "smote", "--out", str(by_command)]) == 0
     staged, commanded = (load_ensemble(tmp_path / "models" / "wide_4_k2.pt"), load_ensemble(by_command))
     assert staged.bootstrap == commanded.bootstrap and len(staged.bootstrap["demonstrations"]) == 4
     for ours, theirs in zip(staged.members, commanded.members, strict=True):
@@ -272,7 +272,8 @@ def test_the_aggregation_round_gates_the_clone_records_its_handovers_and_retrain
     by_command = tmp_path / "by_command.pt"
     assert main(["train", "--data", str(tmp_path / "demos" / "wide"), "--data", str(handovers.root),
                  "--intervention-weight", "3", "--seed", "0", "--epochs", "1", "--patience", "1",
-                 "--batches-per-epoch", "1", "--synthetic-fraction", "0.5", "--out", str(by_command)]) == 0
+                 "--batches-per-epoch", "1", "--synthetic-fraction", "0.5", "--balancing", "smote",
+                 "--out", str(by_command)]) == 0
     staged, commanded = load_checkpoint(tmp_path / "models" / "wide_6_round_w3.pt"), load_checkpoint(by_command)
     assert staged.training["train_config"]["intervention_weight"] == 3.0
     assert 6 in staged.training["train_demo_ids"] and staged.training["intervention_train_samples"] > 0
@@ -285,7 +286,7 @@ def test_the_aggregation_round_gates_the_clone_records_its_handovers_and_retrain
     # Only the expert's steps of the round's episode (HG-DAgger), as `train --shared-steps interventions`.
     assert main(["train", "--data", str(tmp_path / "demos" / "wide"), "--data", str(handovers.root),
                  "--intervention-weight", "3", "--shared-steps", "interventions", "--seed", "0", "--epochs", "1",
-                 "--patience", "1", "--batches-per-epoch", "1", "--synthetic-fraction", "0.5",
+                 "--patience", "1", "--batches-per-epoch", "1", "--synthetic-fraction", "0.5", "--balancing", "smote",
                  "--out", str(by_command)]) == 0
     staged = load_checkpoint(tmp_path / "models" / "wide_6_round_interventions_w3.pt")
     commanded = load_checkpoint(by_command)

@@ -423,6 +423,26 @@ def test_a_killed_run_leaves_nothing_that_passes_for_a_checkpoint_and_resumes(tm
     assert not resume_path(output).exists()  # Removed after a clean finish.
 
 
+def test_a_resume_file_written_before_balancing_was_a_setting_resumes_as_smote(tmp_path, monkeypatch):
+    from dataclasses import replace
+
+    from ditch_drake.learning.checkpoint import load_payload, save_payload
+
+    arrays, output = _arrays(), tmp_path / "policy.pt"
+    smote = replace(TINY, balancing="smote")
+    _stop_at_evaluation(monkeypatch, 2, _Killed)
+    with pytest.raises(_Killed):
+        train(arrays, smote, progress=False, output_path=output)
+    monkeypatch.undo()
+    state = load_payload(resume_path(output), train_module.RESUME_SCHEMA, train_module.RESUME_SCHEMA_VERSION)
+    del state["train_config"]["balancing"]  # As every run wrote it then: SMOTE, then the only way.
+    save_payload(state, resume_path(output))
+    with pytest.raises(CheckpointError, match=r"from another run: config fields \['balancing'\] differ"):
+        train(arrays, replace(TINY, balancing="oversample"), progress=False, output_path=output, resume=True)
+    resumed = train(arrays, smote, progress=False, output_path=output, resume=True)
+    assert not resumed.interrupted and load_checkpoint(output).metrics["epochs_run"] == TINY.epochs
+
+
 def test_a_clean_finish_removes_the_resume_file(tmp_path):
     output = tmp_path / "policy.pt"
     result = train(_arrays(), TINY, progress=False, output_path=output)

@@ -145,7 +145,7 @@ def add_train(commands: Commands) -> None:
                           help="batches drawn (without replacement) from the shuffled training set per epoch")
     training.add_argument("--synthetic-fraction", type=float,
                           default=ConfigDefault(TRAIN, "smote.max_synthetic_fraction"),
-                          help="at most this many SMOTE samples per real training sample")
+                          help="at most this many added samples (SMOTE's or oversampling's) per real training sample")
     training.add_argument("--threads", type=int, default=ConfigDefault(TRAIN, "num_threads"),
                           help="torch threads (default %(default)s: all cores)")
     # "auto" is the command line's own choice; TrainConfig takes the device and precision it picks.

@@ -101,6 +101,9 @@ RESUME_SCHEMA_VERSION = 1
 RESUME_SUFFIX = ".resume"
 # Fields that may change between a run and its resumption; all others must match.
 _RESUMABLE_CHANGES = {"epochs", "patience", "num_threads", "device", "precision", "num_workers"}
+# A setting's value in a file written before the setting was recorded, where that is no longer
+# its default: every training balanced its classes by SMOTE until `balancing` was a setting.
+RECORDED_BEFORE = {"balancing": "smote"}
 INTERRUPTED_SUFFIX = ".interrupted"
 
 # Deterministic mode fills every new tensor with NaN, a guard against reading memory no operation
@@ -575,8 +578,9 @@ def _restore(state_file: Path, config, summary, model, optimizer, run) -> int:
     """Loads a resume file into `model`, `optimizer` and `run`; returns the next epoch."""
     state = load_payload(state_file, RESUME_SCHEMA, RESUME_SCHEMA_VERSION)
     mine, theirs = _config_dict(config), state.get("train_config", {})
-    # A field added since the file was written had its default value then.
-    theirs = {**{k: v for k, v in _config_dict(TrainConfig()).items() if k not in theirs}, **theirs}
+    # A field added since the file was written had its default value then (`RECORDED_BEFORE`
+    # where the default has changed since).
+    theirs = {**_config_dict(TrainConfig()), **RECORDED_BEFORE, **theirs}
     differ = sorted(k for k in set(mine) | set(theirs) if k not in _RESUMABLE_CHANGES and mine.get(k) != theirs.get(k))
     if differ or state.get("train_demo_ids") != to_plain(summary["train_demo_ids"]):
         raise CheckpointError(

@@ -91,9 +91,10 @@ class GeneralistConfig:
             the recipe, and its rounds, stay as they were. Streaming from the dataset folders,
             memory no longer depends on it.
         epochs, patience: training's.
-        balancing: training's class balancing (`TrainConfig.balancing`; the shipped generalist
-            was trained with SMOTE, the default). Every round after the first is collected
-            by the round before it, so a work dir keeps one (`recipe.json`).
+        balancing: training's class balancing (`TrainConfig.balancing`; random oversampling
+            by default, as `ditch-drake train`; the shipped generalist was trained with SMOTE,
+            `--balancing smote`). Every round after the first is collected by the round before
+            it, so a work dir keeps one (`recipe.json`).
         mirror: also train on the left-right reflection (`ditch_drake.learning.mirror`) of each
             demonstration and DAgger rollout whose task turns at least the expert's
             `straight_across_deg` + `MIRROR_MARGIN_DEG` from square across
@@ -134,7 +135,7 @@ class GeneralistConfig:
     dagger_stride: int = 3
     epochs: int = 12
     patience: int = 6
-    balancing: str = "smote"
+    balancing: str = "oversample"
     mirror: bool = False
     canonical_side: bool = False
     seed: int = 0
