@@ -45,6 +45,7 @@ from ditch_drake.evaluation.results import current_records
 from ditch_drake.learning.bootstrap import MIN_MEMBERS
 from ditch_drake.pipelines.stages import (
     collect_demonstrations,
+    ensemble_or_resume,
     pass_on_stop,
     train_or_resume,
     training_device,
@@ -278,21 +279,11 @@ def _train_ensemble(config: GeneralistConfig, data: list[Path], ditches: str, ou
     """Trains `config.ensemble` clones of what `_train` trains on, each on a bootstrap resample of
     its demonstrations and DAgger rollouts, into the ensemble file `out`, unless an earlier run
     finished it (an interrupted one resumes with its finished members kept)."""
-    from ditch_drake.common.errors import CheckpointError
-    from ditch_drake.learning.ensemble import load_ensemble
-    from ditch_drake.learning.ensemble_training import train_ensemble
+    def demonstrations():
+        entries = _training_entries(config, data, ditches)
+        return entries.samples, entries.names
 
-    if out.exists():
-        try:
-            load_ensemble(out)
-            log_progress(progress, f"train ensemble: {out} exists, kept")
-            return
-        except (CheckpointError, ConfigError) as error:
-            log_progress(progress, f"train ensemble: {error}; training again")
-    entries = _training_entries(config, data, ditches)
-    result = train_ensemble(entries.samples, entries.names, out, _train_config(config), config.ensemble, progress)
-    if result.interrupted:
-        pass_on_stop(result.exit_code)
+    ensemble_or_resume(out, "ensemble", demonstrations, _train_config(config), config.ensemble, progress)
 
 
 def _check_recipe(work: Path, config: GeneralistConfig, train_ranges: BenchmarkRanges) -> None:

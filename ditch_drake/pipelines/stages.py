@@ -102,14 +102,25 @@ def train_ensemble_or_resume(out: str | os.PathLike, name: str, directories: lis
     """Trains an ensemble of `members` clones on the first `max_demos` demonstrations of each of
     `directories` into `out`, as `ditch-drake train --ensemble` does (`train_ensemble`, each
     member on a bootstrap resample, its demonstrations named `<directory>[<index>]`), unless
-    an earlier run finished it.
+    an earlier run finished it (`ensemble_or_resume`)."""
+    from ditch_drake.demos.training_set import named_dataset_episodes, training_set
 
-    A file at `out` that loads as an ensemble is kept; one that does not is trained again. The
-    members an interrupted run finished are kept and the one it was training resumes
-    (`train_ensemble`); a stop is passed on.
+    def demonstrations():
+        episodes, names = named_dataset_episodes(directories, max_demos)
+        return (lambda indices: training_set([episodes[i] for i in indices])), names
+
+    ensemble_or_resume(out, name, demonstrations, config, members, progress)
+
+
+def ensemble_or_resume(out: str | os.PathLike, name: str, demonstrations: Callable[[], tuple], config, members: int,
+                       progress: bool) -> None:
+    """Trains an ensemble of `members` clones into `out` by `train_ensemble` on what
+    `demonstrations()` gives (read only when training runs): the samples of the demonstrations at
+    given indices, and their names. A file at `out` that loads as an ensemble is kept; one that
+    does not is trained again. The members an interrupted run finished are kept and the one it
+    was training resumes (`train_ensemble`); a stop is passed on.
     """
     from ditch_drake.common.errors import CheckpointError
-    from ditch_drake.demos.training_set import named_dataset_episodes, training_set
     from ditch_drake.learning.ensemble import load_ensemble
     from ditch_drake.learning.ensemble_training import train_ensemble
 
@@ -121,10 +132,9 @@ def train_ensemble_or_resume(out: str | os.PathLike, name: str, directories: lis
             return
         except (CheckpointError, ConfigError) as error:
             log_progress(progress, f"train {name}: {error}; training again")
-    episodes, names = named_dataset_episodes(directories, max_demos)
+    samples_of, names = demonstrations()
     out.parent.mkdir(parents=True, exist_ok=True)
-    result = train_ensemble(lambda indices: training_set([episodes[i] for i in indices]), names, out, config,
-                            members, progress)
+    result = train_ensemble(samples_of, names, out, config, members, progress)
     if result.interrupted:
         pass_on_stop(result.exit_code)
 
