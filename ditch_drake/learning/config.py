@@ -188,7 +188,7 @@ class TrainConfig:
             (the default: rows of the minority classes drawn again, to the same targets: no
             copies; chosen by rollout success on the paper's 40-demonstration sets and the
             generalist's data, where it crossed as many as SMOTE in milliseconds instead of
-            minutes: docs/concepts/learning.md),
+            minutes: docs/results/class_balancing.md),
             "weighted_sampler" (each epoch draws its samples with replacement, a sample's
             chance inverse to its class's count), "class_weights" (cross-entropy weighted
             inverse to the class counts), "ordinal_soft_labels" (cross-entropy against targets
