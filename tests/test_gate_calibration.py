@@ -147,8 +147,8 @@ def test_a_budgeted_shared_config_records_the_thresholds_it_ran_with(tmp_path):
 
 def test_gate_signals_records_every_step_of_a_short_rollout(tmp_path, capsys):
     out = tmp_path / "signals.npz"
-    argv = ["gate-signals", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--rollouts", "1",
-            "--seed", "4", "--time-limit", "1", "--out", str(out)]
+    argv = ["gate-signals", "--workers", "0", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1",
+            "--rollouts", "1", "--seed", "4", "--time-limit", "1", "--out", str(out)]
     assert main(argv) == 0
     printed = capsys.readouterr().out
     assert "mean_softmax_entropy" in printed and "auc" in printed
@@ -173,10 +173,12 @@ def test_gate_signals_records_every_step_of_a_short_rollout(tmp_path, capsys):
     (["--env", "nowhere"], "nowhere"),
     (["--checkpoint", "no_such.pt"], "no_such.pt"),
     (["--time-limit", "-1"], "--time-limit"),
+    (["--workers", "-1"], "--workers=-1"),
 ])
 def test_gate_signals_refuses_bad_input_with_exit_2(tmp_path, capsys, options, message):
     out = tmp_path / "s.npz"
-    argv = ["gate-signals", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--out", str(out)]
+    argv = ["gate-signals", "--workers", "0", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--out",
+            str(out)]
     code = main(argv + options)
     err = capsys.readouterr().err
     assert code == 2 and message in err, err

@@ -6,12 +6,13 @@ import numpy as np
 import pytest
 
 from ditch_drake.cli import main
+from ditch_drake.common.errors import ConfigError
 from ditch_drake.evaluation import gate_signals
 from ditch_drake.evaluation.gate_signals import EpisodeParts, EpisodeSignals, parts_folder, parts_header
 from ditch_drake.learning import gate_calibration
 
 ARGV = ["gate-signals", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--rollouts", "2", "--seed", "4",
-        "--time-limit", "3"]
+        "--time-limit", "3", "--workers", "0"]
 RUN_EPISODE = gate_signals.RunEpisode
 
 
@@ -64,6 +65,26 @@ def test_a_stopped_recording_continues_to_the_file_of_an_unstopped_one(tmp_path,
     assert main([*ARGV, "--out", str(resumed)]) == 2
     assert "exists (a finished recording)" in capsys.readouterr().err
     assert seeds == [5]
+
+
+def test_worker_processes_record_the_file_one_process_records(tmp_path, capsys):
+    one, two = tmp_path / "one.npz", tmp_path / "two.npz"
+    argv = [*ARGV[:ARGV.index("--env")], "--env", "wide", "--env", "narrow", *ARGV[ARGV.index("--task"):-2]]
+    assert main([*argv, "--workers", "0", "--out", str(one)]) == 0
+    assert main([*argv, "--workers", "2", "--out", str(two)]) == 0
+    err = capsys.readouterr().err
+    assert "episode 4/4:" in err, err
+    expected, found = _arrays(one), _arrays(two)
+    assert sorted(found) == sorted(expected)
+    for name, array in expected.items():
+        np.testing.assert_array_equal(found[name], array, err_msg=name)
+    assert found["episode_environment"].tolist() == ["wide", "wide", "narrow", "narrow"]
+    assert not parts_folder(two).exists()
+
+
+def test_workers_without_a_parts_folder_are_refused():
+    with pytest.raises(ConfigError, match="workers=2: recording in worker processes needs a parts folder"):
+        gate_signals.record_gate_signals("wide_bc40", [("wide", 1)], rollouts=1, workers=2)
 
 
 @pytest.mark.parametrize("options, mismatch", [

@@ -80,8 +80,8 @@ def test_a_horizon_shorter_than_a_control_period_is_refused():
 
 
 def test_gate_signals_risk_records_two_more_signals_and_changes_nothing_else(tmp_path, capsys):
-    argv = ["gate-signals", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--rollouts", "1",
-            "--seed", "4", "--time-limit", "8"]
+    argv = ["gate-signals", "--workers", "0", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1",
+            "--rollouts", "1", "--seed", "4", "--time-limit", "8"]
     assert main([*argv, "--out", str(tmp_path / "plain.npz")]) == 0
     assert main([*argv, "--risk", "--out", str(tmp_path / "risk.npz")]) == 0
     assert "tip_risk_ahead" in capsys.readouterr().out
@@ -121,8 +121,8 @@ def test_a_risk_gate_reads_the_tip_risk_of_the_policys_command_and_hands_over_ne
 
 def test_a_risk_gate_on_a_recording_without_risk_signals_is_refused_naming_the_option(tmp_path, capsys):
     out = tmp_path / "plain.npz"
-    argv = ["gate-signals", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--rollouts", "1",
-            "--seed", "4", "--time-limit", "1", "--out", str(out)]
+    argv = ["gate-signals", "--workers", "0", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1",
+            "--rollouts", "1", "--seed", "4", "--time-limit", "1", "--out", str(out)]
     assert main(argv) == 0
     override = ("{controller: !SharedControlControllerConfig {policy: {checkpoint: wide_bc40}, gate: {signal: "
                 f"tip_risk_ahead, budget: 0.05, calibration: {out}}}}}}}")

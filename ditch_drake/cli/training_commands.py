@@ -357,6 +357,7 @@ def add_gate_signals(commands: Commands) -> None:
                          help="also record the tip-risk signals: minus the tip margin of the chassis now "
                               "(tip_risk_now) and the least one predicted along the commanded arc on the perceived "
                               "elevation map (tip_risk_ahead), in deg")
+    add_workers(signals, "episodes (an (environment, task) pair per item; the signals equal one process's)")
     add_out(signals, "the signals file (.npz), written when every episode has finished, with the AUC table "
                      "beside it as <out>.auc.json; until then the finished episodes are kept in <out>.parts/, and "
                      "the same command again continues (Ctrl-C keeps them); a finished file is refused")
@@ -374,6 +375,7 @@ def cmd_gate_signals(args) -> int:
 
     from ditch_drake.common.checks import check_count, check_finite_positive
     from ditch_drake.common.files import exclusive_use, prepare_output
+    from ditch_drake.common.parallel import worker_count
     from ditch_drake.evaluation.gate_signals import EpisodeParts, parts_folder
 
     out = prepare_output(args.out, "--out")
@@ -392,6 +394,7 @@ def cmd_gate_signals(args) -> int:
     check_seed(args.seed, args.rollouts, "--seed")
     check_finite_positive(args.time_limit, "--time-limit")
     check_finite_positive(args.horizon, "--horizon")
+    check_workers(args.workers, "--workers")
     from ditch_drake.world.environments import environment_names, get_environment, load_environments
 
     environments_file = args.environments or ""
@@ -415,7 +418,8 @@ def cmd_gate_signals(args) -> int:
         refuse_finished()  # Again: another run may have finished it meanwhile.
         try:
             _, report = write_signals_file(out, args.checkpoint, digest, runs, args.rollouts, args.seed,
-                                           args.time_limit, environments_file, args.horizon, risk=args.risk)
+                                           args.time_limit, environments_file, args.horizon, risk=args.risk,
+                                           workers=worker_count(args.workers))
         except KeyboardInterrupt as error:
             print(f"interrupted: the finished episodes are kept in {folder}; run the same command again to continue",
                   file=sys.stderr)

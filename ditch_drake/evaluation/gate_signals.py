@@ -30,7 +30,7 @@ import numpy as np
 
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_output, remove_stale_temporaries
-from ditch_drake.common.parallel import deferred_interrupts
+from ditch_drake.common.parallel import WorkerPool, check_workers, deferred_interrupts
 from ditch_drake.common.progress import log_progress
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.diagrams.rollout import LearnedPolicyConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
@@ -248,7 +248,8 @@ class EpisodeParts:
 
 def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: int = 10, seed: int = 0,
                         time_limit_s: float = EpisodeConfig.time_limit_s, environments_file: str = "",
-                        progress: bool = True, parts: EpisodeParts | None = None, risk: bool = False) -> GateSignals:
+                        progress: bool = True, parts: EpisodeParts | None = None, risk: bool = False,
+                        workers: int = 0) -> GateSignals:
     """Runs `rollouts` episodes (seeds seed ..) of the learned policy of `checkpoint` on each
     (environment, task) of `runs`, ungated, and records every signal it has at every control step;
     with `risk`, the tip-risk signals too (`ditch_drake.systems.tip_risk`, default config).
@@ -258,9 +259,12 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
     there as it finishes and one kept before is not run again; Ctrl-C (KeyboardInterrupt) then
     keeps every finished episode, and is re-raised. `progress`: a line on stderr per finished
     episode (k/N, which one, how it ended), beside `RunEpisode`'s bar of simulated time.
+    `workers` > 0 (with `parts`): that many worker processes run the (environment, task)
+    pairs, one thread each, and keep their episodes in `parts`; the signals are the same as
+    in this process, episode for episode (each episode's seed, not its process, sets it).
 
     Raises:
-        ConfigError: a bad environment, task or time limit.
+        ConfigError: a bad environment, task or time limit, or `workers` without `parts`.
         CheckpointError: the checkpoint does not load.
     """
     from pydrake.systems.analysis import Simulator
@@ -271,6 +275,13 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
     episodes = {key: episode for key, episode in finished.items() if episode is not None}
     if episodes:
         log_progress(progress, f"{len(episodes)}/{len(keys)} episodes finished before, kept in {parts.folder}")
+    check_workers(workers)
+    if workers and parts is None:
+        raise ConfigError(f"workers={workers}: recording in worker processes needs a parts folder to keep "
+                          "their episodes in; expected parts, or workers=0")
+    if workers:
+        _record_in_workers(checkpoint, keys, episodes, time_limit_s, environments_file, progress, parts, risk,
+                           workers)
     for environment, task in dict.fromkeys(runs):
         pending = [key[2] for key in keys if key[:2] == (environment, task) and key not in episodes]
         if not pending:
@@ -299,15 +310,57 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
     return GateSignals.of([episodes[key] for key in keys])
 
 
+def _record_pair(checkpoint: str, environment: str, task: int, seeds: list[int], time_limit_s: float,
+                 environments_file: str, folder: str, header: dict, risk: bool) -> list[EpisodeSignals]:
+    """A worker's share of `record_gate_signals`: the episodes of one (environment, task) at
+    `seeds`, each kept in the parts folder as it finishes."""
+    # Not `EpisodeParts.open`: it clears stale temporaries, which may be another worker's file in writing.
+    parts = EpisodeParts(Path(folder), header)
+    recorded = []
+    for episode_seed in seeds:
+        record_gate_signals(checkpoint, [(environment, task)], 1, episode_seed, time_limit_s, environments_file,
+                            progress=False, parts=parts, risk=risk)
+        recorded.append(parts.finished((environment, task, episode_seed)))
+    return recorded
+
+
+def _record_in_workers(checkpoint: str, keys: list[tuple[str, int, int]], episodes: dict, time_limit_s: float,
+                       environments_file: str, progress: bool, parts: EpisodeParts, risk: bool,
+                       workers: int) -> None:
+    """Runs the episodes of `keys` not in `episodes` in `workers` processes, an (environment,
+    task) pair per work item, and adds each to `episodes` as its item ends."""
+    from concurrent.futures import as_completed
+
+    from ditch_drake.evaluation.rollout_worker import initialize_worker
+
+    pending: dict[tuple[str, int], list[int]] = {}
+    for key in keys:
+        if key not in episodes:
+            pending.setdefault(key[:2], []).append(key[2])
+    if not pending:
+        return
+    with WorkerPool(min(workers, len(pending)), initializer=initialize_worker) as pool:
+        futures = [pool.submit(_record_pair, checkpoint, environment, task, seeds, time_limit_s, environments_file,
+                               str(parts.folder), parts.header, risk)
+                   for (environment, task), seeds in pending.items()]
+        for future in as_completed(futures):
+            for episode in future.result():
+                episodes[episode.key] = episode
+                log_progress(progress, f"episode {len(episodes)}/{len(keys)}: {episode.environment} task "
+                                       f"{episode.task} seed {episode.seed}: {episode.status} at "
+                                       f"{episode.end_time_s:.1f} s, {len(episode.time_s)} steps")
+
+
 def write_signals_file(out: str | os.PathLike, checkpoint: str, checkpoint_sha256: str, runs: list[tuple[str, int]],
                        rollouts: int, seed: int, time_limit_s: float, environments_file: str = "",
                        horizon_s: float | None = None, progress: bool = True,
-                       risk: bool = False) -> tuple[GateSignals, dict]:
+                       risk: bool = False, workers: int = 0) -> tuple[GateSignals, dict]:
     """Records `checkpoint`'s signals (`record_gate_signals`) episode by episode into the parts
     folder beside `out` (continuing what it holds), then writes the signals file `out` and its
     AUC report (`<out>.auc.json`, a rollover within `horizon_s`; None: the default horizon), and
     removes the folder. The caller holds `out` (`exclusive_use`). Ctrl-C keeps the finished
-    episodes in the folder and is re-raised. `risk`: the tip-risk signals too.
+    episodes in the folder and is re-raised. `risk`: the tip-risk signals too. `workers`: worker
+    processes (0: this one), as `record_gate_signals`.
 
     Returns:
         The recorded signals and the AUC report.
@@ -321,7 +374,7 @@ def write_signals_file(out: str | os.PathLike, checkpoint: str, checkpoint_sha25
     folder = parts_folder(out)
     parts = EpisodeParts.open(folder, parts_header(checkpoint_sha256, time_limit_s, environments_file, risk))
     recorded = record_gate_signals(checkpoint, runs, rollouts, seed, time_limit_s, environments_file, progress,
-                                   parts=parts, risk=risk)
+                                   parts=parts, risk=risk, workers=workers)
     save_signals(out, checkpoint, checkpoint_sha256, recorded.signals, recorded.steps, recorded.episodes)
     horizon = {} if horizon_s is None else {"horizon_s": horizon_s}
     report = auc_report(load_signals(out), seed=seed, **horizon)

@@ -839,7 +839,7 @@ def _aggregation_round(config: ExperimentConfig, clone: ModelSpec, labels: str, 
     tasks = config.tasks or range(len(get_environment(env, config.environments_file or None).tasks))
     record_signals_or_resume(signals, str(checkpoint), [(env, task) for task in tasks], study.calibration_rollouts,
                              study.calibration_seed, config.time_limit_s, config.environments_file, progress,
-                             risk=round_.signal in RISK_SIGNALS)
+                             risk=round_.signal in RISK_SIGNALS, workers=config.workers)
     gate = SharedControlConfig(signal=round_.signal, budget=round_.budget, calibration=str(signals),
                                calm_steps=study.calm_steps, fallback=round_.fallback)
     shared = with_labelling_expert(SharedControlControllerConfig(
@@ -868,7 +868,8 @@ def _calibrate(config: ExperimentConfig, evaluations: list[Evaluation], progress
         env = evaluation.environment
         tasks = config.tasks or range(len(get_environment(env, config.environments_file or None).tasks))
         record_signals_or_resume(path, str(checkpoint), [(env, task) for task in tasks], study.calibration_rollouts,
-                                 study.calibration_seed, config.time_limit_s, config.environments_file, progress)
+                                 study.calibration_seed, config.time_limit_s, config.environments_file, progress,
+                                 workers=config.workers)
 
 
 def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool) -> None:

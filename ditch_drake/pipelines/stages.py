@@ -141,11 +141,12 @@ def ensemble_or_resume(out: str | os.PathLike, name: str, demonstrations: Callab
 
 def record_signals_or_resume(out: str | os.PathLike, checkpoint: str, runs: list[tuple[str, int]], rollouts: int,
                              seed: int, time_limit_s: float, environments_file: str, progress: bool,
-                             risk: bool = False) -> None:
+                             risk: bool = False, workers: int | None = 0) -> None:
     """Records the signals file `out` of `checkpoint`'s ungated rollouts as `ditch-drake
     gate-signals` does (`record_gate_signals` on each (environment, task) of `runs`, seeds
-    seed .. seed + rollouts - 1; `risk`: the tip-risk signals too, as `--risk`), with its AUC
-    report beside it (`<out>.auc.json`), unless an earlier run finished it.
+    seed .. seed + rollouts - 1; `risk`: the tip-risk signals too, as `--risk`; `workers`
+    processes, None one per core), with its AUC report beside it (`<out>.auc.json`), unless an
+    earlier run finished it.
 
     Each episode is kept in `<out>.parts/` as it finishes and one kept before is not run
     again; the file is written when all have finished, then the folder is removed. A stop keeps
@@ -158,6 +159,7 @@ def record_signals_or_resume(out: str | os.PathLike, checkpoint: str, runs: list
     import torch
 
     from ditch_drake.common.files import exclusive_use
+    from ditch_drake.common.parallel import worker_count
     from ditch_drake.evaluation.batch import check_checkpoint
     from ditch_drake.evaluation.gate_signals import EpisodeParts, parts_folder, write_signals_file
 
@@ -180,7 +182,8 @@ def record_signals_or_resume(out: str | os.PathLike, checkpoint: str, runs: list
                 return
             try:
                 recorded, _ = write_signals_file(out, checkpoint, digest, runs, rollouts, seed, time_limit_s,
-                                                 environments_file, progress=progress, risk=risk)
+                                                 environments_file, progress=progress, risk=risk,
+                                                 workers=worker_count(workers))
             except KeyboardInterrupt:
                 log_progress(progress, f"calibrate {checkpoint}: interrupted; the finished episodes are kept in "
                                        f"{folder}")
