@@ -31,6 +31,7 @@ from ditch_drake.learning.gate_calibration import (
     signal_aucs,
 )
 from ditch_drake.systems.shared_control import SharedControl, SharedControlConfig
+from ditch_drake.world.environments import load_environments
 
 
 def _signals_file(path, values, checkpoint="wide", status=("rolled_over", "reached_goal")):
@@ -165,6 +166,29 @@ def test_gate_signals_records_every_step_of_a_short_rollout(tmp_path, capsys):
     # It never overwrites a recording.
     assert main(argv) == 2
     assert "exists" in capsys.readouterr().err
+
+
+def test_gate_signals_on_a_split_records_on_its_ditches_written_beside_the_file(tmp_path, capsys):
+    out = tmp_path / "val.npz"
+    argv = ["gate-signals", "--workers", "0", "--checkpoint", "wide_bc40", "--split", "val", "--geometries", "1",
+            "--task", "1", "--rollouts", "1", "--time-limit", "1", "--out", str(out)]
+    assert main(argv) == 0
+    signals = load_signals(out)
+    assert signals["episode_environment"].tolist() == ["ditch_1000"] and signals["episode_task"].tolist() == [1]
+    assert list(load_environments(tmp_path / "val.ditches.yaml")) == ["ditch_1000"]
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--split", "test"], "--split 'test': held out for reporting"),
+    (["--split", "val", "--environments", "x.yaml"], "--split val with --environments x.yaml"),
+    (["--geometries", "2"], "--geometries without --split"),
+])
+def test_gate_signals_refuses_a_held_out_split_or_split_options_alone(tmp_path, capsys, options, message):
+    out = tmp_path / "s.npz"
+    assert main(["gate-signals", "--checkpoint", "wide_bc40", *options, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert message in err, err
+    assert not out.exists() and not (tmp_path / "s.ditches.yaml").exists()
 
 
 @pytest.mark.parametrize("options, message", [

@@ -341,6 +341,14 @@ def add_gate_signals(commands: Commands) -> None:
                               "disagreement signals too)")
     add_env(signals, many=True)
     add_environments_file(signals)
+    signals.add_argument("--split", default=None,
+                         help="record on a benchmark split's ditches instead of --env/--environments: one the "
+                              "gate's thresholds may be chosen on (train, val, search_val; test, stress and search "
+                              "are held out), written beside --out as <out stem>.ditches.yaml (default: none)")
+    signals.add_argument("--geometries", type=int, default=None,
+                         help="with --split: the split's first N ditches (default: all of them)")
+    signals.add_argument("--ranges", default=None, metavar="FILE",
+                         help="with --split: a ranges YAML file (default: the split's packaged one)")
     signals.add_argument("--task", type=int, action="append", default=None,
                          help="task index (repeatable; default None: every task of each environment)")
     signals.add_argument("--rollouts", type=int, default=ConfigDefault(GATE_SIGNALS, "rollouts"),
@@ -398,6 +406,11 @@ def cmd_gate_signals(args) -> int:
     from ditch_drake.world.environments import environment_names, get_environment, load_environments
 
     environments_file = args.environments or ""
+    if args.split:
+        environments_file = _write_split_ditches(args, out)
+    elif args.geometries is not None or args.ranges is not None:
+        raise ConfigError(f"{'--geometries' if args.geometries is not None else '--ranges'} without --split: it "
+                          "says which of a split's ditches to record on; expected --split too")
     environments = args.env or (list(load_environments(environments_file)) if environments_file
                                 else environment_names())
     runs = []
@@ -433,6 +446,23 @@ def cmd_gate_signals(args) -> int:
                 ["signal", "auc", "95% interval", "positive_steps", "steps", "rolled_over_episodes", "episodes"])
     print(f"signals: {out}\nAUC of a rollover within {args.horizon} s: {report_path}")
     return 0
+
+
+def _write_split_ditches(args, out) -> str:
+    """The environments file of `--split`'s ditches (its first `--geometries`, drawn from
+    `--ranges`), written as `<out stem>.ditches.yaml`; refuses --environments beside it."""
+    from ditch_drake.benchmark.splits import ditches_file, split_ditches, split_ranges, write_ditches
+    from ditch_drake.world.ditch_splits import CHOICE_SPLITS, SEED_SPLITS
+
+    if args.split not in CHOICE_SPLITS:
+        why = ("held out for reporting, and a gate's thresholds are a choice" if args.split in SEED_SPLITS
+               else "no generated split")
+        raise ConfigError(f"--split {args.split!r}: {why}; expected one of {list(CHOICE_SPLITS)}")
+    if args.environments:
+        raise ConfigError(f"--split {args.split} with --environments {args.environments}: both say where to drive; "
+                          "expected one of them")
+    ditches = split_ditches(args.split, args.geometries, split_ranges(args.split, args.ranges))
+    return str(write_ditches(ditches_file(out), ditches))
 
 
 def add_gate_thresholds(commands: Commands) -> None:

@@ -11,6 +11,9 @@ SEED_SPLITS = {"train": range(200), "val": range(1000, 1050), "test": range(2000
                "stress": range(3000, 3100), "search": range(4000, 4100), "search_val": range(4100, 4150)}
 PAPER_SPLIT = "paper"
 SPLITS = (*SEED_SPLITS, PAPER_SPLIT)
+# The generated splits a choice may see (a checkpoint, a recipe, a gate's thresholds); the
+# others are held out for reporting.
+CHOICE_SPLITS = ("train", "val", "search_val")
 
 
 def split_of_seed(seed: int) -> str:
