@@ -85,9 +85,9 @@ def test_bad_random_gates_are_refused_naming_the_value(gate, message):
         SharedControlConfig(signal="random", **gate).resolved()
 
 
-def test_a_random_gate_left_with_the_default_thresholds_exits_2(tmp_path, capsys):
+def test_a_random_gate_with_a_threshold_outside_0_1_exits_2(tmp_path, capsys):
     out = tmp_path / "r.jsonl"
-    override = "{controller: !SharedControlControllerConfig {gate: {signal: random, budget: 0.05}}}"
+    override = "{controller: !SharedControlControllerConfig {gate: {signal: random, budget: 0.05, lower_threshold: 2.3}}}"
     code = main(["evaluate", "--override", override, "--env", "wide", "--task", "1", "--rollouts", "1", "--workers",
                  "0", "--out", str(out)])
     err = capsys.readouterr().err

@@ -103,11 +103,12 @@ def test_a_disagreement_signal_needs_an_ensemble(pair_file):
     for signal in ("angular_rate_spread", "vote_entropy"):
         with pytest.raises(ConfigError, match=f"{signal}.*K = 1"):
             LearnedPolicy(load_policy("wide"), uncertainty_signal=signal)
-        config = controller_config("shared")
+        config = controller_config("shared", "wide")
         gated = dataclasses.replace(config, gate=dataclasses.replace(config.gate, signal=signal))
         with pytest.raises(ConfigError, match=f"{signal}.*K = 1"):
             gated.validate()
         gated.with_checkpoint(str(pair_file)).validate()
+        dataclasses.replace(controller_config("shared"), gate=gated.gate).validate()  # The shipped ensemble.
     with pytest.raises(ConfigError, match="uncertainty signal 'spread'"):
         LearnedPolicy(load_policy("wide"), uncertainty_signal="spread")
     if all(importlib.util.find_spec(name) is not None for name in ("onnxruntime", "onnx")):
@@ -156,7 +157,7 @@ def test_a_short_shared_rollout_through_the_batch_path_records_its_handovers(tmp
                  "--time-limit", "2", "--workers", "0", "--out", str(out)])
     assert code == 0
     (handing, default), _ = read_records(out)
-    assert (handing.status, handing.checkpoint, handing.privileged) == ("timeout", "wide", ["terrain"])
+    assert (handing.status, handing.checkpoint, handing.privileged) == ("timeout", "generalist_k5", ["terrain"])
     assert (handing.handover_fraction, handing.switches, handing.handover_regions) == (1.0, 1, ["approach"])
     line = json.loads(out.read_text().splitlines()[1])
     assert line["schema_version"] == 7 and {"handover_fraction", "switches", "handover_regions"} <= line.keys()
@@ -172,7 +173,7 @@ def test_a_short_shared_rollout_through_the_batch_path_records_its_handovers(tmp
     ("{gate: {fallback: person}}", "fallback 'person'"),
     ("{gate: {fallback: teleop}}", "fallback 'teleop' without a Meshcat"),
     ("{gate: {budget: 0.05}}", "budget 0.05 without a calibration"),
-    ("{gate: {signal: vote_entropy}}", "vote_entropy.*K = 1"),
+    ("{policy: {checkpoint: wide}, gate: {signal: vote_entropy}}", "vote_entropy.*K = 1"),
 ])
 def test_bad_shared_configs_exit_2_naming_the_value(tmp_path, capsys, override, message):
     out = tmp_path / "r.jsonl"

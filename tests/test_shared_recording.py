@@ -73,7 +73,8 @@ def test_the_person_steers_where_the_gate_hands_over_and_the_page_says_so():
 def test_collect_shared_stores_each_step_with_its_driver(tmp_path, capsys):
     out = tmp_path / "shared"
     options = ["collect", "--shared", "--env", "wide", "--demos", "1", "--seed", "3", "--workers", "0",
-               "--out", str(out), "--upper-threshold", "1.0", "--lower-threshold", "1.0", "--calm-steps", "1"]
+               "--out", str(out), "--checkpoint", "wide", "--signal", "mean_softmax_entropy", "--upper-threshold", "1.0",
+               "--lower-threshold", "1.0", "--calm-steps", "1"]
     assert main(options) == 0
     report = json.loads(capsys.readouterr().out)
     assert report["recorded"] == 1 and report["unfilled_slots"] == []
@@ -94,7 +95,7 @@ def test_collect_shared_stores_each_step_with_its_driver(tmp_path, capsys):
     (["--learner", "wide"], "--learner wide with --shared"),
     (["--fallback", "mppi", "--shared-labels", "expert"], "shared_labels 'expert' with fallback 'mppi'"),
     (["--upper-threshold", "0.5", "--lower-threshold", "0.9"], "lower_threshold 0.9 > upper_threshold 0.5"),
-    (["--signal", "random"], "upper_threshold 2.55 with signal 'random': expected a number in"),
+    (["--signal", "random", "--upper-threshold", "2.55"], "upper_threshold 2.55 with signal 'random': expected a number in"),
 ])
 def test_bad_shared_collections_exit_2_naming_the_value(tmp_path, capsys, extra, message):
     code = main(["collect", "--shared", "--env", "wide", "--demos", "1", "--workers", "0",

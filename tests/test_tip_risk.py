@@ -138,5 +138,5 @@ def test_a_tip_risk_config_beside_a_gate_that_does_not_read_it_is_refused(tmp_pa
     assert main(["evaluate", "--override", override, "--env", "wide", "--task", "1", "--rollouts", "1",
                  "--out", str(tmp_path / "r.jsonl")]) == 2
     err = capsys.readouterr().err
-    assert "policy.tip_risk with signal 'mean_softmax_entropy'" in err, err
+    assert "policy.tip_risk with signal 'angular_rate_spread'" in err, err
     assert not (tmp_path / "r.jsonl").exists()

@@ -139,7 +139,7 @@ def add_teleop(commands: Commands) -> None:
     teleop.add_argument("--shared", action="store_true",
                         help="the learned policy drives and hands over to you where it is unsure (the page turns "
                              "red and says so); the steps you drove are stored as interventions")
-    add_checkpoint(teleop, "the environment's shipped model; with --shared")
+    add_checkpoint(teleop, "the shipped generalist ensemble, generalist_k5; with --shared")
     add_gate_options(teleop, ["teleop"])
     teleop.set_defaults(run=cmd_teleop)
 

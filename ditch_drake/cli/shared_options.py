@@ -36,8 +36,9 @@ def add_gate_options(sub: argparse.ArgumentParser, fallbacks: list[str]) -> None
 
 
 def shared_config_from_options(args, checkpoint: str | None, fallback: str | None = None):
-    """The `SharedControlControllerConfig` of the gate options and `checkpoint` (None: the
-    environment's shipped model), with `fallback` (None: `--fallback`).
+    """The `SharedControlControllerConfig` of the gate options and `checkpoint` (None or "":
+    the config's default policy, the shipped generalist ensemble), with `fallback` (None:
+    `--fallback`).
 
     Raises:
         ConfigError: a bad gate value, naming it (`SharedControlConfig.validate`).
@@ -46,7 +47,9 @@ def shared_config_from_options(args, checkpoint: str | None, fallback: str | Non
 
     from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
 
-    config = SharedControlControllerConfig().with_checkpoint(checkpoint or "")
+    config = SharedControlControllerConfig()
+    if checkpoint:
+        config = config.with_checkpoint(checkpoint)
     gate = dataclasses.replace(config.gate, signal=args.signal, upper_threshold=args.upper_threshold,
                                lower_threshold=args.lower_threshold, calm_steps=args.calm_steps,
                                fallback=fallback or args.fallback, budget=args.budget,

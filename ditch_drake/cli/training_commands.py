@@ -51,7 +51,7 @@ def add_collect(commands: Commands) -> None:
                               "seed), each step flagged as an intervention where the fallback drove")
     collect.add_argument("--checkpoint", default=None,
                          help="with --shared: the gated policy, a shipped name, a .pt file or an ensemble file "
-                              "(default: the environment's shipped model)")
+                              "(default: the shipped generalist ensemble, generalist_k5)")
     collect.add_argument("--shared-labels", choices=["executed", "expert"], default=ConfigDefault(COLLECT,
                                                                                                   "shared_labels"),
                          help="with --shared: the label stored for each step: the executed one (the policy's or "

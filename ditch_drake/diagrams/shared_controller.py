@@ -44,7 +44,7 @@ from ditch_drake.diagrams.rollout import (
     LearnedPolicyConfig,
     MppiBaselineConfig,
 )
-from ditch_drake.learning.checkpoint import checkpoint_digest, environment_model
+from ditch_drake.learning.checkpoint import GENERALIST_ENSEMBLE, checkpoint_digest, environment_model
 from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.learning.inference import is_ensemble
 from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, RISK_SIGNALS
@@ -59,21 +59,24 @@ from ditch_drake.systems.tip_risk import TipRiskConfig
 CHASSIS_MESHCAT_PATH = "/drake/illustration/husky/chassis"
 
 
-def default_gate() -> SharedControlConfig:
-    """The gate of the shipped single clones: their own softmax entropy, thresholds provisional.
+def default_policy() -> LearnedPolicyConfig:
+    """The shipped generalist ensemble (`GENERALIST_ENSEMBLE`, five clones), told its crossing
+    side by the lidar: an ensemble, so that the gate can read its members' disagreement."""
+    return LearnedPolicyConfig(checkpoint=GENERALIST_ENSEMBLE)
 
-    Measured with the shipped `wide` model on wide task 1, seeds 0-5 (six learned rollouts, 1893
-    control steps; `LearnedPolicy`'s probabilities at each step): the mean softmax entropy's
-    median was 1.05 nats, its 90th, 95th and 99th percentiles 2.09, 2.44 and 2.47, its largest
-    value 2.65 (log 17 = 2.83 is the most). Most steps above 2.3 are the last 30 or so before
-    the goal, where the clone's probabilities flatten to about 2.44. An upper threshold of 2.55
-    with a lower one of 2.3 handed over in one of the six sequences (8 % of its steps), 1.4 %
-    of all steps: rarely. It does not foresee the one failure among them (seed 0 rolled over
-    at 8.4 s; its largest value was 2.05). Provisional until the signals are measured against
-    failures on validation rollouts (`ditch-drake gate-signals`); a budget with such a file
-    (`SharedControlConfig.budget`, `calibration`) sets them from the policy's own signal.
+
+def default_gate() -> SharedControlConfig:
+    """The gate of the shipped generalist ensemble: its members' `angular_rate_spread`, with the
+    thresholds a budget of 2 % of the control steps sets on its own validation rollouts.
+
+    Measured with `ditch-drake gate-signals --checkpoint generalist_k5 --split val --rollouts 1
+    --seed 0 --risk` (the 50 val ditches x 3 tasks, rollout seed 0: 150 episodes) and
+    `ditch-drake gate-thresholds` on that file at a budget of 0.02 (5 calm steps, 3 warm-up
+    steps): 0.5817 and 0.4899 rad/s, which replayed there hand over 1.99 % of the steps
+    (docs/results/shared_control_generalist.md). Another policy's spread means something
+    else: set a budget with its own signals file (`SharedControlConfig.budget`, `calibration`).
     """
-    return SharedControlConfig(signal="mean_softmax_entropy", upper_threshold=2.55, lower_threshold=2.3,
+    return SharedControlConfig(signal="angular_rate_spread", upper_threshold=0.5817, lower_threshold=0.4899,
                                calm_steps=5, fallback="expert")
 
 
@@ -82,10 +85,10 @@ class SharedControlControllerConfig:
     """The learned policy gated by its uncertainty, with a fallback where it is unsure.
 
     Attributes:
-        policy: the clone (`LearnedPolicyConfig`): its checkpoint ("" for the environment's
-            shipped model, as for `learned`; an ensemble file runs all its members), its
-            observation, crossing side and runtime. Its `uncertainty` output reports
-            `gate.signal`.
+        policy: the clone (`LearnedPolicyConfig`): its checkpoint (by default the shipped
+            generalist ensemble, `default_policy`; "" for the environment's shipped model, as
+            for `learned`; an ensemble file runs all its members), its observation, crossing
+            side and runtime. Its `uncertainty` output reports `gate.signal`.
         gate: when control passes to the fallback and back (`SharedControlConfig`), and who
             the fallback is (`gate.fallback`: "expert", "mppi" or "teleop"). With `gate.budget`
             and `gate.calibration` (a signals file of `ditch-drake gate-signals` for this
@@ -97,7 +100,7 @@ class SharedControlControllerConfig:
             lidar when their lidar configs are equal, else its own).
     """
 
-    policy: LearnedPolicyConfig = field(default_factory=LearnedPolicyConfig)
+    policy: LearnedPolicyConfig = field(default_factory=default_policy)
     gate: SharedControlConfig = field(default_factory=default_gate)
     expert: ExpertConfig = field(default_factory=ExpertConfig)
     mppi: MppiBaselineConfig = field(default_factory=MppiBaselineConfig)

@@ -44,11 +44,15 @@ SCHEMA_VERSION = 1
 # the commands in docs/results/shipped_models.md: per environment, `<env>` is the best measured policy (40
 # expert demonstrations plus one DAgger round), `<env>_bc40` the paper's method alone (the 40
 # demonstrations, trained on this 2-core CPU in the 15-minute budget). `generalist` was trained
-# over the procedural benchmark's train split and chosen on its val split (docs/results/benchmark.md).
+# over the procedural benchmark's train split and chosen on its val split (docs/results/benchmark.md);
+# `generalist_k5` is an ensemble of five clones of a rerun of its recipe, the `shared` controller's
+# policy (docs/results/shared_control_generalist.md).
 SHIPPED_MODELS_DIR = Path(__file__).resolve().parent.parent / "models"
 ENVIRONMENT_MODELS = ("crater", "wide", "narrow", "sine")
 GENERALIST_MODEL = "generalist"
-SHIPPED_MODELS = (*ENVIRONMENT_MODELS, *(f"{env}_bc40" for env in ENVIRONMENT_MODELS), GENERALIST_MODEL)
+GENERALIST_ENSEMBLE = "generalist_k5"
+SHIPPED_MODELS = (*ENVIRONMENT_MODELS, *(f"{env}_bc40" for env in ENVIRONMENT_MODELS), GENERALIST_MODEL,
+                  GENERALIST_ENSEMBLE)
 
 
 def environment_model(environment: str, environments_file: str = "") -> str:
