@@ -13,12 +13,22 @@ def _checkpoints(path) -> dict[str, str]:
     return {record["environment"]: record["checkpoint"] for record in map(json.loads, path.read_text().splitlines())}
 
 
-@pytest.mark.parametrize("controller", ["!LearnedPolicyConfig {}", "!SharedControlControllerConfig {}"])
+@pytest.mark.parametrize("controller", [
+    "!LearnedPolicyConfig {}",
+    "!SharedControlControllerConfig {policy: {checkpoint: ''}, gate: {signal: mean_softmax_entropy}}",
+])
 def test_each_environment_of_an_override_runs_its_own_model(tmp_path, controller):
     out = tmp_path / "results.jsonl"
     assert main(["evaluate", "--override", f"{{controller: {controller}}}", "--env", "crater", "--env", "wide",
                  *SHORT, "--out", str(out)]) == 0
     assert _checkpoints(out) == {"crater": "crater", "wide": "wide"}
+
+
+def test_the_shared_controllers_default_policy_is_the_generalist_ensemble_everywhere(tmp_path):
+    out = tmp_path / "results.jsonl"
+    assert main(["evaluate", "--override", "{controller: !SharedControlControllerConfig {}}", "--env", "crater",
+                 "--env", "wide", *SHORT, "--out", str(out)]) == 0
+    assert _checkpoints(out) == {"crater": "generalist_k5", "wide": "generalist_k5"}
 
 
 def test_a_named_checkpoint_runs_in_every_environment(tmp_path):
