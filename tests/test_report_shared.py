@@ -50,7 +50,9 @@ def shared_records() -> list[RolloutRecord]:
 def test_the_shared_control_table_gives_each_groups_share_switches_and_handover_regions():
     lines = shared_control_table(shared_records())
     assert lines[0] == SHARED_HEADER
-    assert lines[2:] == ["| shared | crater | 1/1 | 0.0% | 0.0% | 0 | - |",
+    # A model in two environments: first its rollouts pooled (switches 0, 2, 4, 5: median 3).
+    assert lines[2:] == ["| shared | all | 3/4 | 18.8% | 45.0% | 3 | approach:2, floor:1, up_wall:3 |",
+                         "| shared | crater | 1/1 | 0.0% | 0.0% | 0 | - |",
                          "| shared | wide | 2/3 | 25.0% | 45.0% | 4 | approach:2, floor:1, up_wall:3 |"]
     # An even count of rollouts: the median of 4 and 5 switches is 4.5.
     assert shared_control_table(shared_records()[1:3])[2:] == [
@@ -65,6 +67,7 @@ def test_only_shared_control_records_get_rows_and_a_file_without_them_gets_no_ta
                              write(tmp_path / "plain.jsonl", others)])
     assert data.shared_tables["mixed"][2:] == [
         "| gated | wide | 1/1 | 50.0% | 50.0% | 1 | floor:1 |",
+        "| shared | all | 3/4 | 18.8% | 45.0% | 3 | approach:2, floor:1, up_wall:3 |",
         "| shared | crater | 1/1 | 0.0% | 0.0% | 0 | - |",
         "| shared | wide | 2/3 | 25.0% | 45.0% | 4 | approach:2, floor:1, up_wall:3 |"]
     assert "plain" not in data.shared_tables and data.study_lines("plain") == data.tables["plain"]

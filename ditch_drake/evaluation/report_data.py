@@ -142,6 +142,10 @@ def study_table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str
     return lines, summaries
 
 
+# The shared-control table's row of a model's rollouts in all its environments.
+POOLED = "all"
+
+
 def is_shared_control(record: RolloutRecord) -> bool:
     """Whether `record` is a rollout of a gated policy with a fallback (the `shared` controller,
     or any record whose fallback drove some of its steps)."""
@@ -152,8 +156,9 @@ def shared_control_table(records: list[RolloutRecord]) -> list[str]:
     """How much the fallback drove, one row per model and environment with shared-control
     records: successes, the mean and largest share of control steps the fallback drove, the
     median number of switches (handovers plus handbacks) per rollout, and where the handovers
-    began (region:count, by region name); error records are left out. Empty without
-    shared-control records."""
+    began (region:count, by region name); error records are left out. A model with records in
+    more than one environment has a first row "all", its rollouts pooled (a benchmark split's
+    hundred ditches read at a glance). Empty without shared-control records."""
     name_of = controller_labels(records)
     groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
     for record in records:
@@ -161,10 +166,14 @@ def shared_control_table(records: list[RolloutRecord]) -> list[str]:
             groups[(name_of(record), record.environment)].append(record)
     if not groups:
         return []
+    environments = Counter(model for model, _ in groups)
+    pooled = {(model, POOLED): [record for (name, _), group in groups.items() if name == model for record in group]
+              for model, count in environments.items() if count > 1}
+    groups = {**pooled, **groups}
     lines = [("| model | environment | success | fallback's share of steps (mean) | (max) | switches (median) | "
               "handovers (region:count) |"),
              "| --- | --- | --- | --- | --- | --- | --- |"]
-    for (model, env), group in sorted(groups.items()):
+    for (model, env), group in sorted(groups.items(), key=lambda item: (item[0][0], item[0][1] != POOLED, item[0][1])):
         trials = [record for record in group if not record.is_error]
         successes = sum(record.success for record in trials)
         if trials:
