@@ -70,7 +70,7 @@ def default_gate() -> SharedControlConfig:
     thresholds a budget of 2 % of the control steps sets on its own validation rollouts.
 
     Measured with `ditch-drake gate-signals --checkpoint generalist_k5 --split val --rollouts 1
-    --seed 0 --risk` (the 50 val ditches x 3 tasks, rollout seed 0: 150 episodes) and
+    --seed 0` (the 50 val ditches x 3 tasks, rollout seed 0: 150 episodes) and
     `ditch-drake gate-thresholds` on that file at a budget of 0.02 (5 calm steps, 3 warm-up
     steps): 0.5817 and 0.4899 rad/s, which replayed there hand over 1.99 % of the steps
     (docs/results/shared_control_generalist.md). Another policy's spread means something

@@ -280,8 +280,8 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
         raise ConfigError(f"workers={workers}: recording in worker processes needs a parts folder to keep "
                           "their episodes in; expected parts, or workers=0")
     if workers:
-        _record_in_workers(checkpoint, keys, episodes, time_limit_s, environments_file, progress, parts, risk,
-                           workers)
+        _record_in_workers(checkpoint, keys, episodes, rollouts, seed, time_limit_s, environments_file, progress,
+                           parts, risk, workers)
     for environment, task in dict.fromkeys(runs):
         pending = [key[2] for key in keys if key[:2] == (environment, task) and key not in episodes]
         if not pending:
@@ -310,22 +310,19 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
     return GateSignals.of([episodes[key] for key in keys])
 
 
-def _record_pair(checkpoint: str, environment: str, task: int, seeds: list[int], time_limit_s: float,
+def _record_pair(checkpoint: str, environment: str, task: int, rollouts: int, seed: int, time_limit_s: float,
                  environments_file: str, folder: str, header: dict, risk: bool) -> list[EpisodeSignals]:
-    """A worker's share of `record_gate_signals`: the episodes of one (environment, task) at
-    `seeds`, each kept in the parts folder as it finishes."""
+    """A worker's share of `record_gate_signals`: the episodes of one (environment, task), in
+    one diagram, each kept in the parts folder as it finishes (one kept before is not run again)."""
     # Not `EpisodeParts.open`: it clears stale temporaries, which may be another worker's file in writing.
     parts = EpisodeParts(Path(folder), header)
-    recorded = []
-    for episode_seed in seeds:
-        record_gate_signals(checkpoint, [(environment, task)], 1, episode_seed, time_limit_s, environments_file,
-                            progress=False, parts=parts, risk=risk)
-        recorded.append(parts.finished((environment, task, episode_seed)))
-    return recorded
+    record_gate_signals(checkpoint, [(environment, task)], rollouts, seed, time_limit_s, environments_file,
+                        progress=False, parts=parts, risk=risk)
+    return [parts.finished((environment, task, episode_seed)) for episode_seed in range(seed, seed + rollouts)]
 
 
-def _record_in_workers(checkpoint: str, keys: list[tuple[str, int, int]], episodes: dict, time_limit_s: float,
-                       environments_file: str, progress: bool, parts: EpisodeParts, risk: bool,
+def _record_in_workers(checkpoint: str, keys: list[tuple[str, int, int]], episodes: dict, rollouts: int, seed: int,
+                       time_limit_s: float, environments_file: str, progress: bool, parts: EpisodeParts, risk: bool,
                        workers: int) -> None:
     """Runs the episodes of `keys` not in `episodes` in `workers` processes, an (environment,
     task) pair per work item, and adds each to `episodes` as its item ends."""
@@ -333,18 +330,17 @@ def _record_in_workers(checkpoint: str, keys: list[tuple[str, int, int]], episod
 
     from ditch_drake.evaluation.rollout_worker import initialize_worker
 
-    pending: dict[tuple[str, int], list[int]] = {}
-    for key in keys:
-        if key not in episodes:
-            pending.setdefault(key[:2], []).append(key[2])
+    pending = list(dict.fromkeys(key[:2] for key in keys if key not in episodes))
     if not pending:
         return
     with WorkerPool(min(workers, len(pending)), initializer=initialize_worker) as pool:
-        futures = [pool.submit(_record_pair, checkpoint, environment, task, seeds, time_limit_s, environments_file,
-                               str(parts.folder), parts.header, risk)
-                   for (environment, task), seeds in pending.items()]
+        futures = [pool.submit(_record_pair, checkpoint, environment, task, rollouts, seed, time_limit_s,
+                               environments_file, str(parts.folder), parts.header, risk)
+                   for environment, task in pending]
         for future in as_completed(futures):
             for episode in future.result():
+                if episode.key in episodes:  # Kept before this run.
+                    continue
                 episodes[episode.key] = episode
                 log_progress(progress, f"episode {len(episodes)}/{len(keys)}: {episode.environment} task "
                                        f"{episode.task} seed {episode.seed}: {episode.status} at "
