@@ -1,7 +1,7 @@
 """The random-handover control of the shared gate (signal "random"): its thresholds from a
 budget, its bad values, the fallback's share with hysteresis, the seeded draw in a built
-shared diagram (same seed, same handovers; another seed, others) and a short rollout through
-the batch path."""
+shared diagram (same seed, same handovers; another seed, or another ditch or task, others), the
+keyed draw's uniformity, and a short rollout through the batch path."""
 
 import dataclasses
 import re
@@ -13,6 +13,7 @@ from pydrake.common import RandomGenerator
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import ConstantVectorSource
+from scipy import stats
 
 from ditch_drake.cli import main
 from ditch_drake.common.errors import ConfigError
@@ -23,6 +24,7 @@ from ditch_drake.diagrams.shared_controller import AddRandomHandoverDraw, Shared
 from ditch_drake.evaluation.batch import evaluate, make_specs
 from ditch_drake.evaluation.results import read_records
 from ditch_drake.spec import robot
+from ditch_drake.systems.keyed_uniform import KeyedUniform
 from ditch_drake.systems.shared_control import (
     FALLBACK,
     GATE_OFFSET_S,
@@ -104,7 +106,7 @@ def _gate_with_draws(gate_config: SharedControlConfig, seed: int, steps: int) ->
     for port, command in (("policy_command", [1.0, 0.0]), ("fallback_command", [0.5, 0.3])):
         source = builder.AddSystem(ConstantVectorSource(command))
         builder.Connect(source.get_output_port(), gate.GetInputPort(port))
-    AddRandomHandoverDraw(builder, gate, robot.CONTROL_PERIOD_S)
+    AddRandomHandoverDraw(builder, gate, robot.CONTROL_PERIOD_S, "wide/task1")
     diagram = builder.Build()
     simulator = Simulator(diagram)
     diagram.SetRandomContext(simulator.get_mutable_context(), RandomGenerator(seed))
@@ -171,6 +173,30 @@ def test_the_seed_decides_the_random_handovers_in_a_built_shared_diagram():
     for drivers, values in ((first, draws), (other, other_draws)):
         assert all(0.0 <= value < 1.0 for value in values)
         assert drivers == [POLICY] * warmup + [FALLBACK if value > 0.5 else POLICY for value in values[warmup:]]
+
+
+def test_a_keyed_draw_is_uniform_repeatable_and_the_keys_own():
+    draws = np.random.default_rng(5).random(4000)
+    one, other = KeyedUniform("ditch_2000/task0"), KeyedUniform("ditch_2001/task0")
+    keyed = np.array([one.keyed(draw) for draw in draws])
+    assert np.all((keyed >= 0.0) & (keyed < 1.0))
+    assert stats.kstest(keyed, "uniform").pvalue > 1e-3
+    assert abs(stats.pearsonr(keyed[:-1], keyed[1:]).statistic) < 0.1  # Step to step, as the input.
+    assert [one.keyed(draw) for draw in draws[:5]] == list(keyed[:5])
+    others = np.array([other.keyed(draw) for draw in draws])
+    assert abs(stats.pearsonr(keyed, others).statistic) < 0.1  # Another key: unrelated draws.
+    assert np.mean((keyed > 0.95) & (others > 0.95)) < 0.01  # Not handing over together.
+
+
+def test_one_seed_draws_differently_in_another_ditch_or_task():
+    shared = get_controller("shared")
+    results = {}
+    for environment, task in (("wide", 1), ("wide", 2), ("narrow", 1)):
+        scene = SceneConfig(environment=environment, task=task)
+        diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=scene, controller=shared.for_seed(_random_shared(), 0)))
+        assert diagram.GetSubsystemByName(DRAW).key == f"{environment}/task{task}"
+        results[environment, task] = _drivers_and_draws(Simulator(diagram), diagram, seed=0, steps=6)[1]
+    assert len({tuple(draws) for draws in results.values()}) == 3
 
 
 def test_a_short_random_shared_rollout_through_the_batch_path_records_its_handover_fraction(tmp_path):

@@ -109,6 +109,7 @@ class DitchScene:
     episode: EpisodeConfig
     schedule: ScheduleConfig
     environment_name: str = ""
+    task_index: int = 0
 
 
 def models_package_xml() -> Path:
@@ -342,7 +343,7 @@ def AddDitchScene(builder: DiagramBuilder, config: SceneConfig, meshcat: Meshcat
         builder.AddNamedSystem("visualization_lcm", LcmInterfaceSystem(lcm))  # Owns `lcm`.
         ApplyVisualizationConfig(VisualizationConfig(publish_contacts=False), builder, meshcat=meshcat, lcm=lcm)
     return DitchScene(plant, scene_graph, husky, drive, monitor, terrain, environment, task, config.episode,
-                      config.schedule, config.environment)
+                      config.schedule, config.environment, config.task)
 
 
 def MakeDitchDiagram(config: SceneConfig, meshcat: Meshcat | None = None) -> tuple[Diagram, DitchScene]:

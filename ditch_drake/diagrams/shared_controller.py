@@ -15,8 +15,9 @@ switched and where the handovers began (`RolloutRecord.handover_fraction`, `swit
 | teleop | a person at the Meshcat page (`MeshcatTeleop`) | nothing; needs a Meshcat, which a batch never has |
 
 With `gate.signal` "random" the gate reads a seeded uniform draw each control step (a
-"random_handover_draw" `RandomSource`) in place of the policy's uncertainty: the chance
-handover a gate is compared with (`AddRandomHandoverDraw`). With a risk signal
+"random_handover_draw", seeded by the episode's seed and keyed by its environment and task)
+in place of the policy's uncertainty: the chance handover a gate is compared with
+(`AddRandomHandoverDraw`). With a risk signal
 ("tip_risk_now", "tip_risk_ahead") it reads a "tip_risk" block (`TipRisk`) on an
 "elevation_mapper" of the policy's lidar and the policy's command: how near the robot is to
 tipping, now or along the arc the policy commands, rather than how unsure the policy is.
@@ -49,6 +50,7 @@ from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.learning.inference import is_ensemble
 from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, RISK_SIGNALS
 from ditch_drake.systems.driver_indicator import DriverIndicator
+from ditch_drake.systems.keyed_uniform import KeyedUniform
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
 from ditch_drake.systems.policy import DEFAULT_UNCERTAINTY_SIGNAL
 from ditch_drake.systems.shared_control import RANDOM_SIGNAL, SharedControl, SharedControlConfig
@@ -222,7 +224,7 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
         offset_s=(schedule.controller_offset_s + schedule.recorder_offset_s) / 2))
     builder.Connect(policy.GetOutputPort("command"), gate.GetInputPort("policy_command"))
     if random_gate:
-        AddRandomHandoverDraw(builder, gate, schedule.control_period_s)
+        AddRandomHandoverDraw(builder, gate, schedule.control_period_s, random_draw_key(scene))
     elif risk_gate:
         risk = AddTipRisk(builder, scene, AddElevationMapper(builder, scene, observation), policy.GetOutputPort("command"),
                           config.policy.tip_risk or TipRiskConfig())
@@ -237,20 +239,31 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     return gate
 
 
-def AddRandomHandoverDraw(builder: DiagramBuilder, gate: SharedControl, period_s: float) -> RandomSource:
-    """Adds the "random_handover_draw" `RandomSource` (one uniform draw in [0, 1) every
-    `period_s`, at t_k = k * period_s) and connects it to `gate`'s `uncertainty`; returns it.
+def AddRandomHandoverDraw(builder: DiagramBuilder, gate: SharedControl, period_s: float, key: str) -> KeyedUniform:
+    """Adds the random handover's draws and connects them to `gate`'s `uncertainty`: a
+    "random_handover_source" `RandomSource` (one uniform draw in [0, 1) every `period_s`, at
+    t_k = k * period_s) through a "random_handover_draw" `KeyedUniform` of `key`; returns the
+    latter, whose output the gate reads.
 
     Sampling at the gate's period, it draws once per gate tick: a gate ticking after t_k (as
     `AddSharedControl`'s, between the controller and recorder offsets) reads the draw of t_k, one
     ticking at t_k that of t_(k-1); either way each draw once. Seeded as the sensor noise is:
     `diagram.SetRandomContext(context, RandomGenerator(seed))` (`StartEpisode`) re-draws it, so
-    the same seed hands over at the same steps. Added after the policy and the fallback, it
-    leaves their draws (and the plant's start) as the same seed gives them with any other signal.
+    the same seed hands over at the same steps; the key (the rollout's environment and task)
+    gives episodes of one seed in different ditches their own draws. Added after the policy and
+    the fallback, it leaves their draws (and the plant's start) as the same seed gives them
+    with any other signal.
     """
-    source = builder.AddNamedSystem("random_handover_draw", RandomSource(RandomDistribution.kUniform, 1, period_s))
-    builder.Connect(source.get_output_port(), gate.GetInputPort("uncertainty"))
-    return source
+    source = builder.AddNamedSystem("random_handover_source", RandomSource(RandomDistribution.kUniform, 1, period_s))
+    draw = builder.AddNamedSystem("random_handover_draw", KeyedUniform(key))
+    builder.Connect(source.get_output_port(), draw.GetInputPort("draw"))
+    builder.Connect(draw.GetOutputPort("keyed_draw"), gate.GetInputPort("uncertainty"))
+    return draw
+
+
+def random_draw_key(scene: DitchScene) -> str:
+    """The key of a rollout's random handover draws: its environment and task."""
+    return f"{scene.environment_name}/task{scene.task_index}"
 
 
 def check_calibration_policy(calibration: str, checkpoint: str) -> None:

@@ -31,7 +31,8 @@ class SharedControlConfig:
             a risk signal ("tip_risk_now", "tip_risk_ahead": minus the tip margin now or along
             the policy's commanded arc, `ditch_drake.systems.tip_risk`), or "random"
             (`RANDOM_SIGNAL`): a uniform draw in [0, 1) each control step, seeded by the
-            episode's seed, in its place (the chance handover a gate is compared with).
+            episode's seed and keyed by its environment and task, in its place (the chance
+            handover a gate is compared with).
         upper_threshold: hand over when the signal is above this (the signal's unit: rad/s for
             "angular_rate_spread", nats for the entropies, deg for the risk signals, in [0, 1]
             for "random"). With a budget, set from it.
