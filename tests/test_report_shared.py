@@ -7,7 +7,7 @@ from pathlib import Path
 import torch
 
 from ditch_drake.evaluation.report import write_report
-from ditch_drake.evaluation.report_data import load_report_data, shared_control_table
+from ditch_drake.evaluation.report_data import load_report_data, shared_control_table, study_table
 from ditch_drake.evaluation.results import RolloutRecord
 from ditch_drake.learning.checkpoint import checkpoint_digest, make_checkpoint, save_checkpoint
 from ditch_drake.learning.ensemble import EnsembleCheckpoint, save_ensemble
@@ -104,3 +104,20 @@ def test_the_models_table_summarises_an_ensemble_and_checks_its_hash(tmp_path):
     save_ensemble(EnsembleCheckpoint(members[::-1]), ensemble)
     page = write_report([results], tmp_path / "page.md", tmp_path / "img", data=data).read_text()
     assert f"| gated_k2 | {ensemble} | {records[0].checkpoint_sha256} | (file gone or changed since) |" in page
+
+
+def test_a_models_rollouts_in_generated_ditches_are_one_row_in_both_tables():
+    ditches = "results/test.ditches.yaml"
+    generated = [RolloutRecord(**{**record(i, env=f"ditch_200{i // 3}", success=i != 4, fraction=0.1 * (i % 3),
+                                           switches=i % 3, regions=("beyond",) * (i % 3)).__dict__,
+                                  "environments_file": ditches}) for i in range(6)]
+    packaged = record(9, env="wide", fraction=0.5, switches=1, regions=("floor",))
+    table, summaries = study_table([*generated, packaged])
+    assert [line.split(" | ")[1:3] for line in table[2:]] == [["2 generated ditches", "5/6"], ["wide", "1/1"]]
+    assert summaries[("shared", "2 generated ditches")].trials == 6
+    assert shared_control_table([*generated, packaged])[2:] == [
+        "| shared | all | 6/7 | 15.7% | 50.0% | 1 | beyond:6, floor:1 |",
+        "| shared | 2 generated ditches | 5/6 | 10.0% | 20.0% | 1 | beyond:6 |",
+        "| shared | wide | 1/1 | 50.0% | 50.0% | 1 | floor:1 |"]
+    # One generated ditch reads as such too.
+    assert study_table(generated[:3])[0][2].split(" | ")[1] == "1 generated ditch"

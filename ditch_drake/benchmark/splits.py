@@ -95,10 +95,18 @@ def split_ditches(split: str, geometries: int | None = None,
     return [sample_ditch(seed, ranges) for seed in seeds]
 
 
+DITCHES_SUFFIX = ".ditches.yaml"
+
+
 def ditches_file(results_path: str | Path) -> Path:
     """Where a run's ditches are written: `<results without .jsonl>.ditches.yaml`."""
     path = Path(results_path)
-    return path.with_name(path.stem + ".ditches.yaml")
+    return path.with_name(path.stem + DITCHES_SUFFIX)
+
+
+def is_ditches_file(path: str | Path) -> bool:
+    """Whether `path` names a file of generated ditches (`ditches_file`'s name)."""
+    return str(path).endswith(DITCHES_SUFFIX)
 
 
 def write_ditches(path: str | Path, ditches: list[SampledDitch]) -> Path:

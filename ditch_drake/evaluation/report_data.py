@@ -118,11 +118,13 @@ def load_report_data(results: list[str | os.PathLike]) -> ReportData:
 def study_table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str, str], GroupSummary]]:
     """A study's Markdown table (one row per model and environment: successes, Wilson interval,
     failures by status and region, halts by region, errors, the successes' median time and path
-    length) and the summaries behind it."""
+    length) and the summaries behind it. A model's rollouts in generated ditches (a benchmark
+    split's) are one row, `pool_generated_ditches`."""
     groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
     name_of = controller_labels(records)
     for record in records:
         groups[(name_of(record), record.environment)].append(record)
+    groups = pool_generated_ditches(groups)
     summaries = {key: summarize(group) for key, group in sorted(groups.items())}
     lines = [("| model | environment | success | rate | 95 % Wilson | of which around the ditch | "
               "failures (status@region) | halts (region) | errors | time (s) | path (m) |"),
@@ -146,6 +148,28 @@ def study_table(records: list[RolloutRecord]) -> tuple[list[str], dict[tuple[str
 POOLED = "all"
 
 
+def pool_generated_ditches(groups: dict[tuple[str, str], list[RolloutRecord]]) -> dict[tuple[str, str], list]:
+    """`groups` (records by model and environment) with each model's groups in generated ditches
+    (environments read from a benchmark run's ditches file) pooled into one, named "N generated
+    ditches": a split's hundred ditches are one row a reader can take in, and `ditch-drake
+    benchmark-report` is the page for them ditch by ditch."""
+    from ditch_drake.benchmark.splits import is_ditches_file
+
+    pooled: dict[tuple[str, str], list[RolloutRecord]] = {}
+    generated: dict[str, list[RolloutRecord]] = defaultdict(list)
+    ditches: dict[str, set[str]] = defaultdict(set)
+    for (model, env), group in groups.items():
+        if group and all(is_ditches_file(record.environments_file) for record in group):
+            generated[model] += group
+            ditches[model].add(env)
+        else:
+            pooled[(model, env)] = group
+    for model, group in generated.items():
+        count = len(ditches[model])
+        pooled[(model, f"{count} generated ditch{'es' if count > 1 else ''}")] = group
+    return pooled
+
+
 def is_shared_control(record: RolloutRecord) -> bool:
     """Whether `record` is a rollout of a gated policy with a fallback (the `shared` controller,
     or any record whose fallback drove some of its steps)."""
@@ -157,8 +181,9 @@ def shared_control_table(records: list[RolloutRecord]) -> list[str]:
     records: successes, the mean and largest share of control steps the fallback drove, the
     median number of switches (handovers plus handbacks) per rollout, and where the handovers
     began (region:count, by region name); error records are left out. A model with records in
-    more than one environment has a first row "all", its rollouts pooled (a benchmark split's
-    hundred ditches read at a glance). Empty without shared-control records."""
+    more than one environment has a first row "all", its rollouts pooled; its rollouts in
+    generated ditches are one row (`pool_generated_ditches`). Empty without shared-control
+    records."""
     name_of = controller_labels(records)
     groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
     for record in records:
@@ -166,6 +191,7 @@ def shared_control_table(records: list[RolloutRecord]) -> list[str]:
             groups[(name_of(record), record.environment)].append(record)
     if not groups:
         return []
+    groups = pool_generated_ditches(groups)
     environments = Counter(model for model, _ in groups)
     pooled = {(model, POOLED): [record for (name, _), group in groups.items() if name == model for record in group]
               for model, count in environments.items() if count > 1}

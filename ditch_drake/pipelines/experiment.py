@@ -20,6 +20,8 @@ optionally one round of learning from the handovers, `AggregationRound`).
 3. evaluate: the signals files the shared-control gates are calibrated on, where missing
    (`<results_dir>/gate/<model>.npz`, resumable as `ditch-drake gate-signals`), then every
    study's rollouts, appended to `<results_dir>/<study>.jsonl` (finished rollouts are skipped);
+   then the shared-control study's part on a benchmark split, if it has one (`SplitGating`:
+   its signals file on a split a choice may be made on, its rollouts on another);
 4. report: `ditch_drake.evaluation.report.write_report` over the results.
 
 `only` restricts every stage to the models and evaluations that involve the named
@@ -199,6 +201,40 @@ class AggregationRound:
 
 
 @dataclass
+class SplitGating:
+    """The shared-control study of one policy on a benchmark split (the generalist ensemble on
+    the test split), beside the paper's ditches: its signals file recorded on another split's
+    ditches (`<results_dir>/gate/<policy>_<calibration_split>.npz`, as `ditch-drake gate-signals
+    --split`), then on `split`'s ditches the policy alone and, for each budget and fallback, the
+    gate on the study's signal and random handover at the same budget (as `ditch-drake
+    benchmark --split`): results in `<results_dir>/shared_control_<split>.jsonl`, its ditches
+    beside it. Episodes last the experiment's `time_limit_s`, as the benchmark's do on these
+    splits (120 s).
+
+    Attributes:
+        checkpoint: the gated policy, a shipped name or a .pt file (an ensemble for a
+            disagreement signal).
+        calibration_split: whose ditches set the thresholds: one a choice may be made on
+            (`CHOICE_SPLITS`: train, val, search_val).
+        calibration_geometries: that split's first N ditches (None: all).
+        split: where it is measured (e.g. "test", held out).
+        geometries: that split's first N ditches (None: all).
+        seed: the rollout seed of every ditch and task, one rollout each, for both splits.
+        budgets: shares of control steps the fallback may drive, each in (0, 1).
+        fallbacks: who takes over, each "expert" or "mppi".
+    """
+
+    checkpoint: str = "generalist_k5"
+    calibration_split: str = "val"
+    calibration_geometries: int | None = None
+    split: str = "test"
+    geometries: int | None = None
+    seed: int = 0
+    budgets: list[float] = field(default_factory=lambda: [0.02])
+    fallbacks: list[str] = field(default_factory=lambda: ["expert", "mppi"])
+
+
+@dataclass
 class SharedControlStudy:
     """An ensemble gated by its uncertainty, with a fallback where it is unsure, against the
     ensemble alone and against random handover at the same budget: results in
@@ -230,6 +266,8 @@ class SharedControlStudy:
         calm_steps: control steps (0.1 s each) the signal must stay below the lower threshold
             before a gate hands back, for both gates (and the aggregation round's).
         aggregation: None, or one round of learning from the handovers (`AggregationRound`).
+        split: None, or the same gates around one policy on a benchmark split (`SplitGating`),
+            run with the study unless `--only` names environments.
     """
 
     environments: list[str] = field(default_factory=lambda: list(PAPER_ENVIRONMENTS))
@@ -244,6 +282,7 @@ class SharedControlStudy:
     random_lower_threshold: float = 0.8
     calm_steps: int = 5
     aggregation: AggregationRound | None = None
+    split: SplitGating | None = None
 
 
 @dataclass
@@ -441,7 +480,52 @@ def _check_shared_control(config: ExperimentConfig, path: Path) -> None:
                           "calibration_rollouts); expected test seeds that the thresholds never saw")
     if study.aggregation:
         _check_aggregation(study, where, tests, calibration)
+    if study.split:
+        _check_split_gating(study, f"{where}.split")
     for gate in study_gates(study, "calibration.npz"):  # Random handover: what its hysteresis can hold.
+        try:
+            gate.validate()
+        except ConfigError as error:
+            raise ConfigError(f"{where}: random handover at budget {gate.budget} with random_lower_threshold "
+                              f"{study.random_lower_threshold} and calm_steps {study.calm_steps}: {error}") from error
+
+
+def _check_split_gating(study: SharedControlStudy, where: str) -> None:
+    """Refuses a split part whose calibration split is held out (a gate's thresholds are a
+    choice), an unknown split, a policy that does not load, geometries out of range, a bad
+    seed, budget or fallback, or random handover its budget cannot hold."""
+    from ditch_drake.benchmark.splits import check_split, split_seeds
+    from ditch_drake.common.seeds import check_seed
+    from ditch_drake.evaluation.batch import check_checkpoint
+    from ditch_drake.learning.inference import is_ensemble
+    from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS
+    from ditch_drake.world.ditch_splits import CHOICE_SPLITS
+
+    part = study.split
+    if part.calibration_split not in CHOICE_SPLITS:
+        raise ConfigError(f"{where}.calibration_split={part.calibration_split!r}: the gate's thresholds are a choice; "
+                          f"expected one of {list(CHOICE_SPLITS)}")
+    try:
+        check_split(part.split)
+        for split, geometries in ((part.calibration_split, part.calibration_geometries),
+                                  (part.split, part.geometries)):
+            split_seeds(split, geometries)
+        if not _is_integer(part.seed):
+            raise ConfigError(f"seed {part.seed!r}: expected an integer >= 0")
+        check_seed(part.seed, 1)
+        check_checkpoint(part.checkpoint)
+    except ConfigError as error:
+        raise ConfigError(f"{where}: {error}") from error
+    if study.signal in DISAGREEMENT_SIGNALS and not is_ensemble(part.checkpoint):
+        raise ConfigError(f"{where}.checkpoint={part.checkpoint!r}: a single clone, and the study's signal "
+                          f"{study.signal!r} is the members' disagreement; expected an ensemble")
+    bad = [b for b in part.budgets if not _is_share(b)]
+    if bad or not part.budgets:
+        raise ConfigError(f"{where}.budgets={part.budgets!r}: expected shares of control steps in (0, 1)")
+    bad = [fallback for fallback in part.fallbacks if fallback not in STUDY_FALLBACKS]
+    if bad or not part.fallbacks:
+        raise ConfigError(f"{where}.fallbacks={part.fallbacks!r}: expected some of {list(STUDY_FALLBACKS)}")
+    for gate in study_gates(study, "calibration.npz", part.budgets, part.fallbacks):
         try:
             gate.validate()
         except ConfigError as error:
@@ -502,15 +586,17 @@ def _study_environments(config: ExperimentConfig):
         yield from (("studies.must_cross.open_environments", env) for env in studies.must_cross.open_environments)
 
 
-def study_gates(study: SharedControlStudy, calibration: str) -> list:
+def study_gates(study: SharedControlStudy, calibration: str, budgets: list[float] | None = None,
+                fallbacks: list[str] | None = None) -> list:
     """The gates of a shared-control study (`SharedControlConfig`s), for each budget and each
-    fallback: the gate on `study.signal` with thresholds from the budget on `calibration` (a
-    signals file), then random handover at the same budget."""
+    fallback (the study's, or `budgets` and `fallbacks`): the gate on `study.signal` with
+    thresholds from the budget on `calibration` (a signals file), then random handover at the
+    same budget."""
     from ditch_drake.systems.shared_control import RANDOM_SIGNAL, SharedControlConfig
 
     gates = []
-    for budget in study.budgets:
-        for fallback in study.fallbacks:
+    for budget in study.budgets if budgets is None else budgets:
+        for fallback in study.fallbacks if fallbacks is None else fallbacks:
             gates += [SharedControlConfig(signal=study.signal, budget=budget, calibration=calibration,
                                           calm_steps=study.calm_steps, fallback=fallback),
                       SharedControlConfig(signal=RANDOM_SIGNAL, budget=budget, calm_steps=study.calm_steps,
@@ -691,6 +777,9 @@ def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stag
     finished and the results page can say how long the protocol took.
     """
     models, evaluations = plan(config, only, only_studies)
+    shared_control = config.studies.shared_control
+    split_part = (shared_control and shared_control.split if only is None and (
+        only_studies is None or "shared_control" in only_studies) else None)
     run = {"started_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
            "command": command, "only": list(only or []), "cpu": cpu_name(), "code": code_revision()}
 
@@ -704,7 +793,7 @@ def run_experiment(config: ExperimentConfig, only: list[str] | None = None, stag
     runners = {
         "collect": lambda: _collect(config, models, progress),
         "train": lambda: [_train(config, model, progress) for model in models],
-        "evaluate": lambda: _evaluate(config, evaluations, progress),
+        "evaluate": lambda: _evaluate(config, evaluations, progress, split_part),
         "report": report,
     }
     timings: dict[str, float] = {}
@@ -872,7 +961,53 @@ def _calibrate(config: ExperimentConfig, evaluations: list[Evaluation], progress
                                  workers=config.workers)
 
 
-def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool) -> None:
+def split_gating_paths(config: ExperimentConfig, part: SplitGating) -> tuple[Path, Path]:
+    """The split part's signals file and results file."""
+    name = Path(part.checkpoint).stem
+    return (Path(config.results_dir) / "gate" / f"{name}_{part.calibration_split}.npz",
+            Path(config.results_dir) / f"shared_control_{part.split}.jsonl")
+
+
+def split_gating_specs(config: ExperimentConfig, part: SplitGating) -> list[RolloutSpec]:
+    """The split part's rollouts (the policy alone, then each gate of `study_gates`), on
+    `part.split`'s ditches, written (added) to its results file's ditches file first."""
+    from ditch_drake.benchmark.splits import ditches_file, split_ditches, write_ditches
+    from ditch_drake.diagrams.rollout import LearnedPolicyConfig
+    from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
+    from ditch_drake.evaluation.batch import make_specs
+
+    signals, results = split_gating_paths(config, part)
+    ditches = split_ditches(part.split, part.geometries)
+    environments_file = str(write_ditches(ditches_file(results), ditches))
+    policy = LearnedPolicyConfig(checkpoint=part.checkpoint)
+    controllers = [policy] + [SharedControlControllerConfig(policy=policy, gate=gate) for gate in study_gates(
+        config.studies.shared_control, str(signals), part.budgets, part.fallbacks)]
+    return [spec for controller in controllers for ditch in ditches
+            for spec in make_specs(controller, "", ditch.name, None, 1, part.seed, config.time_limit_s,
+                                   environments_file)]
+
+
+def _run_split_gating(config: ExperimentConfig, part: SplitGating, progress: bool) -> None:
+    """The split part of the shared-control study: its signals file on the calibration split
+    (resumable, as `gate-signals --split`), then its rollouts (finished ones skipped)."""
+    from ditch_drake.benchmark.splits import ditches_file, split_ditches, write_ditches
+    from ditch_drake.evaluation.batch import evaluate
+
+    signals, results = split_gating_paths(config, part)
+    ditches = split_ditches(part.calibration_split, part.calibration_geometries)
+    environments_file = str(write_ditches(ditches_file(signals), ditches))
+    runs = [(ditch.name, task) for ditch in ditches for task in range(len(ditch.environment.tasks))]
+    record_signals_or_resume(signals, part.checkpoint, runs, 1, part.seed, config.time_limit_s, environments_file,
+                             progress, workers=config.workers)
+    report = evaluate(split_gating_specs(config, part), results, workers=config.workers, progress=progress)
+    log_progress(progress, f"evaluate shared_control on {part.split}: " + json.dumps(
+        {"recorded": report.recorded, "skipped": report.skipped, "wall_s": round(report.wall_s, 1)}))
+    if report.interrupted:
+        pass_on_stop(report.exit_code)
+
+
+def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress: bool,
+              split_part: SplitGating | None = None) -> None:
     from ditch_drake.evaluation.batch import evaluate
 
     _calibrate(config, evaluations, progress)
@@ -891,3 +1026,5 @@ def _evaluate(config: ExperimentConfig, evaluations: list[Evaluation], progress:
             {"recorded": report.recorded, "skipped": report.skipped, "wall_s": round(report.wall_s, 1)}))
         if report.interrupted:
             pass_on_stop(report.exit_code)
+    if split_part is not None:
+        _run_split_gating(config, split_part, progress)
