@@ -104,7 +104,8 @@ def test_a_disagreement_signal_needs_an_ensemble(pair_file):
         with pytest.raises(ConfigError, match=f"{signal}.*K = 1"):
             LearnedPolicy(load_policy("wide"), uncertainty_signal=signal)
         config = controller_config("shared", "wide")
-        gated = dataclasses.replace(config, gate=dataclasses.replace(config.gate, signal=signal))
+        gated = dataclasses.replace(config, gate=dataclasses.replace(config.gate, signal=signal, upper_threshold=0.5,
+                                                                     lower_threshold=0.4))
         with pytest.raises(ConfigError, match=f"{signal}.*K = 1"):
             gated.validate()
         gated.with_checkpoint(str(pair_file)).validate()
@@ -124,10 +125,12 @@ def test_a_batch_takes_an_ensemble_file_as_a_checkpoint(pair_file):
 
 
 def _handing_over(fallback: str = "expert") -> SharedControlControllerConfig:
-    """The shared controller with an upper threshold of 0 and no warm-up: it hands over at the first tick."""
+    """The shared controller on its members' spread with an upper threshold of 0 and no warm-up: it
+    hands over at the first tick."""
     config = controller_config("shared")
-    return dataclasses.replace(config, gate=dataclasses.replace(config.gate, upper_threshold=0.0, lower_threshold=0.0,
-                                                                warmup_steps=0, fallback=fallback))
+    return dataclasses.replace(config, gate=dataclasses.replace(
+        config.gate, signal="angular_rate_spread", upper_threshold=0.0, lower_threshold=0.0, warmup_steps=0,
+        fallback=fallback))
 
 
 @pytest.mark.parametrize("fallback, privileged", [("expert", ("terrain",)), ("mppi", ())])
@@ -173,7 +176,9 @@ def test_a_short_shared_rollout_through_the_batch_path_records_its_handovers(tmp
     ("{gate: {fallback: person}}", "fallback 'person'"),
     ("{gate: {fallback: teleop}}", "fallback 'teleop' without a Meshcat"),
     ("{gate: {budget: 0.05}}", "budget 0.05 without a calibration"),
-    ("{policy: {checkpoint: wide}, gate: {signal: vote_entropy}}", "vote_entropy.*K = 1"),
+    ("{policy: {checkpoint: wide}, gate: {signal: vote_entropy, upper_threshold: 0.5, lower_threshold: 0.4}}",
+     "vote_entropy.*K = 1"),
+    ("{gate: {signal: vote_entropy}}", "upper_threshold -6.826 with signal 'vote_entropy', which is never negative"),
 ])
 def test_bad_shared_configs_exit_2_naming_the_value(tmp_path, capsys, override, message):
     out = tmp_path / "r.jsonl"

@@ -134,7 +134,8 @@ def test_a_risk_gate_on_a_recording_without_risk_signals_is_refused_naming_the_o
 
 
 def test_a_tip_risk_config_beside_a_gate_that_does_not_read_it_is_refused(tmp_path, capsys):
-    override = "{controller: !SharedControlControllerConfig {policy: {tip_risk: {horizon_s: 3.0}}}}"
+    override = ("{controller: !SharedControlControllerConfig {policy: {tip_risk: {horizon_s: 3.0}}, gate: {signal: "
+                "angular_rate_spread, upper_threshold: 0.5, lower_threshold: 0.4}}}")
     assert main(["evaluate", "--override", override, "--env", "wide", "--task", "1", "--rollouts", "1",
                  "--out", str(tmp_path / "r.jsonl")]) == 2
     err = capsys.readouterr().err

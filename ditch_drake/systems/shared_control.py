@@ -10,7 +10,7 @@ from pydrake.systems.framework import DiscreteValues, LeafSystem
 from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, budget_thresholds, calibration_values, gate_step
-from ditch_drake.learning.uncertainty import GATE_SIGNALS, RANDOM_SIGNAL
+from ditch_drake.learning.uncertainty import GATE_SIGNALS, RANDOM_SIGNAL, UNCERTAINTY_SIGNALS
 from ditch_drake.spec import robot
 from ditch_drake.spec.observation_layout import STACK_DEPTH
 from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S
@@ -91,6 +91,12 @@ class SharedControlConfig:
             budget = self.budget
             if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0.0 < budget < 1.0:
                 raise ConfigError(f"shared control budget {budget!r}: expected a share of control steps in (0, 1)")
+        if self.signal in UNCERTAINTY_SIGNALS and self.budget is None:
+            for key in ("upper_threshold", "lower_threshold"):
+                if getattr(self, key) < 0.0:
+                    raise ConfigError(f"shared control {key} {getattr(self, key)!r} with signal {self.signal!r}, "
+                                      "which is never negative (a risk signal's threshold in deg?); expected a "
+                                      "threshold >= 0 in the signal's unit, or a budget with a calibration file")
         if self.signal == RANDOM_SIGNAL:
             self._validate_random()
         elif self.budget is not None:
