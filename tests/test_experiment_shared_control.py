@@ -327,10 +327,12 @@ def test_a_gated_records_label_names_its_gate_whatever_the_yaml_style_and_others
     ("{geometries: 0}", r"studies\.shared_control\.split: geometries=0 is out of range for split 'test'"),
     ("{calibration_geometries: 51}", r"geometries=51 is out of range for split 'val'"),
     ("{seed: -1}", r"studies\.shared_control\.split: .*-1"),
-    ("{checkpoint: wide}", r"split\.checkpoint='wide': a single clone, and the study's signal 'angular_rate_spread'"),
+    ("{checkpoint: wide}", r"split\.checkpoint='wide': a single clone, and the signal 'angular_rate_spread'"),
     ("{checkpoint: nowhere.pt}", r"studies\.shared_control\.split: .*nowhere\.pt"),
     ("{budgets: [0.02, 1]}", r"split\.budgets=\[0\.02, 1\.0\]: expected shares of control steps in \(0, 1\)"),
     ("{fallbacks: [teleop]}", r"split\.fallbacks=\['teleop'\]: expected some of \['expert', 'mppi'\]"),
+    ("{signal: random}", r"split\.signal='random': expected one of"),
+    ("{checkpoint: wide, signal: vote_entropy}", r"split\.checkpoint='wide': a single clone, and the signal 'vote_entropy'"),
 ])
 def test_bad_split_part_values_are_refused_naming_the_key(tmp_path, values, message):
     path = tmp_path / "bad.yaml"
@@ -343,7 +345,7 @@ def test_the_paper_file_gates_the_generalist_ensemble_on_the_test_split_calibrat
     part = load_experiment("experiments/paper.yaml").studies.shared_control.split
     assert (part.checkpoint, part.calibration_split, part.split, part.seed, part.geometries) == (
         "generalist_k5", "val", "test", 0, None)
-    assert (part.budgets, part.fallbacks) == ([0.02, 0.05, 0.1], ["expert", "mppi"])
+    assert (part.budgets, part.fallbacks, part.signal) == ([0.02, 0.05, 0.1], ["expert", "mppi"], "tip_risk_ahead")
 
 
 SPLIT_PART = """
@@ -355,7 +357,7 @@ workers: 0
 studies:
   shared_control: {{environments: [wide], demos: 2, ensemble: 2, budgets: [0.1], fallbacks: [expert],
                    split: {{checkpoint: generalist_k5, calibration_geometries: 1, geometries: 1, budgets: [0.1],
-                           fallbacks: [expert]}}}}
+                           fallbacks: [expert], signal: tip_risk_ahead}}}}
 """
 
 
@@ -366,10 +368,12 @@ def test_the_split_part_records_its_signals_on_val_then_the_policy_and_its_gates
     part = config.studies.shared_control.split
     run_experiment(config, stages=("evaluate", "report"), progress=False)  # The wide ensemble is untrained: skipped.
     signals, results = split_gating_paths(config, part)
-    assert (signals, results) == (tmp_path / "results" / "gate" / "generalist_k5_val.npz",
+    assert (signals, results) == (tmp_path / "results" / "gate" / "generalist_k5_val_risk.npz",
                                   tmp_path / "results" / "shared_control_test.jsonl")
-    assert list(load_environments(tmp_path / "results" / "gate" / "generalist_k5_val.ditches.yaml")) == ["ditch_1000"]
-    assert load_signals(signals)["episode_seed"].size == 3  # ditch_1000's three tasks.
+    assert list(load_environments(tmp_path / "results" / "gate" / "generalist_k5_val_risk.ditches.yaml")) == [
+        "ditch_1000"]
+    recorded = load_signals(signals)
+    assert recorded["episode_seed"].size == 3 and "tip_risk_ahead" in recorded["signals"]  # ditch_1000's tasks.
     records = read_records(results)[0]
     # Per task of the first test ditch: the policy alone, the gate and random handover.
     assert Counter((r.controller, r.environment, r.seed, r.checkpoint) for r in records) == {
@@ -378,7 +382,7 @@ def test_the_split_part_records_its_signals_on_val_then_the_policy_and_its_gates
     assert {r.environments_file for r in records} == {str(tmp_path / "results" / "shared_control_test.ditches.yaml")}
     gates = [yaml.safe_load(r.controller_config)["gate"] for r in records if r.controller == "shared"]
     assert Counter((g["signal"], g["budget"], g["fallback"], g.get("calibration")) for g in gates) == {
-        ("angular_rate_spread", 0.1, "expert", str(signals)): 3, ("random", 0.1, "expert", None): 3}
+        ("tip_risk_ahead", 0.1, "expert", str(signals)): 3, ("random", 0.1, "expert", None): 3}
     assert len(split_gating_specs(config, part)) == 9
     page = (tmp_path / "docs" / "results.md").read_text().split("## shared_control_test")[1]
     assert "| generalist_k5 (perceived side) | 1 generated ditch | 0/3 |" in page  # One row per model.

@@ -222,6 +222,9 @@ class SplitGating:
         seed: the rollout seed of every ditch and task, one rollout each, for both splits.
         budgets: shares of control steps the fallback may drive, each in (0, 1).
         fallbacks: who takes over, each "expert" or "mppi".
+        signal: what its gates read ("": the study's `signal`): an uncertainty signal, or a
+            risk signal ("tip_risk_ahead", "tip_risk_now"; its signals file then recorded with
+            `--risk`, `<policy>_<calibration_split>_risk.npz`).
     """
 
     checkpoint: str = "generalist_k5"
@@ -232,6 +235,11 @@ class SplitGating:
     seed: int = 0
     budgets: list[float] = field(default_factory=lambda: [0.02])
     fallbacks: list[str] = field(default_factory=lambda: ["expert", "mppi"])
+    signal: str = ""
+
+    def gate_signal(self, study: "SharedControlStudy") -> str:
+        """The signal its gates read."""
+        return self.signal or study.signal
 
 
 @dataclass
@@ -498,10 +506,14 @@ def _check_split_gating(study: SharedControlStudy, where: str) -> None:
     from ditch_drake.common.seeds import check_seed
     from ditch_drake.evaluation.batch import check_checkpoint
     from ditch_drake.learning.inference import is_ensemble
-    from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS
+    from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, RISK_SIGNALS, UNCERTAINTY_SIGNALS
     from ditch_drake.world.ditch_splits import CHOICE_SPLITS
 
     part = study.split
+    signal = part.gate_signal(study)
+    if signal not in (*UNCERTAINTY_SIGNALS, *RISK_SIGNALS):
+        raise ConfigError(f"{where}.signal={part.signal!r}: expected one of {[*UNCERTAINTY_SIGNALS, *RISK_SIGNALS]} "
+                          "(random handover runs beside it anyway), or '' for the study's")
     if part.calibration_split not in CHOICE_SPLITS:
         raise ConfigError(f"{where}.calibration_split={part.calibration_split!r}: the gate's thresholds are a choice; "
                           f"expected one of {list(CHOICE_SPLITS)}")
@@ -516,16 +528,16 @@ def _check_split_gating(study: SharedControlStudy, where: str) -> None:
         check_checkpoint(part.checkpoint)
     except ConfigError as error:
         raise ConfigError(f"{where}: {error}") from error
-    if study.signal in DISAGREEMENT_SIGNALS and not is_ensemble(part.checkpoint):
-        raise ConfigError(f"{where}.checkpoint={part.checkpoint!r}: a single clone, and the study's signal "
-                          f"{study.signal!r} is the members' disagreement; expected an ensemble")
+    if signal in DISAGREEMENT_SIGNALS and not is_ensemble(part.checkpoint):
+        raise ConfigError(f"{where}.checkpoint={part.checkpoint!r}: a single clone, and the signal {signal!r} is "
+                          "the members' disagreement; expected an ensemble")
     bad = [b for b in part.budgets if not _is_share(b)]
     if bad or not part.budgets:
         raise ConfigError(f"{where}.budgets={part.budgets!r}: expected shares of control steps in (0, 1)")
     bad = [fallback for fallback in part.fallbacks if fallback not in STUDY_FALLBACKS]
     if bad or not part.fallbacks:
         raise ConfigError(f"{where}.fallbacks={part.fallbacks!r}: expected some of {list(STUDY_FALLBACKS)}")
-    for gate in study_gates(study, "calibration.npz", part.budgets, part.fallbacks):
+    for gate in study_gates(study, "calibration.npz", part.budgets, part.fallbacks, signal):
         try:
             gate.validate()
         except ConfigError as error:
@@ -587,17 +599,17 @@ def _study_environments(config: ExperimentConfig):
 
 
 def study_gates(study: SharedControlStudy, calibration: str, budgets: list[float] | None = None,
-                fallbacks: list[str] | None = None) -> list:
+                fallbacks: list[str] | None = None, signal: str = "") -> list:
     """The gates of a shared-control study (`SharedControlConfig`s), for each budget and each
-    fallback (the study's, or `budgets` and `fallbacks`): the gate on `study.signal` with
-    thresholds from the budget on `calibration` (a signals file), then random handover at the
-    same budget."""
+    fallback (the study's, or `budgets` and `fallbacks`): the gate on `study.signal` (or
+    `signal`) with thresholds from the budget on `calibration` (a signals file), then random
+    handover at the same budget."""
     from ditch_drake.systems.shared_control import RANDOM_SIGNAL, SharedControlConfig
 
     gates = []
     for budget in study.budgets if budgets is None else budgets:
         for fallback in study.fallbacks if fallbacks is None else fallbacks:
-            gates += [SharedControlConfig(signal=study.signal, budget=budget, calibration=calibration,
+            gates += [SharedControlConfig(signal=signal or study.signal, budget=budget, calibration=calibration,
                                           calm_steps=study.calm_steps, fallback=fallback),
                       SharedControlConfig(signal=RANDOM_SIGNAL, budget=budget, calm_steps=study.calm_steps,
                                           lower_threshold=study.random_lower_threshold, fallback=fallback)]
@@ -962,9 +974,12 @@ def _calibrate(config: ExperimentConfig, evaluations: list[Evaluation], progress
 
 
 def split_gating_paths(config: ExperimentConfig, part: SplitGating) -> tuple[Path, Path]:
-    """The split part's signals file and results file."""
+    """The split part's signals file (with the tip-risk signals for a risk signal) and results file."""
+    from ditch_drake.learning.uncertainty import RISK_SIGNALS
+
+    risk = "_risk" if part.gate_signal(config.studies.shared_control) in RISK_SIGNALS else ""
     name = Path(part.checkpoint).stem
-    return (Path(config.results_dir) / "gate" / f"{name}_{part.calibration_split}.npz",
+    return (Path(config.results_dir) / "gate" / f"{name}_{part.calibration_split}{risk}.npz",
             Path(config.results_dir) / f"shared_control_{part.split}.jsonl")
 
 
@@ -980,8 +995,9 @@ def split_gating_specs(config: ExperimentConfig, part: SplitGating) -> list[Roll
     ditches = split_ditches(part.split, part.geometries)
     environments_file = str(write_ditches(ditches_file(results), ditches))
     policy = LearnedPolicyConfig(checkpoint=part.checkpoint)
+    study = config.studies.shared_control
     controllers = [policy] + [SharedControlControllerConfig(policy=policy, gate=gate) for gate in study_gates(
-        config.studies.shared_control, str(signals), part.budgets, part.fallbacks)]
+        study, str(signals), part.budgets, part.fallbacks, part.gate_signal(study))]
     return [spec for controller in controllers for ditch in ditches
             for spec in make_specs(controller, "", ditch.name, None, 1, part.seed, config.time_limit_s,
                                    environments_file)]
@@ -992,13 +1008,15 @@ def _run_split_gating(config: ExperimentConfig, part: SplitGating, progress: boo
     (resumable, as `gate-signals --split`), then its rollouts (finished ones skipped)."""
     from ditch_drake.benchmark.splits import ditches_file, split_ditches, write_ditches
     from ditch_drake.evaluation.batch import evaluate
+    from ditch_drake.learning.uncertainty import RISK_SIGNALS
 
     signals, results = split_gating_paths(config, part)
     ditches = split_ditches(part.calibration_split, part.calibration_geometries)
     environments_file = str(write_ditches(ditches_file(signals), ditches))
     runs = [(ditch.name, task) for ditch in ditches for task in range(len(ditch.environment.tasks))]
     record_signals_or_resume(signals, part.checkpoint, runs, 1, part.seed, config.time_limit_s, environments_file,
-                             progress, workers=config.workers)
+                             progress, risk=part.gate_signal(config.studies.shared_control) in RISK_SIGNALS,
+                             workers=config.workers)
     report = evaluate(split_gating_specs(config, part), results, workers=config.workers, progress=progress)
     log_progress(progress, f"evaluate shared_control on {part.split}: " + json.dumps(
         {"recorded": report.recorded, "skipped": report.skipped, "wall_s": round(report.wall_s, 1)}))
