@@ -29,6 +29,7 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.common.files import atomic_write_text
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 from ditch_drake.world.ditch_splits import (  # noqa: F401 (the benchmark's names for them)
+    DITCHES_SUFFIX,
     PAPER_SPLIT,
     SEED_SPLITS,
     SPLITS,
@@ -95,18 +96,11 @@ def split_ditches(split: str, geometries: int | None = None,
     return [sample_ditch(seed, ranges) for seed in seeds]
 
 
-DITCHES_SUFFIX = ".ditches.yaml"
-
-
 def ditches_file(results_path: str | Path) -> Path:
     """Where a run's ditches are written: `<results without .jsonl>.ditches.yaml`."""
     path = Path(results_path)
     return path.with_name(path.stem + DITCHES_SUFFIX)
 
-
-def is_ditches_file(path: str | Path) -> bool:
-    """Whether `path` names a file of generated ditches (`ditches_file`'s name)."""
-    return str(path).endswith(DITCHES_SUFFIX)
 
 
 def write_ditches(path: str | Path, ditches: list[SampledDitch]) -> Path:

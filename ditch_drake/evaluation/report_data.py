@@ -153,7 +153,7 @@ def pool_generated_ditches(groups: dict[tuple[str, str], list[RolloutRecord]]) -
     (environments read from a benchmark run's ditches file) pooled into one, named "N generated
     ditches": a split's hundred ditches are one row a reader can take in, and `ditch-drake
     benchmark-report` is the page for them ditch by ditch."""
-    from ditch_drake.benchmark.splits import is_ditches_file
+    from ditch_drake.world.ditch_splits import is_ditches_file
 
     pooled: dict[tuple[str, str], list[RolloutRecord]] = {}
     generated: dict[str, list[RolloutRecord]] = defaultdict(list)

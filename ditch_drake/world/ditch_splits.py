@@ -14,6 +14,13 @@ SPLITS = (*SEED_SPLITS, PAPER_SPLIT)
 # The generated splits a choice may see (a checkpoint, a recipe, a gate's thresholds); the
 # others are held out for reporting.
 CHOICE_SPLITS = ("train", "val", "search_val")
+# How the file of a run's generated ditches is named: `<results stem>.ditches.yaml`.
+DITCHES_SUFFIX = ".ditches.yaml"
+
+
+def is_ditches_file(path) -> bool:
+    """Whether `path` (str or Path) names a file of generated ditches (`DITCHES_SUFFIX`)."""
+    return str(path).endswith(DITCHES_SUFFIX)
 
 
 def split_of_seed(seed: int) -> str:
