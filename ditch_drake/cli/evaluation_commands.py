@@ -278,6 +278,43 @@ def cmd_experiment(args) -> int:
     return 0
 
 
+def add_paired(commands: Commands) -> None:
+    paired = commands.add("paired", "two runs on the same rollouts compared rollout by rollout (McNemar's exact test)")
+    paired.add_argument("a", help="the first results file (*.jsonl)")
+    paired.add_argument("b", help="the second results file, with rollouts of the same environments, tasks and seeds")
+    paired.set_defaults(run=cmd_paired)
+
+
+def cmd_paired(args) -> int:
+    """Prints one JSON object: the rollouts both files have an outcome of, where both, neither,
+    or only one reached the goal, and McNemar's exact p-value (`paired_comparison`)."""
+    import dataclasses
+    from pathlib import Path
+
+    from ditch_drake.evaluation.results import read_records
+    from ditch_drake.evaluation.statistics import paired_comparison
+
+    for path in (args.a, args.b):
+        if not Path(path).is_file():
+            print(f"ditch-drake: error: no results file at {path}; expected a .jsonl of evaluate or benchmark",
+                  file=sys.stderr)
+            return 2
+    (a, _), (b, _) = read_records(args.a), read_records(args.b)
+    for path, records in ((args.a, a), (args.b, b)):
+        runs = {(r.controller, r.controller_sha256, r.checkpoint) for r in records}
+        if len(runs) > 1:
+            print(f"ditch-drake: error: {path} holds rollouts of {len(runs)} controllers or checkpoints; expected one "
+                  "run per file (a benchmark's or an evaluate's --out)", file=sys.stderr)
+            return 2
+    comparison = paired_comparison(a, b)
+    if comparison.matched == 0:
+        print(f"ditch-drake: error: {args.a} and {args.b} share no rollout (environment, task, seed) with an "
+              "outcome; expected two runs on the same rollouts", file=sys.stderr)
+        return 2
+    print(json.dumps({"a": args.a, "b": args.b, **dataclasses.asdict(comparison)}))
+    return 0
+
+
 def add_report(commands: Commands) -> None:
     report = commands.add("report", "results page (Markdown) and figures from results files")
     report.add_argument("results", nargs="+", help="results files or folders of them (*.jsonl)")

@@ -40,6 +40,7 @@ COMMANDS = (
     training_commands.add_train_generalist,
     evaluation_commands.add_experiment,
     evaluation_commands.add_report,
+    evaluation_commands.add_paired,
     training_commands.add_train,
     training_commands.add_gate_signals,
     training_commands.add_gate_thresholds,

@@ -1,10 +1,11 @@
 """The statistics behind the results pages: percentages as printed, Boschloo's two-proportion
-test, comparisons of a learned model with a classical controller, and the "beats" verdict."""
+test, comparisons of a learned model with a classical controller, the "beats" verdict, and the
+paired comparison of two runs on the same rollouts (McNemar's exact test)."""
 
 import math
 from dataclasses import dataclass
 
-from scipy.stats import boschloo_exact
+from scipy.stats import binomtest, boschloo_exact
 
 from ditch_drake.evaluation.summary import GroupSummary
 
@@ -99,3 +100,45 @@ def verdict_rule(alpha: float = ALPHA) -> str:
             "rollouts a group and rates at 0 or 1), unconditional (each group's rollouts are fixed by the design, "
             "the total of successes is not, which Fisher's test conditions on), and uniformly more powerful than "
             "Fisher's exact test. Both groups all successes or all failures: p = 1.")
+
+
+@dataclass(frozen=True)
+class PairedComparison:
+    """Two runs on the same rollouts (matched by environment, task and seed).
+
+    Attributes:
+        matched: rollouts that both runs recorded an outcome of.
+        both, neither: matched rollouts that both, or neither, reached the goal.
+        only_a, only_b: matched rollouts that only the first, or only the second, reached it.
+        unmatched_a, unmatched_b: rollouts with an outcome in one run only (left out).
+        p_value: two-sided p of "either run is as likely to be the one that succeeds where the
+            two differ": McNemar's exact test, a binomial test of `only_a` in `only_a + only_b`
+            at 1/2 (1.0 where they never differ).
+    """
+
+    matched: int
+    both: int
+    neither: int
+    only_a: int
+    only_b: int
+    unmatched_a: int
+    unmatched_b: int
+    p_value: float
+
+
+def paired_comparison(a: list, b: list) -> PairedComparison:
+    """McNemar's exact test of two runs' records (`RolloutRecord`s) on the rollouts both have an
+    outcome of. Paired, it sees what two Wilson intervals cannot: on the same ditches, tasks and
+    seeds most outcomes agree, and only the rollouts where they differ carry the comparison."""
+    def outcomes(records) -> dict:
+        return {(r.environment, r.task, r.seed): r.success for r in records if not r.is_error}
+
+    first, second = outcomes(a), outcomes(b)
+    keys = first.keys() & second.keys()
+    only_a = sum(first[k] and not second[k] for k in keys)
+    only_b = sum(second[k] and not first[k] for k in keys)
+    both = sum(first[k] and second[k] for k in keys)
+    differ = only_a + only_b
+    return PairedComparison(matched=len(keys), both=both, neither=len(keys) - both - differ, only_a=only_a,
+                            only_b=only_b, unmatched_a=len(first.keys() - keys), unmatched_b=len(second.keys() - keys),
+                            p_value=binomtest(only_a, differ).pvalue if differ else 1.0)
