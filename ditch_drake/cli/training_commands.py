@@ -46,8 +46,8 @@ def add_collect(commands: Commands) -> None:
                          help="the expert first makes room along the ditch when the crossing would not fit "
                               "before the ditch's end (EdgeAngleDriverConfig.lead_in)")
     collect.add_argument("--shared", action="store_true",
-                         help="the learned policy (--checkpoint) drives, gated by its uncertainty, and --fallback "
-                              "takes over where it is unsure; every rollout is kept (--demos rollouts, one per "
+                         help="the learned policy (--checkpoint) drives, gated by its tip risk or uncertainty, and --fallback "
+                              "takes over where the gate hands over; every rollout is kept (--demos rollouts, one per "
                               "seed), each step flagged as an intervention where the fallback drove")
     collect.add_argument("--checkpoint", default=None,
                          help="with --shared: the gated policy, a shipped name, a .pt file or an ensemble file "

@@ -428,7 +428,7 @@ register_controller(
 register_controller(
     "shared", "ditch_drake.diagrams.shared_controller:SharedControlControllerConfig",
     "ditch_drake.diagrams.shared_controller:AddSharedController",
-    "the learned policy gated by its uncertainty: a fallback (the expert, or mppi) drives where it is unsure",
+    "the learned policy gated by its tip risk or its uncertainty: a fallback (the expert, or mppi) drives there",
     per_seed="ditch_drake.diagrams.shared_controller:shared_for_seed",
     privileged="ditch_drake.diagrams.shared_controller:shared_privileged")
 _BUILT_IN = frozenset(_REGISTRY)

@@ -90,7 +90,7 @@ def default_gate() -> SharedControlConfig:
 
 @dataclass
 class SharedControlControllerConfig:
-    """The learned policy gated by its uncertainty, with a fallback where it is unsure.
+    """The learned policy gated by its tip risk or its uncertainty, with a fallback where the gate hands over.
 
     Attributes:
         policy: the clone (`LearnedPolicyConfig`): its checkpoint (by default the shipped
