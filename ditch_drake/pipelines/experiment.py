@@ -468,12 +468,6 @@ def _check_shared_control(config: ExperimentConfig, path: Path) -> None:
     if study.signal in DISAGREEMENT_SIGNALS and study.ensemble < 2:
         raise ConfigError(f"{where}.ensemble={study.ensemble}: the signal {study.signal!r} is the members' "
                           "disagreement; expected K >= 2")
-    bad = [b for b in study.budgets if not _is_share(b)]
-    if bad or not study.budgets:
-        raise ConfigError(f"{where}.budgets={study.budgets!r}: expected shares of control steps in (0, 1)")
-    bad = [fallback for fallback in study.fallbacks if fallback not in STUDY_FALLBACKS]
-    if bad or not study.fallbacks:
-        raise ConfigError(f"{where}.fallbacks={study.fallbacks!r}: expected some of {list(STUDY_FALLBACKS)}")
     for key in ("demos", "calibration_rollouts", "calm_steps"):
         if not _is_integer(getattr(study, key)) or getattr(study, key) < 1:
             raise ConfigError(f"{where}.{key}={getattr(study, key)!r}: expected an integer >= 1")
@@ -488,9 +482,22 @@ def _check_shared_control(config: ExperimentConfig, path: Path) -> None:
                           "calibration_rollouts); expected test seeds that the thresholds never saw")
     if study.aggregation:
         _check_aggregation(study, where, tests, calibration)
+    _check_gates(study, where, study.budgets, study.fallbacks)
     if study.split:
         _check_split_gating(study, f"{where}.split")
-    for gate in study_gates(study, "calibration.npz"):  # Random handover: what its hysteresis can hold.
+
+
+def _check_gates(study: SharedControlStudy, where: str, budgets: list[float], fallbacks: list[str],
+                 signal: str = "") -> None:
+    """Refuses budgets outside (0, 1), unknown fallbacks (or none), and random handover at a
+    budget that the study's hysteresis cannot hold (`SharedControlConfig.validate`)."""
+    bad = [b for b in budgets if not _is_share(b)]
+    if bad or not budgets:
+        raise ConfigError(f"{where}.budgets={budgets!r}: expected shares of control steps in (0, 1)")
+    bad = [fallback for fallback in fallbacks if fallback not in STUDY_FALLBACKS]
+    if bad or not fallbacks:
+        raise ConfigError(f"{where}.fallbacks={fallbacks!r}: expected some of {list(STUDY_FALLBACKS)}")
+    for gate in study_gates(study, "calibration.npz", budgets, fallbacks, signal):
         try:
             gate.validate()
         except ConfigError as error:
@@ -500,8 +507,8 @@ def _check_shared_control(config: ExperimentConfig, path: Path) -> None:
 
 def _check_split_gating(study: SharedControlStudy, where: str) -> None:
     """Refuses a split part whose calibration split is held out (a gate's thresholds are a
-    choice), an unknown split, a policy that does not load, geometries out of range, a bad
-    seed, budget or fallback, or random handover its budget cannot hold."""
+    choice), an unknown split or signal, a policy that does not load (or a single clone for a
+    disagreement signal), geometries out of range, a bad seed, or bad gates (`_check_gates`)."""
     from ditch_drake.benchmark.splits import check_split, split_seeds
     from ditch_drake.common.seeds import check_seed
     from ditch_drake.evaluation.batch import check_checkpoint
@@ -531,18 +538,7 @@ def _check_split_gating(study: SharedControlStudy, where: str) -> None:
     if signal in DISAGREEMENT_SIGNALS and not is_ensemble(part.checkpoint):
         raise ConfigError(f"{where}.checkpoint={part.checkpoint!r}: a single clone, and the signal {signal!r} is "
                           "the members' disagreement; expected an ensemble")
-    bad = [b for b in part.budgets if not _is_share(b)]
-    if bad or not part.budgets:
-        raise ConfigError(f"{where}.budgets={part.budgets!r}: expected shares of control steps in (0, 1)")
-    bad = [fallback for fallback in part.fallbacks if fallback not in STUDY_FALLBACKS]
-    if bad or not part.fallbacks:
-        raise ConfigError(f"{where}.fallbacks={part.fallbacks!r}: expected some of {list(STUDY_FALLBACKS)}")
-    for gate in study_gates(study, "calibration.npz", part.budgets, part.fallbacks, signal):
-        try:
-            gate.validate()
-        except ConfigError as error:
-            raise ConfigError(f"{where}: random handover at budget {gate.budget} with random_lower_threshold "
-                              f"{study.random_lower_threshold} and calm_steps {study.calm_steps}: {error}") from error
+    _check_gates(study, where, part.budgets, part.fallbacks, signal)
 
 
 def _check_aggregation(study: SharedControlStudy, where: str, tests: range, calibration: range) -> None:
