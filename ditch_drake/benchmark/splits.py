@@ -102,7 +102,6 @@ def ditches_file(results_path: str | Path) -> Path:
     return path.with_name(path.stem + DITCHES_SUFFIX)
 
 
-
 def write_ditches(path: str | Path, ditches: list[SampledDitch]) -> Path:
     """Adds `ditches` to the environments file at `path` (created if missing), atomically.
 
