@@ -142,6 +142,17 @@ def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_it
     ("aggregation: {labels: [expert], fallback: mppi}", r"aggregation\.labels=\['expert'\] with fallback 'mppi'"),
     ("aggregation: {shared_steps: [supervised]}", r"aggregation\.shared_steps=\['supervised'\]: expected some of"),
     ("aggregation: {shared_steps: []}", r"aggregation\.shared_steps=\[\]: expected some of"),
+    ("split: {calibration_split: test}", r"split\.calibration_split='test': the gate's thresholds are a choice"),
+    ("split: {split: moon}", r"studies\.shared_control\.split: unknown split 'moon'"),
+    ("split: {geometries: 0}", r"studies\.shared_control\.split: geometries=0 is out of range for split 'test'"),
+    ("split: {calibration_geometries: 51}", r"geometries=51 is out of range for split 'val'"),
+    ("split: {seed: -1}", r"studies\.shared_control\.split: .*-1"),
+    ("split: {checkpoint: wide}", r"split\.checkpoint='wide': a single clone, and the signal 'angular_rate_spread'"),
+    ("split: {checkpoint: nowhere.pt}", r"studies\.shared_control\.split: .*nowhere\.pt"),
+    ("split: {budgets: [0.02, 1]}", r"split\.budgets=\[0\.02, 1\.0\]: expected shares of control steps in \(0, 1\)"),
+    ("split: {fallbacks: [teleop]}", r"split\.fallbacks=\['teleop'\]: expected some of \['expert', 'mppi'\]"),
+    ("split: {signal: random}", r"split\.signal='random': expected one of"),
+    ("split: {checkpoint: wide, signal: vote_entropy}", r"split\.checkpoint='wide': a single clone, and the signal 'vote_entropy'"),
 ])
 def test_bad_study_values_are_refused_naming_the_key(tmp_path, values, message):
     path = tmp_path / "bad.yaml"
@@ -319,26 +330,6 @@ def test_a_gated_records_label_names_its_gate_whatever_the_yaml_style_and_others
     assert [controller_labels(records)(r) for r in records] == [
         "wide_40_k5", "wide_40_k5 (gate random, budget 0.02, fallback mppi)",
         "wide_40_k5 (gate mean_softmax_entropy, fallback expert)"]
-
-
-@pytest.mark.parametrize("values, message", [
-    ("{calibration_split: test}", r"split\.calibration_split='test': the gate's thresholds are a choice"),
-    ("{split: moon}", r"studies\.shared_control\.split: unknown split 'moon'"),
-    ("{geometries: 0}", r"studies\.shared_control\.split: geometries=0 is out of range for split 'test'"),
-    ("{calibration_geometries: 51}", r"geometries=51 is out of range for split 'val'"),
-    ("{seed: -1}", r"studies\.shared_control\.split: .*-1"),
-    ("{checkpoint: wide}", r"split\.checkpoint='wide': a single clone, and the signal 'angular_rate_spread'"),
-    ("{checkpoint: nowhere.pt}", r"studies\.shared_control\.split: .*nowhere\.pt"),
-    ("{budgets: [0.02, 1]}", r"split\.budgets=\[0\.02, 1\.0\]: expected shares of control steps in \(0, 1\)"),
-    ("{fallbacks: [teleop]}", r"split\.fallbacks=\['teleop'\]: expected some of \['expert', 'mppi'\]"),
-    ("{signal: random}", r"split\.signal='random': expected one of"),
-    ("{checkpoint: wide, signal: vote_entropy}", r"split\.checkpoint='wide': a single clone, and the signal 'vote_entropy'"),
-])
-def test_bad_split_part_values_are_refused_naming_the_key(tmp_path, values, message):
-    path = tmp_path / "bad.yaml"
-    path.write_text(f"rollouts: 1\nstudies:\n  shared_control: {{split: {values}}}\n")
-    with pytest.raises(ConfigError, match=message):
-        load_experiment(path)
 
 
 def test_the_paper_file_gates_the_generalist_ensemble_on_the_test_split_calibrated_on_val():
