@@ -67,18 +67,30 @@ def test_a_stopped_recording_continues_to_the_file_of_an_unstopped_one(tmp_path,
     assert seeds == [5]
 
 
-def test_worker_processes_record_the_file_one_process_records(tmp_path, capsys):
+def test_worker_processes_record_the_file_one_process_records(tmp_path, capsys, monkeypatch):
     one, two = tmp_path / "one.npz", tmp_path / "two.npz"
-    argv = [*ARGV[:ARGV.index("--env")], "--env", "wide", "--env", "narrow", *ARGV[ARGV.index("--task"):-2]]
+    argv = [*ARGV[:ARGV.index("--env")], "--env", "wide", "--env", "narrow", "--env", "sine",
+            *ARGV[ARGV.index("--task"):-2]]
     assert main([*argv, "--workers", "0", "--out", str(one)]) == 0
+    # One pair per worker and pool: two pools for three pairs, the second with one worker.
+    pools = []
+
+    class CountedPool(gate_signals.WorkerPool):
+        def __init__(self, max_workers, **options):
+            pools.append(max_workers)
+            super().__init__(max_workers, **options)
+
+    monkeypatch.setattr(gate_signals, "PAIRS_PER_WORKER", 1)
+    monkeypatch.setattr(gate_signals, "WorkerPool", CountedPool)
     assert main([*argv, "--workers", "2", "--out", str(two)]) == 0
+    assert pools == [2, 1]
     err = capsys.readouterr().err
-    assert "episode 4/4:" in err, err
+    assert "episode 6/6:" in err, err
     expected, found = _arrays(one), _arrays(two)
     assert sorted(found) == sorted(expected)
     for name, array in expected.items():
         np.testing.assert_array_equal(found[name], array, err_msg=name)
-    assert found["episode_environment"].tolist() == ["wide", "wide", "narrow", "narrow"]
+    assert found["episode_environment"].tolist() == ["wide", "wide", "narrow", "narrow", "sine", "sine"]
     assert not parts_folder(two).exists()
 
 

@@ -15,6 +15,12 @@ A recording of many episodes takes long, so each episode is kept as it finishes
 (`EpisodeParts`): an interrupted recording keeps its finished episodes and the same command
 continues it; the signals file is assembled from them in the order of the runs, so a resumed
 recording's file equals one made without a stop.
+
+Worker processes (`workers` > 0) each run (environment, task) pairs, one diagram per pair, and
+a process's memory grows by tens of MB with every diagram it has built and dropped (on Drake
+1.51, a diagram holding a LeafSystem written in Python is never freed, not even by
+`gc.collect()`). So the pairs run in chunks of workers x `PAIRS_PER_WORKER`,
+each chunk in a fresh pool, as `ditch_drake.evaluation.batch` does for rollouts.
 """
 
 import hashlib
@@ -42,6 +48,9 @@ from ditch_drake.systems.tip_risk import TipRisk, TipRiskConfig
 
 # The policy block's observation inputs, in `LearnedPolicy.decide`'s order.
 STACK_PORTS = ("image_stack", "imu_stack", "distance_stack", "bearing_stack")
+# About how many (environment, task) pairs, each its own diagram, a worker process records
+# before a fresh pool replaces it (see the module docstring).
+PAIRS_PER_WORKER = 25
 
 
 def supported_signals(members: int) -> list[str]:
@@ -325,26 +334,28 @@ def _record_in_workers(checkpoint: str, keys: list[tuple[str, int, int]], episod
                        time_limit_s: float, environments_file: str, progress: bool, parts: EpisodeParts, risk: bool,
                        workers: int) -> None:
     """Runs the episodes of `keys` not in `episodes` in `workers` processes, an (environment,
-    task) pair per work item, and adds each to `episodes` as its item ends."""
+    task) pair per work item, and adds each to `episodes` as its item ends; a fresh pool per
+    workers x `PAIRS_PER_WORKER` pairs (the module docstring)."""
     from concurrent.futures import as_completed
 
     from ditch_drake.evaluation.rollout_worker import initialize_worker
 
     pending = list(dict.fromkeys(key[:2] for key in keys if key not in episodes))
-    if not pending:
-        return
-    with WorkerPool(min(workers, len(pending)), initializer=initialize_worker) as pool:
-        futures = [pool.submit(_record_pair, checkpoint, environment, task, rollouts, seed, time_limit_s,
-                               environments_file, str(parts.folder), parts.header, risk)
-                   for environment, task in pending]
-        for future in as_completed(futures):
-            for episode in future.result():
-                if episode.key in episodes:  # Kept before this run.
-                    continue
-                episodes[episode.key] = episode
-                log_progress(progress, f"episode {len(episodes)}/{len(keys)}: {episode.environment} task "
-                                       f"{episode.task} seed {episode.seed}: {episode.status} at "
-                                       f"{episode.end_time_s:.1f} s, {len(episode.time_s)} steps")
+    chunk = workers * PAIRS_PER_WORKER
+    for begin in range(0, len(pending), chunk):
+        pairs = pending[begin:begin + chunk]
+        with WorkerPool(min(workers, len(pairs)), initializer=initialize_worker) as pool:
+            futures = [pool.submit(_record_pair, checkpoint, environment, task, rollouts, seed, time_limit_s,
+                                   environments_file, str(parts.folder), parts.header, risk)
+                       for environment, task in pairs]
+            for future in as_completed(futures):
+                for episode in future.result():
+                    if episode.key in episodes:  # Kept before this run.
+                        continue
+                    episodes[episode.key] = episode
+                    log_progress(progress, f"episode {len(episodes)}/{len(keys)}: {episode.environment} task "
+                                           f"{episode.task} seed {episode.seed}: {episode.status} at "
+                                           f"{episode.end_time_s:.1f} s, {len(episode.time_s)} steps")
 
 
 def write_signals_file(out: str | os.PathLike, checkpoint: str, checkpoint_sha256: str, runs: list[tuple[str, int]],
