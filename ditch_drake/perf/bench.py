@@ -132,9 +132,11 @@ def measure_blocks() -> dict:
         "policy_step_ms": measure_policy_step_ms()["policy_step_ms"],
     }
     # Five clones in one forward pass (the shared controller's ensemble); beside it, their image
-    # branch in bfloat16 (`precision: bfloat16_image`; None on a CPU without native bfloat16).
+    # branch in bfloat16 (`precision: bfloat16_image`; None on a CPU without native bfloat16), and
+    # in the same rounds one member alone and the five one after another (unbatched).
     ensemble = measure_ensemble_policy_step_ms()
-    figures.update({key: ensemble[key] for key in ("ensemble_policy_step_ms", "ensemble_policy_step_bfloat16_ms")})
+    figures.update({key: ensemble[key] for key in ("ensemble_policy_step_ms", "ensemble_policy_step_bfloat16_ms",
+                                                   "ensemble_member_policy_step_ms", "ensemble_members_in_turn_ms")})
     # The same network in ONNX Runtime (`runtime: onnxruntime`), float32 and int8, where the `onnx`
     # extra is installed.
     onnxruntime_step = measure_onnxruntime_policy_step_ms()

@@ -230,9 +230,12 @@ def measure_ensemble_policy_step_ms(members: int = 5, repeats: int = 50, noise: 
     """Median time (ms) of one `LearnedPolicy` discrete update of a `members`-clone ensemble on
     one thread, timed as `measure_policy_step_ms` times one clone: all members in one forward
     pass (`EnsembleNetwork`), their mean probabilities and the default uncertainty signal; in
-    float32 and with the image branch in bfloat16 ("bfloat16_image"), one update of each in
-    turn, so that the host's changing load falls on both alike. On a CPU without native
-    bfloat16 (`native_bfloat16_flags`) the bfloat16 figures are None and stderr says why.
+    float32 and with the image branch in bfloat16 ("bfloat16_image"). Beside them, in the same
+    rounds, each member as a clone of its own (a float32 `LearnedPolicy`): one member's update,
+    and the members' updates one after another, what the ensemble would cost unbatched. Every
+    round updates each policy once, in turn, so that the host's changing load falls on all alike
+    and their ratios hold. On a CPU without native bfloat16 (`native_bfloat16_flags`) the
+    bfloat16 figures are None and stderr says why.
 
     The ensemble is the shipped `wide` model's weights copied `members` times, each copy's
     floating-point tensors perturbed by seeded Gaussian noise of `noise` times the tensor's
@@ -242,7 +245,8 @@ def measure_ensemble_policy_step_ms(members: int = 5, repeats: int = 50, noise: 
     Returns:
         {"ensemble_policy_step_ms": median, "ensemble_policy_step_max_ms": slowest,
         "ensemble_policy_step_bfloat16_ms": median or None, "ensemble_policy_step_bfloat16_max_ms":
-        slowest or None}.
+        slowest or None, "ensemble_member_policy_step_ms": member 0's median,
+        "ensemble_members_in_turn_ms": the median over rounds of the members' summed updates}.
     """
     import dataclasses
 
@@ -271,9 +275,14 @@ def measure_ensemble_policy_step_ms(members: int = 5, repeats: int = 50, noise: 
             EnsembleInference(ensemble, num_threads=1, precision="bfloat16_image"))
     except ConfigError as error:
         print(f"bench: no ensemble_policy_step_bfloat16_ms: {error}", file=sys.stderr)
+    clones = [LearnedPolicy(copy, num_threads=1) for copy in copies]
     figures = dict.fromkeys(f"ensemble_policy_step{kind}_ms" for kind in ("", "_max", "_bfloat16", "_bfloat16_max"))
-    for name, times in zip(policies, _alternating_update_times(list(policies.values()), repeats), strict=True):
-        figures.update({f"{name}_ms": 1e3 * float(np.median(times)), f"{name}_max_ms": 1e3 * float(np.max(times))})
+    times = _alternating_update_times([*policies.values(), *clones], repeats)
+    for name, each in zip(policies, times, strict=False):
+        figures.update({f"{name}_ms": 1e3 * float(np.median(each)), f"{name}_max_ms": 1e3 * float(np.max(each))})
+    clone_times = np.asarray(times[len(policies):])
+    figures["ensemble_member_policy_step_ms"] = 1e3 * float(np.median(clone_times[0]))
+    figures["ensemble_members_in_turn_ms"] = 1e3 * float(np.median(clone_times.sum(axis=0)))
     return figures
 
 
