@@ -1,5 +1,6 @@
 """The results page for the `shared` controller, from synthetic records of known values: its "Shared
-control" table (the fallback's share of steps, switches, where handovers began), no such table where no
+control" table (the fallback's share of steps, switches, where handovers began, the failures and
+who drove at their end), no such table where no
 record is of shared control, and the Models row of an ensemble file."""
 
 from pathlib import Path
@@ -14,7 +15,7 @@ from ditch_drake.learning.ensemble import EnsembleCheckpoint, save_ensemble
 from ditch_drake.learning.model import FourInputClassifier
 
 SHARED_HEADER = ("| model | environment | success | fallback's share of steps (mean) | (max) | switches (median) | "
-                 "handovers (region:count) |")
+                 "handovers (region:count) | failures (of them, the fallback driving at the end) |")
 
 
 def record(i: int, controller: str = "shared", env: str = "wide", success: bool = True, fraction: float = 0.0,
@@ -51,12 +52,16 @@ def test_the_shared_control_table_gives_each_groups_share_switches_and_handover_
     lines = shared_control_table(shared_records())
     assert lines[0] == SHARED_HEADER
     # A model in two environments: first its rollouts pooled (switches 0, 2, 4, 5: median 3).
-    assert lines[2:] == ["| shared | all | 3/4 | 18.8% | 45.0% | 3 | approach:2, floor:1, up_wall:3 |",
-                         "| shared | crater | 1/1 | 0.0% | 0.0% | 0 | - |",
-                         "| shared | wide | 2/3 | 25.0% | 45.0% | 4 | approach:2, floor:1, up_wall:3 |"]
+    assert lines[2:] == ["| shared | all | 3/4 | 18.8% | 45.0% | 3 | approach:2, floor:1, up_wall:3 | 1 (1) |",
+                         "| shared | crater | 1/1 | 0.0% | 0.0% | 0 | - | 0 |",
+                         "| shared | wide | 2/3 | 25.0% | 45.0% | 4 | approach:2, floor:1, up_wall:3 | 1 (1) |"]
     # An even count of rollouts: the median of 4 and 5 switches is 4.5.
     assert shared_control_table(shared_records()[1:3])[2:] == [
-        "| shared | wide | 1/2 | 32.5% | 45.0% | 4.5 | approach:2, floor:1, up_wall:2 |"]
+        "| shared | wide | 1/2 | 32.5% | 45.0% | 4.5 | approach:2, floor:1, up_wall:2 | 1 (1) |"]
+    # A failure after an even number of switches ended with the policy driving.
+    handed_back = record(5, success=False, fraction=0.3, switches=2, regions=("floor",))
+    assert shared_control_table([*shared_records()[1:3], handed_back])[2:] == [
+        "| shared | wide | 1/3 | 31.7% | 45.0% | 4 | approach:2, floor:2, up_wall:2 | 2 (1) |"]
 
 
 def test_only_shared_control_records_get_rows_and_a_file_without_them_gets_no_table(tmp_path):
@@ -66,10 +71,10 @@ def test_only_shared_control_records_get_rows_and_a_file_without_them_gets_no_ta
     data = load_report_data([write(tmp_path / "mixed.jsonl", [*others, *shared_records(), gated]),
                              write(tmp_path / "plain.jsonl", others)])
     assert data.shared_tables["mixed"][2:] == [
-        "| gated | wide | 1/1 | 50.0% | 50.0% | 1 | floor:1 |",
-        "| shared | all | 3/4 | 18.8% | 45.0% | 3 | approach:2, floor:1, up_wall:3 |",
-        "| shared | crater | 1/1 | 0.0% | 0.0% | 0 | - |",
-        "| shared | wide | 2/3 | 25.0% | 45.0% | 4 | approach:2, floor:1, up_wall:3 |"]
+        "| gated | wide | 1/1 | 50.0% | 50.0% | 1 | floor:1 | 0 |",
+        "| shared | all | 3/4 | 18.8% | 45.0% | 3 | approach:2, floor:1, up_wall:3 | 1 (1) |",
+        "| shared | crater | 1/1 | 0.0% | 0.0% | 0 | - | 0 |",
+        "| shared | wide | 2/3 | 25.0% | 45.0% | 4 | approach:2, floor:1, up_wall:3 | 1 (1) |"]
     assert "plain" not in data.shared_tables and data.study_lines("plain") == data.tables["plain"]
     page = write_report([tmp_path / "mixed.jsonl", tmp_path / "plain.jsonl"], tmp_path / "page" / "results.md",
                         tmp_path / "page" / "img", data=data).read_text()
@@ -116,8 +121,8 @@ def test_a_models_rollouts_in_generated_ditches_are_one_row_in_both_tables():
     assert [line.split(" | ")[1:3] for line in table[2:]] == [["2 generated ditches", "5/6"], ["wide", "1/1"]]
     assert summaries[("shared", "2 generated ditches")].trials == 6
     assert shared_control_table([*generated, packaged])[2:] == [
-        "| shared | all | 6/7 | 15.7% | 50.0% | 1 | beyond:6, floor:1 |",
-        "| shared | 2 generated ditches | 5/6 | 10.0% | 20.0% | 1 | beyond:6 |",
-        "| shared | wide | 1/1 | 50.0% | 50.0% | 1 | floor:1 |"]
+        "| shared | all | 6/7 | 15.7% | 50.0% | 1 | beyond:6, floor:1 | 1 (1) |",
+        "| shared | 2 generated ditches | 5/6 | 10.0% | 20.0% | 1 | beyond:6 | 1 (1) |",
+        "| shared | wide | 1/1 | 50.0% | 50.0% | 1 | floor:1 | 0 |"]
     # One generated ditch reads as such too.
     assert study_table(generated[:3])[0][2].split(" | ")[1] == "1 generated ditch"

@@ -179,8 +179,10 @@ def is_shared_control(record: RolloutRecord) -> bool:
 def shared_control_table(records: list[RolloutRecord]) -> list[str]:
     """How much the fallback drove, one row per model and environment with shared-control
     records: successes, the mean and largest share of control steps the fallback drove, the
-    median number of switches (handovers plus handbacks) per rollout, and where the handovers
-    began (region:count, by region name); error records are left out. A model with records in
+    median number of switches (handovers plus handbacks) per rollout, where the handovers began
+    (region:count, by region name), and the failures, with how many of them ended with the
+    fallback driving (an odd number of switches: the policy drives first); error records are
+    left out. A model with records in
     more than one environment has a first row "all", its rollouts pooled; its rollouts in
     generated ditches are one row (`pool_generated_ditches`). Empty without shared-control
     records."""
@@ -197,8 +199,8 @@ def shared_control_table(records: list[RolloutRecord]) -> list[str]:
               for model, count in environments.items() if count > 1}
     groups = {**pooled, **groups}
     lines = [("| model | environment | success | fallback's share of steps (mean) | (max) | switches (median) | "
-              "handovers (region:count) |"),
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+              "handovers (region:count) | failures (of them, the fallback driving at the end) |"),
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for (model, env), group in sorted(groups.items(), key=lambda item: (item[0][0], item[0][1] != POOLED, item[0][1])):
         trials = [record for record in group if not record.is_error]
         successes = sum(record.success for record in trials)
@@ -210,5 +212,9 @@ def shared_control_table(records: list[RolloutRecord]) -> list[str]:
             mean = most = switches = "n/a"
         regions = Counter(region for record in trials for region in record.handover_regions)
         handovers = ", ".join(f"{region}:{count}" for region, count in sorted(regions.items())) or "-"
-        lines.append(f"| {model} | {env} | {successes}/{len(trials)} | {mean} | {most} | {switches} | {handovers} |")
+        failures = [record for record in trials if not record.success]
+        under_fallback = sum(record.switches % 2 == 1 for record in failures)
+        failed = f"{len(failures)} ({under_fallback})" if failures else "0"
+        lines.append(f"| {model} | {env} | {successes}/{len(trials)} | {mean} | {most} | {switches} | {handovers} "
+                     f"| {failed} |")
     return lines
