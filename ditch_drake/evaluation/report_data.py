@@ -182,10 +182,9 @@ def shared_control_table(records: list[RolloutRecord]) -> list[str]:
     median number of switches (handovers plus handbacks) per rollout, where the handovers began
     (region:count, by region name), and the failures, with how many of them ended with the
     fallback driving (an odd number of switches: the policy drives first); error records are
-    left out. A model with records in
-    more than one environment has a first row "all", its rollouts pooled; its rollouts in
-    generated ditches are one row (`pool_generated_ditches`). Empty without shared-control
-    records."""
+    left out. A model with records in more than one environment has a first row "all", its
+    rollouts pooled; its rollouts in generated ditches are one row (`pool_generated_ditches`).
+    Empty without shared-control records."""
     name_of = controller_labels(records)
     groups: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
     for record in records:
