@@ -296,21 +296,17 @@ def cmd_paired(args) -> int:
 
     for path in (args.a, args.b):
         if not Path(path).is_file():
-            print(f"ditch-drake: error: no results file at {path}; expected a .jsonl of evaluate or benchmark",
-                  file=sys.stderr)
-            return 2
+            raise ConfigError(f"no results file at {path}; expected a .jsonl of evaluate or benchmark")
     (a, _), (b, _) = read_records(args.a), read_records(args.b)
     for path, records in ((args.a, a), (args.b, b)):
         runs = {(r.controller, r.controller_sha256, r.checkpoint) for r in records}
         if len(runs) > 1:
-            print(f"ditch-drake: error: {path} holds rollouts of {len(runs)} controllers or checkpoints; expected one "
-                  "run per file (a benchmark's or an evaluate's --out)", file=sys.stderr)
-            return 2
+            raise ConfigError(f"{path} holds rollouts of {len(runs)} controllers or checkpoints; expected one run per "
+                              "file (a benchmark's or an evaluate's --out)")
     comparison = paired_comparison(a, b)
     if comparison.matched == 0:
-        print(f"ditch-drake: error: {args.a} and {args.b} share no rollout (environment, task, seed) with an "
-              "outcome; expected two runs on the same rollouts", file=sys.stderr)
-        return 2
+        raise ConfigError(f"{args.a} and {args.b} share no rollout (environment, task, seed) with an outcome; "
+                          "expected two runs on the same rollouts")
     print(json.dumps({"a": args.a, "b": args.b, **dataclasses.asdict(comparison)}))
     return 0
 
