@@ -1,14 +1,15 @@
 """The results page for the `shared` controller, from synthetic records of known values: its "Shared
 control" table (the fallback's share of steps, switches, where handovers began, the failures and
 who drove at their end), no such table where no
-record is of shared control, and the Models row of an ensemble file."""
+record is of shared control, the Models row of an ensemble file, and success against the fallback's share of
+the steps (the points of each gated run beside the policy alone, and the figure)."""
 
 from pathlib import Path
 
 import torch
 
 from ditch_drake.evaluation.report import write_report
-from ditch_drake.evaluation.report_data import load_report_data, shared_control_table, study_table
+from ditch_drake.evaluation.report_data import handover_curves, load_report_data, shared_control_table, study_table
 from ditch_drake.evaluation.results import RolloutRecord
 from ditch_drake.learning.checkpoint import checkpoint_digest, make_checkpoint, save_checkpoint
 from ditch_drake.learning.ensemble import EnsembleCheckpoint, save_ensemble
@@ -126,3 +127,60 @@ def test_a_models_rollouts_in_generated_ditches_are_one_row_in_both_tables():
         "| shared | wide | 1/1 | 50.0% | 50.0% | 1 | floor:1 | 0 |"]
     # One generated ditch reads as such too.
     assert study_table(generated[:3])[0][2].split(" | ")[1] == "1 generated ditch"
+
+
+def gated(i: int, signal: str, budget: float | None, fallback: str = "expert", **fields) -> RolloutRecord:
+    """A `shared` record of the policy models/k5.pt whose config names its gate."""
+    budget_words = f", budget: {budget}" if budget is not None else ""
+    config = (f"policy:\n  checkpoint: models/k5.pt\ngate: {{signal: {signal}, upper_threshold: 1.0{budget_words}, "
+              f"fallback: {fallback}}}\nexpert:\n  style_seed: null\n")
+    return RolloutRecord(**{**record(i, checkpoint="models/k5.pt", **fields).__dict__, "controller_config": config})
+
+
+def curve_records() -> dict[str, list[RolloutRecord]]:
+    """In wide: the policy alone 1 of 2; the risk gate at budgets 0.02 (2 of 2, the fallback on 10 % and 30 %
+    of the steps) and 0.1 (1 of 2, 40 % and 60 %, in another file); random handover at 0.02 (1 of 2, 5 %
+    each, and an error record, counted nowhere); a fixed-threshold gate with the mppi (1 of 1, 0 %). In
+    crater: the policy alone only (no panel). In the test split's generated ditches: the risk gate."""
+    alone = [record(i, controller="learned", checkpoint="models/k5.pt", success=i == 0) for i in range(2)]
+    ditches = "results/test.ditches.yaml"
+    return {
+        "gates": [*alone, record(5, controller="learned", checkpoint="models/k5.pt", env="crater"),
+                  gated(0, "tip_risk_ahead", 0.02, fraction=0.1), gated(1, "tip_risk_ahead", 0.02, fraction=0.3),
+                  gated(2, "random", 0.02, fraction=0.05), gated(3, "random", 0.02, fraction=0.05, success=False),
+                  gated(4, "random", 0.02, fraction=0.9, status="error", success=False),
+                  gated(6, "tip_risk_now", None, fallback="mppi"),
+                  RolloutRecord(**{**gated(7, "tip_risk_ahead", 0.02, env="ditch_2003", fraction=0.2).__dict__,
+                                   "environments_file": ditches}),
+                  record(8, controller="dwa")],
+        "larger": [gated(0, "tip_risk_ahead", 0.1, fraction=0.6, success=False),
+                   gated(1, "tip_risk_ahead", 0.1, fraction=0.4)],
+    }
+
+
+def test_the_handover_curves_give_each_runs_share_and_success_beside_the_policy_alone():
+    curves = handover_curves(curve_records())
+    assert list(curves) == ["k5 on the test split", "k5 on wide"]
+    wide = curves["k5 on wide"]
+    assert list(wide) == ["alone", "random, fallback expert", "tip_risk_ahead, fallback expert",
+                          "tip_risk_now, fallback mppi"]
+    seen = {series: [(round(p.share, 6), p.summary.successes, p.summary.trials, p.budget) for p in points]
+            for series, points in wide.items()}
+    assert seen == {"alone": [(0.0, 1, 2, None)],
+                    "random, fallback expert": [(0.05, 1, 2, 0.02)],
+                    "tip_risk_ahead, fallback expert": [(0.2, 2, 2, 0.02), (0.5, 1, 2, 0.1)],
+                    "tip_risk_now, fallback mppi": [(0.0, 1, 1, None)]}
+    assert [(p.share, p.summary.trials) for p in curves["k5 on the test split"]["tip_risk_ahead, fallback expert"]] \
+        == [(0.2, 1)]
+    assert "alone" not in curves["k5 on the test split"]
+    # Without a gated run there is nothing to draw.
+    assert handover_curves({"alone": curve_records()["gates"][:3]}) == {}
+
+
+def test_a_page_with_gated_runs_draws_success_against_the_fallbacks_share(tmp_path):
+    results = [write(tmp_path / "results" / f"{name}.jsonl", records) for name, records in curve_records().items()]
+    page = write_report(results, tmp_path / "page.md", tmp_path / "img").read_text()
+    assert "![fig_shared_control](img/fig_shared_control.png)" in page
+    assert (tmp_path / "img" / "fig_shared_control.png").stat().st_size > 0
+    plain = write(tmp_path / "plain" / "plain.jsonl", [record(i, controller="dwa") for i in range(2)])
+    assert "fig_shared_control" not in write_report([plain], tmp_path / "plain.md", tmp_path / "plain_img").read_text()

@@ -69,24 +69,37 @@ def climb_words(record: RolloutRecord) -> str:
     return f"climb margin {float(found.group(1)):g} deg" if found else ""
 
 
-def gate_words(record: RolloutRecord) -> str:
-    """A shared-control record's gate: its signal, budget (where one set the thresholds) and
-    fallback, e.g. "gate angular_rate_spread, budget 0.05, fallback expert", from the `gate:`
-    line of its config; "" for any other record."""
+def gate_settings(record: RolloutRecord) -> dict:
+    """A shared-control record's gate as its config wrote it (the `gate:` section: "signal",
+    "fallback", "budget" where one set the thresholds, ...); {} for any other record."""
     import yaml
 
     lines = (record.controller_config or "").splitlines()
     start = next((i for i, line in enumerate(lines) if line.startswith("gate:")), None)
     if start is None:
-        return ""
+        return {}
     section = [lines[start], *itertools.takewhile(lambda line: line.startswith(" "), lines[start + 1:])]
     try:
         gate = yaml.safe_load("\n".join(section))["gate"]
     except yaml.YAMLError:
+        return {}
+    return gate if isinstance(gate, dict) else {}
+
+
+def gate_budget(gate: dict) -> float | None:
+    """The budget that set a gate's thresholds (`gate_settings`), or None for fixed thresholds."""
+    budget = gate.get("budget")
+    return float(budget) if isinstance(budget, (int, float)) and not isinstance(budget, bool) else None
+
+
+def gate_words(record: RolloutRecord) -> str:
+    """A shared-control record's gate: its signal, budget (where one set the thresholds) and
+    fallback, e.g. "gate angular_rate_spread, budget 0.05, fallback expert", from the `gate:`
+    line of its config; "" for any other record."""
+    gate = gate_settings(record)
+    if not gate:
         return ""
-    if not isinstance(gate, dict):
-        return ""
-    budget = f", budget {gate['budget']:g}" if isinstance(gate.get("budget"), (int, float)) else ""
+    budget = f", budget {gate['budget']:g}" if gate_budget(gate) is not None else ""
     return f"gate {gate.get('signal')}{budget}, fallback {gate.get('fallback')}"
 
 

@@ -217,3 +217,68 @@ def shared_control_table(records: list[RolloutRecord]) -> list[str]:
         lines.append(f"| {model} | {env} | {successes}/{len(trials)} | {mean} | {most} | {switches} | {handovers} "
                      f"| {failed} |")
     return lines
+
+
+# The series of a panel of `handover_curves` that is the policy ungated, at a share of 0.
+ALONE = "alone"
+
+
+@dataclass
+class HandoverPoint:
+    """One run of a gated policy in `handover_curves` (or the policy alone, at share 0).
+
+    Attributes:
+        share: the fallback's share of the control steps, the mean over the run's rollouts.
+        summary: its successes, trials and Wilson interval.
+        budget: the budget that set the gate's thresholds, None for fixed ones (or alone).
+    """
+
+    share: float
+    summary: GroupSummary
+    budget: float | None = None
+
+
+def handover_panel(record: RolloutRecord, name: str) -> str:
+    """Which panel of `handover_curves` a record of the policy `name` belongs to: the policy, its
+    crossing side's source, and where it drove (a packaged environment, or a generated split)."""
+    from ditch_drake.world.ditch_splits import is_ditches_file, split_of_environment
+
+    side = f" ({record.crossing_side_source} side)" if record.crossing_side_source else ""
+    split = split_of_environment(record.environment) if is_ditches_file(record.environments_file) else ""
+    where = f"the {split} split" if split else record.environment
+    return f"{name}{side} on {where}"
+
+
+def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[str, dict[str, list[HandoverPoint]]]:
+    """Success against the fallback's share of the steps: per panel (a gated policy where it
+    drove, `handover_panel`), per series (the gate's signal and fallback, e.g. "tip_risk_ahead,
+    fallback expert"), one point per run (the records of one gate's config in one results
+    file), in order of share; and the series `ALONE`, the same policy's ungated records in the
+    same place, where the results hold them. Error records count nowhere; a panel without any
+    gated run is left out."""
+    from ditch_drake.evaluation.model_labels import gate_budget, gate_settings, gate_words
+
+    every = [record for records in records_by_study.values() for record in records]
+    name_of = controller_labels(every, marks=False)
+    runs: dict[tuple[str, str, str, str], list[RolloutRecord]] = defaultdict(list)
+    alone: dict[tuple[str, str], list[RolloutRecord]] = defaultdict(list)
+    for study, records in records_by_study.items():
+        for record in records:
+            if record.is_error:
+                continue
+            panel = handover_panel(record, name_of(record))
+            if is_shared_control(record):
+                gate = gate_settings(record)
+                series = f"{gate.get('signal')}, fallback {gate.get('fallback')}" if gate else record.controller
+                runs[(panel, series, gate_words(record), study)].append(record)
+            elif record.controller == "learned":
+                alone[(panel, study)].append(record)
+    curves: dict[str, dict[str, list[HandoverPoint]]] = defaultdict(lambda: defaultdict(list))
+    for (panel, series, _, _), group in runs.items():
+        share = statistics.fmean(record.handover_fraction for record in group)
+        curves[panel][series].append(HandoverPoint(share, summarize(group), gate_budget(gate_settings(group[0]))))
+    for (panel, _), group in alone.items():
+        if panel in curves:
+            curves[panel][ALONE].append(HandoverPoint(0.0, summarize(group)))
+    return {panel: {series: sorted(points, key=lambda point: point.share) for series, points in sorted(panel_series.items())}
+            for panel, panel_series in sorted(curves.items())}

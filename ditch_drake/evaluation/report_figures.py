@@ -5,7 +5,9 @@ move_base: per walled environment of the must_cross study (every route crosses t
 environment's learned models against `dwa_paper` (the paper's move_base) and `dwa`, and in the
 open field the learned policy against the DWA baseline (and `dwa_paper` where measured); (f)
 the amalgam model against the single-environment models in the amalgam's evaluation
-environment; and for any other results file, its success rate per model and environment.
+environment; for any other results file, its success rate per model and environment; and
+where the results hold gated policies (the `shared` controller), success against the
+fallback's share of the control steps (`report_data.handover_curves`).
 
 Every bar carries its 95 % Wilson interval and its number of trials; successes that went around
 the ditch are hatched over the bar's bottom.
@@ -23,7 +25,7 @@ import matplotlib.pyplot as plt
 from ditch_drake.common.files import save_figure
 from ditch_drake.evaluation.model_labels import model_demos, model_environments
 from ditch_drake.evaluation.paper_findings import CONTROLLER_NAMES, DWA, PAPER_MOVE_BASE, MustCross
-from ditch_drake.evaluation.report_data import STUDIES, ReportData
+from ditch_drake.evaluation.report_data import ALONE, STUDIES, HandoverPoint, ReportData, handover_curves
 from ditch_drake.evaluation.statistics import counted
 from ditch_drake.evaluation.summary import AROUND_TILT_DEG, GroupSummary
 
@@ -285,6 +287,76 @@ def _figure_study(study: str, summaries: dict, path: Path, number: int) -> Figur
     return Figure(path, caption)
 
 
+# How a shared-control series is drawn: its fallback's marker; random handover (the chance
+# control) hollow and dashed, so that each gate can be read against it.
+_FALLBACK_MARKERS = {"expert": "o", "mppi": "s", "teleop": "^"}
+_RANDOM_SIGNAL = "random"
+
+
+def _figure_shared_control(curves: dict[str, dict[str, list[HandoverPoint]]], path: Path, number: int) -> Figure:
+    """Success against the fallback's share of the control steps, a panel per gated policy and
+    where it drove, a line per gate signal and fallback through its runs, the policy alone at 0."""
+    columns = min(2, len(curves))
+    rows = -(-len(curves) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(5.2 * columns, 3.6 * rows + 0.6), squeeze=False)
+    signals = sorted({series.split(",")[0] for panel in curves.values() for series in panel} - {ALONE, _RANDOM_SIGNAL})
+    colours = plt.get_cmap("tab10")
+    handles: dict[str, object] = {}
+    for ax, (panel, series_points) in zip(axes.flat, curves.items()):
+        lows, highs, shares = [], [], [0.0]
+        for series, points in series_points.items():
+            summaries = [counted(point.summary) for point in points]
+            drawn = [(point, s) for point, s in zip(points, summaries) if s]
+            if not drawn:
+                continue
+            xs = [100 * point.share for point, _ in drawn]
+            ys = [s.rate for _, s in drawn]
+            yerr = _error_bars([s for _, s in drawn])
+            shares += xs
+            lows += [s.low for _, s in drawn]
+            highs += [s.high for _, s in drawn]
+            if series == ALONE:
+                style = {"color": "black", "marker": "D", "linestyle": "none"}
+                label = "the policy alone"
+            else:
+                signal, _, fallback = series.partition(", fallback ")
+                random = signal == _RANDOM_SIGNAL
+                style = {"color": "tab:gray" if random else colours(signals.index(signal) % 10),
+                         "marker": _FALLBACK_MARKERS.get(fallback, "v"), "linestyle": "--" if random else "-",
+                         "markerfacecolor": "white" if random else None}
+                label = f"{'random handover' if random else signal}, fallback {fallback}"
+            line = ax.errorbar(xs, ys, yerr=yerr, capsize=3, linewidth=1.2, markersize=5, label=label, **style)
+            handles.setdefault(label, line)
+            for (point, s), x in zip(drawn, xs):
+                if point.budget is not None:
+                    ax.annotate(f"{100 * point.budget:g}%", (x, s.rate), textcoords="offset points", xytext=(4, -9),
+                                fontsize=6, color=style["color"])
+        ax.set_title(panel, fontsize=9)
+        ax.set_xlabel("fallback's share of the control steps (%, mean over the rollouts)", fontsize=8)
+        ax.set_ylabel("success rate", fontsize=8)
+        if lows:
+            ax.set_ylim(max(0.0, min(lows) - 0.03), min(1.05, max(highs) + 0.03))
+        span = max(1.0, max(shares))
+        ax.set_xlim(-0.06 * span, 1.1 * span)
+    for ax in list(axes.flat)[len(curves):]:
+        ax.set_visible(False)
+    labels = sorted(handles, key=lambda label: (label != "the policy alone", label.startswith("random"), label))
+    fig.legend([handles[label] for label in labels], labels, loc="lower center", ncol=min(3, len(labels)), fontsize=8,
+               frameon=False)
+    legend_rows = -(-len(labels) // min(3, len(labels)))
+    fig.tight_layout(rect=(0, 0.2 * legend_rows / fig.get_figheight(), 1, 1))
+    save_figure(fig, path, dpi=110)
+    named = [(f"{series} in {panel}" + (f" at budget {point.budget:g}" if point.budget is not None else ""),
+              point.summary) for panel, series_points in curves.items() for series, points in series_points.items()
+             for point in points]
+    caption = (f"Figure {number}: shared control: success rate against the fallback's share of the control steps "
+               "(the mean over a run's rollouts), one point per run, labelled with the budget that set its gate's "
+               "thresholds; a line joins the runs of one gate signal and fallback (marker: the fallback), random "
+               "handover (the chance control) hollow and dashed; the diamond at 0 is the same policy ungated, where "
+               f"the results hold it ({_counts(named)}). {_CI_TEXT}.")
+    return Figure(path, caption)
+
+
 def draw_figures(data: ReportData, figures_dir: Path,
                  must_cross: MustCross | None = None) -> tuple[list[Figure], list[str]]:
     """Every figure the data allows, and a sentence for each results file that gets none.
@@ -322,4 +394,6 @@ def draw_figures(data: ReportData, figures_dir: Path,
             continue
         name = re.sub(r"[^A-Za-z0-9_.+-]", "_", study)
         figures.append(_figure_study(study, summaries[study], figures_dir / f"fig_{name}.png", len(figures) + 1))
+    if curves := handover_curves(data.records):
+        figures.append(_figure_shared_control(curves, figures_dir / "fig_shared_control.png", len(figures) + 1))
     return figures, missing
