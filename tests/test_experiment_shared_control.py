@@ -336,7 +336,7 @@ def test_the_paper_file_gates_the_generalist_ensemble_on_the_test_split_calibrat
     part = load_experiment("experiments/paper.yaml").studies.shared_control.split
     assert (part.checkpoint, part.calibration_split, part.split, part.seed, part.geometries) == (
         "generalist_k5", "val", "test", 0, None)
-    assert (part.budgets, part.fallbacks, part.signal) == ([0.02, 0.05, 0.1], ["expert", "mppi"], "tip_risk_ahead")
+    assert (part.budgets, part.fallbacks, part.signal) == ([0.01, 0.02, 0.05, 0.1, 0.2], ["expert", "mppi"], "tip_risk_ahead")
 
 
 SPLIT_PART = """
