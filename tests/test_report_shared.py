@@ -8,6 +8,7 @@ from pathlib import Path
 
 import torch
 
+from ditch_drake.evaluation.model_labels import gate_words
 from ditch_drake.evaluation.report import write_report
 from ditch_drake.evaluation.report_data import handover_curves, load_report_data, shared_control_table, study_table
 from ditch_drake.evaluation.results import RolloutRecord
@@ -184,3 +185,21 @@ def test_a_page_with_gated_runs_draws_success_against_the_fallbacks_share(tmp_pa
     assert (tmp_path / "img" / "fig_shared_control.png").stat().st_size > 0
     plain = write(tmp_path / "plain" / "plain.jsonl", [record(i, controller="dwa") for i in range(2)])
     assert "fig_shared_control" not in write_report([plain], tmp_path / "plain.md", tmp_path / "plain_img").read_text()
+
+
+def test_an_expert_fallback_that_replans_is_its_own_series_and_row():
+    latched = gated(0, "tip_risk_ahead", 0.2)
+    config = latched.controller_config.replace("expert:\n  style_seed: null\n",
+                                               "expert:\n  style_seed: null\n  variation: {replan_each_step: true}\n")
+    replanning = RolloutRecord(**{**gated(1, "tip_risk_ahead", 0.2, success=False).__dict__, "controller_config": config})
+    # The mppi's own settings below the expert's do not count as the expert's.
+    other = RolloutRecord(**{**gated(2, "tip_risk_ahead", 0.2, fallback="mppi").__dict__,
+                             "controller_config": latched.controller_config.replace("fallback: expert", "fallback: mppi")
+                             + "mppi: {replan_each_step: true}\n"})
+    assert [gate_words(r) for r in (latched, replanning, other)] == [
+        "gate tip_risk_ahead, budget 0.2, fallback expert", "gate tip_risk_ahead, budget 0.2, fallback expert, replanning",
+        "gate tip_risk_ahead, budget 0.2, fallback mppi"]
+    curves = handover_curves({"latched": [latched, other], "replanning": [replanning]})["k5 on wide"]
+    assert {series: [p.summary.successes for p in points] for series, points in curves.items()} == {
+        "tip_risk_ahead, fallback expert": [1], "tip_risk_ahead, fallback expert, replanning": [0],
+        "tip_risk_ahead, fallback mppi": [1]}

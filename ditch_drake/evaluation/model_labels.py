@@ -92,15 +92,31 @@ def gate_budget(gate: dict) -> float | None:
     return float(budget) if isinstance(budget, (int, float)) and not isinstance(budget, bool) else None
 
 
+def fallback_words(record: RolloutRecord, gate: dict) -> str:
+    """A shared-control record's fallback, e.g. "mppi", and "expert, replanning" for an expert
+    that decides its side and phase afresh from the pose it is handed (`replan_each_step` in its
+    config's `expert:` section) rather than keeping the plan it latched before the wall."""
+    fallback = str(gate.get("fallback"))
+    if fallback != "expert":
+        return fallback
+    lines = (record.controller_config or "").splitlines()
+    start = next((i for i, line in enumerate(lines) if line.startswith("expert:")), None)
+    if start is None:
+        return fallback
+    section = [lines[start], *itertools.takewhile(lambda line: line.startswith(" "), lines[start + 1:])]
+    replans = any(re.search(r"\breplan_each_step: true\b", line) for line in section)
+    return "expert, replanning" if replans else fallback
+
+
 def gate_words(record: RolloutRecord) -> str:
     """A shared-control record's gate: its signal, budget (where one set the thresholds) and
-    fallback, e.g. "gate angular_rate_spread, budget 0.05, fallback expert", from the `gate:`
-    line of its config; "" for any other record."""
+    fallback (`fallback_words`), e.g. "gate angular_rate_spread, budget 0.05, fallback expert",
+    from the `gate:` line of its config; "" for any other record."""
     gate = gate_settings(record)
     if not gate:
         return ""
     budget = f", budget {gate['budget']:g}" if gate_budget(gate) is not None else ""
-    return f"gate {gate.get('signal')}{budget}, fallback {gate.get('fallback')}"
+    return f"gate {gate.get('signal')}{budget}, fallback {fallback_words(record, gate)}"
 
 
 def record_marks(record: RolloutRecord) -> list[str]:

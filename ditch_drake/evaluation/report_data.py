@@ -256,7 +256,7 @@ def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[st
     file), in order of share; and the series `ALONE`, the same policy's ungated records in the
     same place, where the results hold them. Error records count nowhere; a panel without any
     gated run is left out."""
-    from ditch_drake.evaluation.model_labels import gate_budget, gate_settings, gate_words
+    from ditch_drake.evaluation.model_labels import fallback_words, gate_budget, gate_settings, gate_words
 
     every = [record for records in records_by_study.values() for record in records]
     name_of = controller_labels(every, marks=False)
@@ -269,7 +269,7 @@ def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[st
             panel = handover_panel(record, name_of(record))
             if is_shared_control(record):
                 gate = gate_settings(record)
-                series = f"{gate.get('signal')}, fallback {gate.get('fallback')}" if gate else record.controller
+                series = f"{gate.get('signal')}, fallback {fallback_words(record, gate)}" if gate else record.controller
                 runs[(panel, series, gate_words(record), study)].append(record)
             elif record.controller == "learned":
                 alone[(panel, study)].append(record)
