@@ -69,16 +69,24 @@ def climb_words(record: RolloutRecord) -> str:
     return f"climb margin {float(found.group(1)):g} deg" if found else ""
 
 
+def config_section(record: RolloutRecord, key: str) -> list[str]:
+    """The lines of the top-level `key:` of a record's controller config and those indented
+    under it; [] where the config has no such key."""
+    lines = (record.controller_config or "").splitlines()
+    start = next((i for i, line in enumerate(lines) if line.startswith(f"{key}:")), None)
+    if start is None:
+        return []
+    return [lines[start], *itertools.takewhile(lambda line: line.startswith(" "), lines[start + 1:])]
+
+
 def gate_settings(record: RolloutRecord) -> dict:
     """A shared-control record's gate as its config wrote it (the `gate:` section: "signal",
     "fallback", "budget" where one set the thresholds, ...); {} for any other record."""
     import yaml
 
-    lines = (record.controller_config or "").splitlines()
-    start = next((i for i, line in enumerate(lines) if line.startswith("gate:")), None)
-    if start is None:
+    section = config_section(record, "gate")
+    if not section:
         return {}
-    section = [lines[start], *itertools.takewhile(lambda line: line.startswith(" "), lines[start + 1:])]
     try:
         gate = yaml.safe_load("\n".join(section))["gate"]
     except yaml.YAMLError:
@@ -99,12 +107,7 @@ def fallback_words(record: RolloutRecord, gate: dict) -> str:
     fallback = str(gate.get("fallback"))
     if fallback != "expert":
         return fallback
-    lines = (record.controller_config or "").splitlines()
-    start = next((i for i, line in enumerate(lines) if line.startswith("expert:")), None)
-    if start is None:
-        return fallback
-    section = [lines[start], *itertools.takewhile(lambda line: line.startswith(" "), lines[start + 1:])]
-    replans = any(re.search(r"\breplan_each_step: true\b", line) for line in section)
+    replans = any(re.search(r"\breplan_each_step: true\b", line) for line in config_section(record, "expert"))
     return "expert, replanning" if replans else fallback
 
 
