@@ -174,6 +174,10 @@ def test_the_handover_curves_give_each_runs_share_and_success_beside_the_policy_
     assert [(p.share, p.summary.trials) for p in curves["k5 on the test split"]["tip_risk_ahead, fallback expert"]] \
         == [(0.2, 1)]
     assert "alone" not in curves["k5 on the test split"]
+    # A privileged fallback's series says so, as its table row does.
+    marked = RolloutRecord(**{**gated(9, "tip_risk_ahead", 0.02).__dict__, "privileged": ["terrain"]})
+    assert list(handover_curves({"marked": [marked]})["k5 on wide"]) == [
+        "tip_risk_ahead, fallback expert (privileged: analytic terrain)"]
     # Without a gated run there is nothing to draw.
     assert handover_curves({"alone": curve_records()["gates"][:3]}) == {}
 

@@ -252,10 +252,11 @@ def handover_panel(record: RolloutRecord, name: str) -> str:
 def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[str, dict[str, list[HandoverPoint]]]:
     """Success against the fallback's share of the steps: per panel (a gated policy where it
     drove, `handover_panel`), per series (the gate's signal and fallback, e.g. "tip_risk_ahead,
-    fallback expert"), one point per run (the records of one gate's config in one results
-    file), in order of share; and the series `ALONE`, the same policy's ungated records in the
+    fallback expert (privileged: analytic terrain)", marked as a table marks the row), one point
+    per run (the records of one gate's config in one results file), in order of share; and the series `ALONE`, the same policy's ungated records in the
     same place, where the results hold them. Error records count nowhere; a panel without any
     gated run is left out."""
+    from ditch_drake.diagrams.controllers import privileged_words
     from ditch_drake.evaluation.model_labels import fallback_words, gate_budget, gate_settings, gate_words
 
     every = [record for records in records_by_study.values() for record in records]
@@ -270,6 +271,8 @@ def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[st
             if is_shared_control(record):
                 gate = gate_settings(record)
                 series = f"{gate.get('signal')}, fallback {fallback_words(record, gate)}" if gate else record.controller
+                if record.privileged:
+                    series += f" (privileged: {privileged_words(record.privileged)})"
                 runs[(panel, series, gate_words(record), study)].append(record)
             elif record.controller == "learned":
                 alone[(panel, study)].append(record)

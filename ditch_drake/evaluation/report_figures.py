@@ -322,7 +322,7 @@ def _figure_shared_control(curves: dict[str, dict[str, list[HandoverPoint]]], pa
                 signal, _, fallback = series.partition(", fallback ")
                 random = signal == _RANDOM_SIGNAL
                 style = {"color": "tab:gray" if random else colours(signals.index(signal) % 10),
-                         "marker": _FALLBACK_MARKERS.get(fallback, "v"), "linestyle": "--" if random else "-",
+                         "marker": _FALLBACK_MARKERS.get(fallback.split(" (")[0], "v"), "linestyle": "--" if random else "-",
                          "markerfacecolor": "white" if random else None}
                 label = f"{'random handover' if random else signal}, fallback {fallback}"
             line = ax.errorbar(xs, ys, yerr=yerr, capsize=3, linewidth=1.2, markersize=5, label=label, **style)
@@ -341,9 +341,11 @@ def _figure_shared_control(curves: dict[str, dict[str, list[HandoverPoint]]], pa
     for ax in list(axes.flat)[len(curves):]:
         ax.set_visible(False)
     labels = sorted(handles, key=lambda label: (label != "the policy alone", label.startswith("random"), label))
-    fig.legend([handles[label] for label in labels], labels, loc="lower center", ncol=min(3, len(labels)), fontsize=8,
+    # As many columns as fit the figure's width (about 13 characters of 8 pt text an inch, as `_legend_below`).
+    columns = max(1, min(3, len(labels), int(13 * fig.get_figwidth()) // (max(map(len, labels)) + 6)))
+    fig.legend([handles[label] for label in labels], labels, loc="lower center", ncol=columns, fontsize=8,
                frameon=False)
-    legend_rows = -(-len(labels) // min(3, len(labels)))
+    legend_rows = -(-len(labels) // columns)
     fig.tight_layout(rect=(0, 0.2 * legend_rows / fig.get_figheight(), 1, 1))
     save_figure(fig, path, dpi=110)
     named = [(f"{series} in {panel}" + (f" at budget {point.budget:g}" if point.budget is not None else ""),
