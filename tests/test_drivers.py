@@ -64,6 +64,47 @@ def test_a_replanning_labeller_answers_from_the_current_pose_not_the_latched_pla
     assert phase == CLIMB and math.cos(heading) > 0 and math.sin(heading) > 0  # East and up.
 
 
+def test_a_driver_keeping_the_facing_side_takes_over_a_robot_on_its_own_side_of_square():
+    import math
+
+    import numpy as np
+
+    from ditch_drake.systems.edge_angle_driver import DESCEND, EdgeAngleDriver
+    from ditch_drake.world.environments import get_environment
+    from ditch_drake.world.terrain import DitchTerrain
+
+    terrain = DitchTerrain(get_environment("narrow").terrain)  # Course along x at y = 0; goal (5, 9) across.
+    def driver(keep):
+        return EdgeAngleDriver(terrain, np.array([5.0, 9.0]), 0, EdgeAngleDriverConfig(keep_facing_side=keep))
+
+    in_approach_zone = np.array([0.0, -(terrain.hinge_distance_m + 1.0)])
+    facing_north_west = math.radians(120)  # Toward the ditch, 30 deg off square to the west (-x).
+    heading, sign, _ = driver(False).desired_heading(in_approach_zone, 1.0, DESCEND, heading=facing_north_west)
+    assert sign == 1.0 and math.cos(heading) > 0  # The latched east side: a turn through head-on.
+    heading, sign, phase = driver(True).desired_heading(in_approach_zone, 1.0, DESCEND, heading=facing_north_west)
+    assert (sign, phase) == (-1.0, DESCEND)
+    assert math.cos(heading) < 0 and math.sin(heading) > 0  # West and toward the ditch.
+    assert abs(heading - facing_north_west) < math.radians(45)
+    # Within 15 deg of square on it faces neither side: the side chosen so far, else the convention (east).
+    nearly_square = math.radians(100)
+    assert driver(True).desired_heading(in_approach_zone, -1.0, DESCEND, heading=nearly_square)[1] == -1.0
+    assert driver(True).desired_heading(in_approach_zone, 0.0, DESCEND, heading=nearly_square)[1] == 1.0
+    # On the wall the side stays latched, as without the option.
+    on_near_wall = np.array([0.0, -0.5 * (terrain.toe_distance_m + terrain.hinge_distance_m)])
+    assert driver(True).desired_heading(on_near_wall, 1.0, DESCEND, heading=facing_north_west)[1] == 1.0
+    # Before the approach zone it heads for the goal and chooses nothing.
+    on_the_flat = np.array([0.0, -(terrain.hinge_distance_m + 4.0)])
+    assert driver(True).desired_heading(on_the_flat, 0.0, DESCEND, heading=facing_north_west)[1] == 0.0
+    # The expert's drawn style carries the option into a built driver's context (`set_style`).
+    from ditch_drake.systems.expert import ExpertVariation, draw_expert_style
+
+    style = draw_expert_style(3, ExpertVariation(keep_facing_side=True)).driver
+    built = driver(False)
+    context = built.CreateDefaultContext()
+    built.set_style(context, style)
+    assert style.keep_facing_side and context.get_numeric_parameter(0).get_value()[5] == 1.0
+
+
 def test_the_replanning_driver_itself_gets_through():
     (record,) = driven_trials("narrow", 1, EdgeAngleDriverConfig(replan_each_step=True), seeds=[5], time_step_s=0.02)
     assert record["status"] == "reached_goal"

@@ -203,6 +203,9 @@ def test_an_expert_fallback_that_replans_is_its_own_series_and_row():
     assert [gate_words(r) for r in (latched, replanning, other)] == [
         "gate tip_risk_ahead, budget 0.2, fallback expert", "gate tip_risk_ahead, budget 0.2, fallback expert, replanning",
         "gate tip_risk_ahead, budget 0.2, fallback mppi"]
+    facing = RolloutRecord(**{**latched.__dict__, "controller_config": latched.controller_config.replace(
+        "expert:\n  style_seed: null\n", "expert:\n  style_seed: null\n  variation: {keep_facing_side: true}\n")})
+    assert gate_words(facing) == "gate tip_risk_ahead, budget 0.2, fallback expert, keeping the facing side"
     curves = handover_curves({"latched": [latched, other], "replanning": [replanning]})["k5 on wide"]
     assert {series: [p.summary.successes for p in points] for series, points in curves.items()} == {
         "tip_risk_ahead, fallback expert": [1], "tip_risk_ahead, fallback expert, replanning": [0],

@@ -100,15 +100,22 @@ def gate_budget(gate: dict) -> float | None:
     return float(budget) if isinstance(budget, (int, float)) and not isinstance(budget, bool) else None
 
 
+# The expert's options (`ExpertVariation`) that change how it takes over, as a row names them.
+EXPERT_TAKEOVER_WORDS = {"replan_each_step": "replanning", "keep_facing_side": "keeping the facing side"}
+
+
 def fallback_words(record: RolloutRecord, gate: dict) -> str:
-    """A shared-control record's fallback, e.g. "mppi", and "expert, replanning" for an expert
-    that decides its side and phase afresh from the pose it is handed (`replan_each_step` in its
-    config's `expert:` section) rather than keeping the plan it latched before the wall."""
+    """A shared-control record's fallback, e.g. "mppi"; an expert's with the options set in its
+    config's `expert:` section that change how it takes over (`EXPERT_TAKEOVER_WORDS`), e.g.
+    "expert, replanning" for one that decides its side and phase afresh from the pose it is
+    handed rather than keeping the plan it latched before the wall."""
     fallback = str(gate.get("fallback"))
     if fallback != "expert":
         return fallback
-    replans = any(re.search(r"\breplan_each_step: true\b", line) for line in config_section(record, "expert"))
-    return "expert, replanning" if replans else fallback
+    section = config_section(record, "expert")
+    options = [words for option, words in EXPERT_TAKEOVER_WORDS.items()
+               if any(re.search(rf"\b{option}: true\b", line) for line in section)]
+    return ", ".join([fallback, *options])
 
 
 def gate_words(record: RolloutRecord) -> str:

@@ -1,13 +1,14 @@
 """A scripted driver that crosses a ditch holding an angle to the local edge."""
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from pydrake.common.value import Value
 from pydrake.math import RigidTransform
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.spec import robot
 from ditch_drake.spec.planar import planar_yaw, wrap_to_pi
 from ditch_drake.world.crossing import approach_side
@@ -47,6 +48,13 @@ class EdgeAngleDriverConfig:
             For labelling a learner's states (DAgger): a learner off the latched plan's
             line gets the answer to where it is, not a U-turn back to the plan on a
             steep wall.
+        keep_facing_side: in the approach zone, before the hinge, cross on the side along the
+            edge the robot already faces, wherever it faces more than `straight_across_deg` off
+            square on (else the side chosen so far, or the approach convention's). For a driver
+            that takes over from another one (the shared-control fallback): handed a robot that
+            approaches on one side, a driver latched on the other turns through head-on at the
+            hinge to reach it. Driving alone it changes little, since it turns to the side it
+            chose as it enters the zone and then faces it.
         lead_in: make room for the crossing first. Down the wall at `wall_angle_deg`
             and up at the climb angle the robot travels a long way along the ditch, in
             the narrow ditch more than a 30 m ditch leaves from its middle, and a
@@ -69,6 +77,7 @@ class EdgeAngleDriverConfig:
     speed_mps: float = robot.MAX_SPEED_MPS
     straight_across_deg: float = 15.0
     replan_each_step: bool = False
+    keep_facing_side: bool = field(default=False, metadata=WRITTEN_WHEN_SET)
     lead_in: bool = False
     lead_in_extra_m: float = 1.5
     lead_in_offset_m: float = 1.0
@@ -125,11 +134,11 @@ class EdgeAngleDriver(LeafSystem):
     def _style_vector(config: EdgeAngleDriverConfig) -> np.ndarray:
         climb = np.nan if config.climb_angle_deg is None else config.climb_angle_deg
         return np.array([config.wall_angle_deg, climb, config.approach_margin_m, float(config.replan_each_step),
-                         float(config.lead_in)])
+                         float(config.lead_in), float(config.keep_facing_side)])
 
     def set_style(self, context, config: EdgeAngleDriverConfig) -> None:
-        """Sets the wall and climb angles, the approach margin, `replan_each_step` and
-        `lead_in` in this system's `context`."""
+        """Sets the wall and climb angles, the approach margin, `replan_each_step`, `lead_in`
+        and `keep_facing_side` in this system's `context`."""
         context.get_mutable_numeric_parameter(self._style_index).SetFromVector(self._style_vector(config))
 
     def _path_is_clear(self, xy: np.ndarray) -> bool:
@@ -169,9 +178,10 @@ class EdgeAngleDriver(LeafSystem):
         """Desired heading (rad) at xy, and the along-edge sign and phase to keep.
 
         `style` is [wall angle deg, climb angle deg (NaN: the wall angle), approach
-        margin m, replan each step (0 or 1), lead in (0 or 1)]; None uses the
-        constructor's config.
-        `heading` (rad), the robot's current yaw, is read only when replanning.
+        margin m, replan each step (0 or 1), lead in (0 or 1), keep facing side (0 or 1)];
+        None uses the constructor's config.
+        `heading` (rad), the robot's current yaw, is read only when replanning or keeping
+        the facing side.
 
         Phases: DESCEND until the robot reaches the bottom, then CLIMB, then EXITED
         once it is back on the flat. Holding the phase keeps a curved edge from
@@ -180,7 +190,7 @@ class EdgeAngleDriver(LeafSystem):
         the rim).
         """
         config, terrain = self._config, self._terrain
-        wall_angle_deg, climb_angle_deg, approach_margin_m, replan, lead_in = (
+        wall_angle_deg, climb_angle_deg, approach_margin_m, replan, lead_in, keep_facing_side = (
             self._style_vector(config) if style is None else np.asarray(style, dtype=float))
         to_goal = self._goal_xy - xy
         goal_heading = math.atan2(to_goal[1], to_goal[0])
@@ -196,10 +206,10 @@ class EdgeAngleDriver(LeafSystem):
             # On a wall, keep to the side the robot already faces, unless it faces the edge
             # nearly square on: then the approach convention, so that one observation
             # never gets both sides as labels (see `straight_across_deg`).
-            facing_along = math.cos(heading) * tangent[0] + math.sin(heading) * tangent[1]
-            decisive = abs(facing_along) > math.sin(math.radians(config.straight_across_deg))
-            along_sign = (1.0 if facing_along >= 0.0 else -1.0) if (
-                distance <= terrain.hinge_distance_m and decisive) else 0.0
+            along_sign = self._facing_side(heading, tangent) if distance <= terrain.hinge_distance_m else 0.0
+        if keep_facing_side and phase == DESCEND and (
+                terrain.hinge_distance_m < distance <= terrain.hinge_distance_m + approach_margin_m):
+            along_sign = self._facing_side(heading, tangent) or along_sign
         if phase == CLIMB and distance > terrain.hinge_distance_m:
             phase = EXITED
         if phase == EXITED:
@@ -233,6 +243,14 @@ class EdgeAngleDriver(LeafSystem):
         angle = math.radians(angle)
         direction = math.cos(angle) * along_sign * tangent + math.sin(angle) * cross_sign * toward
         return math.atan2(direction[1], direction[0]), along_sign, phase
+
+    def _facing_side(self, heading: float, tangent: np.ndarray) -> float:
+        """+1 or -1: the side along the edge (`tangent`) that `heading` (rad) faces; 0 within
+        `straight_across_deg` of square on, where it faces neither decisively."""
+        facing_along = math.cos(heading) * tangent[0] + math.sin(heading) * tangent[1]
+        if abs(facing_along) <= math.sin(math.radians(self._config.straight_across_deg)):
+            return 0.0
+        return 1.0 if facing_along >= 0.0 else -1.0
 
     def _update(self, context, discrete_state) -> None:
         X_WB = self._poses_port.Eval(context)[self._chassis_index]

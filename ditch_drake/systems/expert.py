@@ -7,6 +7,7 @@ from pydrake.common import RandomDistribution
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import Adder, DiscreteTimeDelay, MatrixGain, RandomSource
 
+from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.spec import robot, schedule
 from ditch_drake.systems.edge_angle_driver import EdgeAngleDriver, EdgeAngleDriverConfig
 from ditch_drake.systems.window_route import WindowRouteDriver
@@ -27,6 +28,8 @@ class ExpertVariation:
             steering command every control step.
         replan_each_step: see `EdgeAngleDriverConfig` (True for a DAgger labeller
             that answers from the current pose).
+        keep_facing_side: see `EdgeAngleDriverConfig` (True for a fallback that takes over
+            a robot another driver brought into the approach zone).
         lead_in: see `EdgeAngleDriverConfig`: first make room along the ditch when the
             crossing would not fit between the robot and the ditch's end.
     """
@@ -37,6 +40,7 @@ class ExpertVariation:
     reaction_delay_steps: int = 1
     steering_noise_radps: float = 0.05
     replan_each_step: bool = False
+    keep_facing_side: bool = field(default=False, metadata=WRITTEN_WHEN_SET)
     lead_in: bool = False
 
 
@@ -58,6 +62,7 @@ def draw_expert_style(seed: int, variation: ExpertVariation | None = None) -> Ex
         climb_angle_deg=float(rng.uniform(*variation.climb_angle_deg)),
         approach_margin_m=float(rng.uniform(*variation.approach_margin_m)),
         replan_each_step=variation.replan_each_step,
+        keep_facing_side=variation.keep_facing_side,
         lead_in=variation.lead_in,
     )
     delay = int(rng.integers(0, variation.reaction_delay_steps + 1))
