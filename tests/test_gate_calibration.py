@@ -209,6 +209,35 @@ def test_gate_signals_refuses_bad_input_with_exit_2(tmp_path, capsys, options, m
     assert not out.exists()
 
 
+def test_rollover_warnings_time_the_last_handover_before_each_rollover(tmp_path, capsys):
+    from ditch_drake.learning.gate_calibration import load_signals, rollover_warnings
+
+    # Episode 0 rolls over at its last step (9.9 s); episode 1 reaches the goal.
+    rolled = np.zeros(100)
+    rolled[[20, 21]] = 1.0  # A spell of the fallback from 2.0 s, handed back after 5 calm steps.
+    rolled[90:] = 1.0  # The last spell, from 9.0 s to the rollover.
+    path = _signals_file(tmp_path / "s.npz", np.concatenate([rolled, np.ones(100)]))
+    signals = load_signals(path)
+    warnings = rollover_warnings(signals, "mean_softmax_entropy", 0.5, 0.5, calm_steps=5)
+    assert warnings.shape == (1,) and warnings[0] == pytest.approx(0.9)
+    # A gate that hands back within the last spell, or never hands over, gave no warning.
+    assert np.isnan(rollover_warnings(signals, "mean_softmax_entropy", 2.0, 0.5, calm_steps=5)).all()
+    # The gate ignores the warmup's steps: a spell that only they would start (one never handed
+    # back: no step falls below -1) does not count.
+    early = np.zeros(100)
+    early[:2] = 1.0
+    path = _signals_file(tmp_path / "early.npz", np.concatenate([early, np.ones(100)]))
+    assert np.isnan(rollover_warnings(load_signals(path), "mean_softmax_entropy", 0.5, -1.0, 1, warmup_steps=3)).all()
+    assert rollover_warnings(load_signals(path), "mean_softmax_entropy", 0.5, -1.0, 1)[0] == pytest.approx(9.9)
+    # gate-thresholds prints them per budget.
+    assert main(["gate-thresholds", str(tmp_path / "s.npz"), "--signal", "mean_softmax_entropy", "--budget",
+                 "0.1"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    header, row = lines[0].split(), lines[1].split()
+    assert header[-3:] == ["rollovers_warned", "median_warning_s", "least_warning_s"]
+    assert row[header.index("rollovers_warned")] in ("0/1", "1/1")
+
+
 def test_gate_thresholds_prints_what_the_gate_would_set(tmp_path, capsys):
     values = np.random.default_rng(3).gamma(4.0, 0.3, 1000)
     path = _signals_file(tmp_path / "s.npz", values)

@@ -486,12 +486,19 @@ def cmd_gate_thresholds(args) -> int:
     over its episodes, beside what the quantiles at the budget itself (no hysteresis counted) would."""
     import numpy as np
 
-    from ditch_drake.learning.gate_calibration import calibration_values, quantile_thresholds, replay_fallback_share
+    from ditch_drake.learning.gate_calibration import (
+        calibration_values,
+        load_signals,
+        quantile_thresholds,
+        replay_fallback_share,
+        rollover_warnings,
+    )
     from ditch_drake.systems.shared_control import SharedControlConfig
 
     gates = [SharedControlConfig(signal=args.signal, budget=budget, calibration=args.signals, calm_steps=args.calm_steps,
                                  warmup_steps=args.warmup_steps).resolved() for budget in args.budget]
     episodes = calibration_values(args.signals, args.signal)
+    signals = load_signals(args.signals)
     values = np.concatenate([episode[args.warmup_steps:] for episode in episodes])
     rows = []
     for gate in gates:
@@ -501,10 +508,24 @@ def cmd_gate_thresholds(args) -> int:
         rows.append({"budget": f"{gate.budget:g}", "upper_threshold": f"{upper:.4g}", "lower_threshold": f"{lower:.4g}",
                      "quantile_share": f"{np.mean(values > upper):.4f}",
                      "replayed_share": f"{replay_fallback_share(episodes, upper, lower, *replay):.4f}",
-                     "replayed_share_quantile_rule": f"{quantile_rule:.4f}"})
+                     "replayed_share_quantile_rule": f"{quantile_rule:.4f}",
+                     **_warning_columns(rollover_warnings(signals, args.signal, upper, lower, *replay))})
     print_table(rows, list(rows[0]))
     print(f"{args.signal} over {values.size} steps of {len(episodes)} episodes in {args.signals} (the first "
           f"{args.warmup_steps} of each ignored); calm_steps {args.calm_steps}. quantile_share: the share of the steps above the upper threshold; replayed_share: "
           "the fallback's share with the gate replayed over each episode; replayed_share_quantile_rule: the same "
-          "with the quantiles at the budget itself (ThriftyDAgger's rule, the hysteresis not counted).")
+          "with the quantiles at the budget itself (ThriftyDAgger's rule, the hysteresis not counted); "
+          "rollovers_warned: of the episodes that rolled over, those whose last step the replayed gate handed the "
+          "fallback; median_warning_s, least_warning_s: the median and the least time from that handover to the "
+          "rollover, over those (on the policy's own path: a real handover changes what follows).")
     return 0
+
+
+def _warning_columns(warnings) -> dict:
+    """`gate-thresholds`' columns of `rollover_warnings`: how many were warned, and how early."""
+    import numpy as np
+
+    warned = warnings[np.isfinite(warnings)]
+    return {"rollovers_warned": f"{warned.size}/{warnings.size}",
+            "median_warning_s": f"{np.median(warned):.1f}" if warned.size else "-",
+            "least_warning_s": f"{warned.min():.1f}" if warned.size else "-"}

@@ -188,6 +188,38 @@ def replay_fallback_share(sequences, upper_threshold: float, lower_threshold: fl
     return fallback_steps / total_steps if total_steps else 0.0
 
 
+def rollover_warnings(signals: dict, signal: str, upper_threshold: float, lower_threshold: float, calm_steps: int,
+                      warmup_steps: int = 0) -> np.ndarray:
+    """How long before each recorded rollover the gate, replayed over the episode, had handed
+    over: the time (s) from the start of the fallback's last spell to the episode's end, where
+    the fallback drives the last recorded step; NaN where the policy does (the gate never
+    handed over, or handed back before the end). The time a fallback would have had to recover,
+    on the path the policy alone took (after a real handover the robot goes elsewhere).
+
+    Args:
+        signals: a signals file as `load_signals` reads it.
+        signal: the signal the gate reads (one the file recorded).
+        upper_threshold, lower_threshold, calm_steps, warmup_steps: the gate's (`gate_step`).
+
+    Returns:
+        One time per episode that rolled over, in episode order.
+    """
+    values, times = np.asarray(signals[signal], dtype=float), np.asarray(signals["time_s"], dtype=float)
+    episode = np.asarray(signals["episode"], dtype=int)
+    warnings = []
+    for index in np.flatnonzero(np.asarray(signals["episode_status"]) == ROLLED_OVER):
+        steps = np.flatnonzero(episode == index)
+        steps = steps[np.argsort(times[steps], kind="stable")]
+        driver, calm, spell_start = POLICY, 0, math.nan
+        for step, (value, time) in enumerate(zip(values[steps].tolist(), times[steps].tolist())):
+            value = math.nan if step < warmup_steps else value
+            driver, calm, switched = gate_step(driver, calm, value, upper_threshold, lower_threshold, calm_steps)
+            if switched:
+                spell_start = time if driver == FALLBACK else math.nan
+        warnings.append(float(signals["episode_end_time_s"][index]) - spell_start)
+    return np.asarray(warnings, dtype=float)
+
+
 def quantile_thresholds(values, share: float) -> tuple[float, float]:
     """(upper, lower): the (1 - share) quantile of `values` (`threshold_for_budget`), above which
     `share` of them lie, and the (1 - 2 share) quantile, the smallest value for shares of 0.5
