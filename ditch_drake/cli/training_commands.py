@@ -329,6 +329,7 @@ def cmd_train_generalist(args) -> int:
 GATE_SIGNALS = "ditch_drake.evaluation.gate_signals:record_gate_signals"
 AUC = "ditch_drake.learning.gate_calibration:auc_report"
 GATE = "ditch_drake.systems.shared_control:SharedControlConfig"
+TIP_RISK = "ditch_drake.systems.tip_risk:TipRiskConfig"
 # The budgets `gate-thresholds` prints by default: the shared-control study's.
 STUDY_BUDGETS = (0.01, 0.02, 0.05, 0.1, 0.2)
 
@@ -365,11 +366,31 @@ def add_gate_signals(commands: Commands) -> None:
                          help="also record the tip-risk signals: minus the tip margin of the chassis now "
                               "(tip_risk_now) and the least one predicted along the commanded arc on the perceived "
                               "elevation map (tip_risk_ahead), in deg")
+    signals.add_argument("--risk-horizon", type=float, default=ConfigDefault(TIP_RISK, "horizon_s"),
+                         help="with --risk: how long the commanded arc is held for tip_risk_ahead (s; a gate on "
+                              "this file's tip risk needs the same policy.tip_risk.horizon_s)")
     add_workers(signals, "episodes (an (environment, task) pair per item; the signals equal one process's)")
     add_out(signals, "the signals file (.npz), written when every episode has finished, with the AUC table "
                      "beside it as <out>.auc.json; until then the finished episodes are kept in <out>.parts/, and "
                      "the same command again continues (Ctrl-C keeps them); a finished file is refused")
     signals.set_defaults(run=cmd_gate_signals)
+
+
+def _check_risk_horizon(args) -> None:
+    """Raises ConfigError for a --risk-horizon shorter than a control period (or not a number),
+    or one set without --risk."""
+    import math
+
+    from ditch_drake.spec import robot
+    from ditch_drake.systems.tip_risk import TipRiskConfig
+
+    horizon = args.risk_horizon
+    if not (math.isfinite(horizon) and horizon >= robot.CONTROL_PERIOD_S):
+        raise ConfigError(f"--risk-horizon {horizon!r}: expected at least one control period, "
+                          f"{robot.CONTROL_PERIOD_S} s")
+    if not args.risk and horizon != TipRiskConfig.horizon_s:
+        raise ConfigError(f"--risk-horizon {horizon:g} without --risk: it sets the tip-risk signals' arc; expected "
+                          "--risk too")
 
 
 def cmd_gate_signals(args) -> int:
@@ -402,6 +423,7 @@ def cmd_gate_signals(args) -> int:
     check_seed(args.seed, args.rollouts, "--seed")
     check_finite_positive(args.time_limit, "--time-limit")
     check_finite_positive(args.horizon, "--horizon")
+    _check_risk_horizon(args)
     check_workers(args.workers, "--workers")
     from ditch_drake.world.environments import environment_names, get_environment, load_environments
 
@@ -432,7 +454,7 @@ def cmd_gate_signals(args) -> int:
         try:
             _, report = write_signals_file(out, args.checkpoint, digest, runs, args.rollouts, args.seed,
                                            args.time_limit, environments_file, args.horizon, risk=args.risk,
-                                           workers=worker_count(args.workers))
+                                           workers=worker_count(args.workers), risk_horizon_s=args.risk_horizon)
         except KeyboardInterrupt as error:
             print(f"interrupted: the finished episodes are kept in {folder}; run the same command again to continue",
                   file=sys.stderr)

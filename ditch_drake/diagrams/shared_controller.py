@@ -154,13 +154,16 @@ class SharedControlControllerConfig:
 
         Raises:
             ConfigError: as `SharedControlConfig.resolved`, or a calibration file of another
-                checkpoint than the policy's (`check_calibration_policy`).
+                checkpoint than the policy's (`check_calibration_policy`) or, for a risk signal,
+                of another tip-risk horizon (`check_calibration_risk`).
         """
         gate = self.gate.resolved()
         if gate is self.gate:
             return self
         if self.policy.checkpoint and gate.calibration:
             check_calibration_policy(gate.calibration, self.policy.checkpoint)
+        if gate.calibration and gate.signal in RISK_SIGNALS:
+            check_calibration_risk(gate.calibration, self.policy.tip_risk or TipRiskConfig())
         return dataclasses.replace(self, gate=gate)
 
 
@@ -218,6 +221,8 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     checkpoint = config.policy.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
     if config.gate.calibration:
         check_calibration_policy(config.gate.calibration, checkpoint)
+        if config.gate.signal in RISK_SIGNALS:
+            check_calibration_risk(config.gate.calibration, config.policy.tip_risk or TipRiskConfig())
     random_gate = config.gate.signal == RANDOM_SIGNAL
     risk_gate = config.gate.signal in RISK_SIGNALS
     # These gates read no uncertainty of the policy's; the one every checkpoint has is reported.
@@ -283,6 +288,19 @@ def check_calibration_policy(calibration: str, checkpoint: str) -> None:
         raise ConfigError(f"gate.calibration {calibration}: recorded with checkpoint digest {recorded}, the gated "
                           f"policy {checkpoint!r} has {digest}; expected a signals file of this policy "
                           f"(ditch-drake gate-signals --checkpoint {checkpoint})")
+
+
+def check_calibration_risk(calibration: str, tip_risk: TipRiskConfig) -> None:
+    """Raises ConfigError unless the signals file `calibration` recorded its tip risk on arcs of
+    the gate's horizon (`tip_risk.horizon_s`; a file that names none was recorded at the
+    default): a longer arc predicts a smaller margin, so another horizon's quantiles would hand
+    over another share of the steps than the budget."""
+    recorded = float(load_signals(calibration, "gate.calibration").get("tip_risk_horizon_s",
+                                                                       TipRiskConfig.horizon_s))
+    if recorded != tip_risk.horizon_s:
+        raise ConfigError(f"gate.calibration {calibration}: its tip risk was recorded on arcs of {recorded:g} s, the "
+                          f"gate's policy.tip_risk.horizon_s is {tip_risk.horizon_s:g}; expected a signals file "
+                          f"recorded with ditch-drake gate-signals --risk --risk-horizon {tip_risk.horizon_s:g}")
 
 
 def _add_fallback(builder: DiagramBuilder, scene: DitchScene, config: SharedControlControllerConfig,

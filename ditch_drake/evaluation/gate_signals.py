@@ -161,14 +161,17 @@ def parts_folder(out: str | os.PathLike) -> Path:
 
 
 def parts_header(checkpoint_sha256: str, time_limit_s: float, environments_file: str = "",
-                 risk: bool = False) -> dict:
+                 risk: bool = False, risk_horizon_s: float = TipRiskConfig.horizon_s) -> dict:
     """What every episode of a recording depends on besides its (environment, task, seed): a
-    recording continues only with the same (`EpisodeParts.open`)."""
+    recording continues only with the same (`EpisodeParts.open`). The tip risk's horizon is
+    named only where it is not the default, so that a recording begun before it could be set
+    continues."""
     environments = Path(environments_file).resolve() if environments_file else None
+    horizon = {"risk_horizon_s": float(risk_horizon_s)} if risk and risk_horizon_s != TipRiskConfig.horizon_s else {}
     return {"schema": PARTS_SCHEMA, "version": PARTS_VERSION, "checkpoint_sha256": checkpoint_sha256,
             "time_limit_s": float(time_limit_s), "environments_file": str(environments or ""),
             "environments_file_sha256": hashlib.sha256(environments.read_bytes()).hexdigest() if environments else "",
-            "risk": bool(risk)}
+            "risk": bool(risk), **horizon}
 
 
 class EpisodeParts:
@@ -258,10 +261,11 @@ class EpisodeParts:
 def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: int = 10, seed: int = 0,
                         time_limit_s: float = EpisodeConfig.time_limit_s, environments_file: str = "",
                         progress: bool = True, parts: EpisodeParts | None = None, risk: bool = False,
-                        workers: int = 0) -> GateSignals:
+                        workers: int = 0, risk_horizon_s: float = TipRiskConfig.horizon_s) -> GateSignals:
     """Runs `rollouts` episodes (seeds seed ..) of the learned policy of `checkpoint` on each
     (environment, task) of `runs`, ungated, and records every signal it has at every control step;
-    with `risk`, the tip-risk signals too (`ditch_drake.systems.tip_risk`, default config).
+    with `risk`, the tip-risk signals too (`ditch_drake.systems.tip_risk`), the commanded arc
+    held for `risk_horizon_s`.
 
     The episodes are in the order of `runs` and, within one, of their seeds; an (environment,
     task, seed) is run once however often `runs` repeats it. With `parts`, each episode is kept
@@ -290,14 +294,14 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
                           "their episodes in; expected parts, or workers=0")
     if workers:
         _record_in_workers(checkpoint, keys, episodes, rollouts, seed, time_limit_s, environments_file, progress,
-                           parts, risk, workers)
+                           parts, risk, workers, risk_horizon_s)
     for environment, task in dict.fromkeys(runs):
         pending = [key[2] for key in keys if key[:2] == (environment, task) and key not in episodes]
         if not pending:
             continue
         scene = SceneConfig(environment=environment, task=task, environments_file=environments_file,
                             episode=replace(EpisodeConfig(), time_limit_s=time_limit_s))
-        controller = LearnedPolicyConfig(checkpoint, tip_risk=TipRiskConfig() if risk else None)
+        controller = LearnedPolicyConfig(checkpoint, tip_risk=TipRiskConfig(horizon_s=risk_horizon_s) if risk else None)
         diagram, built = MakeRolloutDiagram(RolloutConfig(scene=scene, controller=controller))
         policy = diagram.GetSubsystemByName("learned_policy")
         tip_risk = diagram.GetSubsystemByName("tip_risk") if risk else None
@@ -320,19 +324,20 @@ def record_gate_signals(checkpoint: str, runs: list[tuple[str, int]], rollouts: 
 
 
 def _record_pair(checkpoint: str, environment: str, task: int, rollouts: int, seed: int, time_limit_s: float,
-                 environments_file: str, folder: str, header: dict, risk: bool) -> list[EpisodeSignals]:
+                 environments_file: str, folder: str, header: dict, risk: bool,
+                 risk_horizon_s: float) -> list[EpisodeSignals]:
     """A worker's share of `record_gate_signals`: the episodes of one (environment, task), in
     one diagram, each kept in the parts folder as it finishes (one kept before is not run again)."""
     # Not `EpisodeParts.open`: it clears stale temporaries, which may be another worker's file in writing.
     parts = EpisodeParts(Path(folder), header)
     record_gate_signals(checkpoint, [(environment, task)], rollouts, seed, time_limit_s, environments_file,
-                        progress=False, parts=parts, risk=risk)
+                        progress=False, parts=parts, risk=risk, risk_horizon_s=risk_horizon_s)
     return [parts.finished((environment, task, episode_seed)) for episode_seed in range(seed, seed + rollouts)]
 
 
 def _record_in_workers(checkpoint: str, keys: list[tuple[str, int, int]], episodes: dict, rollouts: int, seed: int,
                        time_limit_s: float, environments_file: str, progress: bool, parts: EpisodeParts, risk: bool,
-                       workers: int) -> None:
+                       workers: int, risk_horizon_s: float) -> None:
     """Runs the episodes of `keys` not in `episodes` in `workers` processes, an (environment,
     task) pair per work item, and adds each to `episodes` as its item ends; a fresh pool per
     workers x `PAIRS_PER_WORKER` pairs (the module docstring)."""
@@ -346,7 +351,7 @@ def _record_in_workers(checkpoint: str, keys: list[tuple[str, int, int]], episod
         pairs = pending[begin:begin + chunk]
         with WorkerPool(min(workers, len(pairs)), initializer=initialize_worker) as pool:
             futures = [pool.submit(_record_pair, checkpoint, environment, task, rollouts, seed, time_limit_s,
-                                   environments_file, str(parts.folder), parts.header, risk)
+                                   environments_file, str(parts.folder), parts.header, risk, risk_horizon_s)
                        for environment, task in pairs]
             for future in as_completed(futures):
                 for episode in future.result():
@@ -361,13 +366,15 @@ def _record_in_workers(checkpoint: str, keys: list[tuple[str, int, int]], episod
 def write_signals_file(out: str | os.PathLike, checkpoint: str, checkpoint_sha256: str, runs: list[tuple[str, int]],
                        rollouts: int, seed: int, time_limit_s: float, environments_file: str = "",
                        horizon_s: float | None = None, progress: bool = True,
-                       risk: bool = False, workers: int = 0) -> tuple[GateSignals, dict]:
+                       risk: bool = False, workers: int = 0,
+                       risk_horizon_s: float = TipRiskConfig.horizon_s) -> tuple[GateSignals, dict]:
     """Records `checkpoint`'s signals (`record_gate_signals`) episode by episode into the parts
     folder beside `out` (continuing what it holds), then writes the signals file `out` and its
     AUC report (`<out>.auc.json`, a rollover within `horizon_s`; None: the default horizon), and
     removes the folder. The caller holds `out` (`exclusive_use`). Ctrl-C keeps the finished
-    episodes in the folder and is re-raised. `risk`: the tip-risk signals too. `workers`: worker
-    processes (0: this one), as `record_gate_signals`.
+    episodes in the folder and is re-raised. `risk`: the tip-risk signals too, on arcs of
+    `risk_horizon_s` (the file says which). `workers`: worker processes (0: this one), as
+    `record_gate_signals`.
 
     Returns:
         The recorded signals and the AUC report.
@@ -379,10 +386,12 @@ def write_signals_file(out: str | os.PathLike, checkpoint: str, checkpoint_sha25
     from ditch_drake.learning.gate_calibration import auc_report, load_signals, save_signals, write_auc_report
 
     folder = parts_folder(out)
-    parts = EpisodeParts.open(folder, parts_header(checkpoint_sha256, time_limit_s, environments_file, risk))
+    parts = EpisodeParts.open(folder, parts_header(checkpoint_sha256, time_limit_s, environments_file, risk,
+                                                   risk_horizon_s))
     recorded = record_gate_signals(checkpoint, runs, rollouts, seed, time_limit_s, environments_file, progress,
-                                   parts=parts, risk=risk, workers=workers)
-    save_signals(out, checkpoint, checkpoint_sha256, recorded.signals, recorded.steps, recorded.episodes)
+                                   parts=parts, risk=risk, workers=workers, risk_horizon_s=risk_horizon_s)
+    save_signals(out, checkpoint, checkpoint_sha256, recorded.signals, recorded.steps, recorded.episodes,
+                 tip_risk_horizon_s=risk_horizon_s if risk else None)
     horizon = {} if horizon_s is None else {"horizon_s": horizon_s}
     report = auc_report(load_signals(out), seed=seed, **horizon)
     write_auc_report(Path(out).with_suffix(".auc.json"), report)

@@ -270,13 +270,17 @@ def budget_thresholds(sequences, budget: float, calm_steps: int = 1, warmup_step
 
 
 def save_signals(path: str | os.PathLike, checkpoint: str, checkpoint_sha256: str, signals: dict[str, np.ndarray],
-                 steps: dict[str, np.ndarray], episodes: dict[str, list]) -> Path:
+                 steps: dict[str, np.ndarray], episodes: dict[str, list],
+                 tip_risk_horizon_s: float | None = None) -> Path:
     """Writes a signals file atomically (.npz, no pickled objects).
 
     Args:
         signals: each signal's values, (N,) by name.
         steps: `STEP_ARRAYS`, (N,) each.
         episodes: `EPISODE_ARRAYS`, (E,) each.
+        tip_risk_horizon_s: with the tip-risk signals, how long their commanded arcs were
+            held (s), kept as "tip_risk_horizon_s" (a file without it was recorded at the
+            default, 2 s).
     """
     arrays = {"schema": np.array(SIGNALS_SCHEMA), "version": np.array(SIGNALS_VERSION),
               "checkpoint": np.array(checkpoint), "checkpoint_sha256": np.array(checkpoint_sha256),
@@ -288,6 +292,8 @@ def save_signals(path: str | os.PathLike, checkpoint: str, checkpoint_sha256: st
               "episode_status": np.array(episodes["episode_status"], dtype=str),
               "episode_end_time_s": np.asarray(episodes["episode_end_time_s"], dtype=float),
               **{name: np.asarray(values, dtype=float) for name, values in signals.items()}}
+    if tip_risk_horizon_s is not None:
+        arrays["tip_risk_horizon_s"] = np.array(float(tip_risk_horizon_s))
     with atomic_output(path) as file:
         np.savez(file, **arrays)
     return Path(path)
@@ -313,6 +319,8 @@ def load_signals(path: str | os.PathLike, what: str = "signals file") -> dict:
     arrays["signals"] = [str(name) for name in arrays["signals"]]
     for name in ("schema", "checkpoint", "checkpoint_sha256"):
         arrays[name] = str(arrays.get(name, ""))
+    if "tip_risk_horizon_s" in arrays:
+        arrays["tip_risk_horizon_s"] = float(arrays["tip_risk_horizon_s"])
     return arrays
 
 
