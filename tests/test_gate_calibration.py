@@ -146,6 +146,33 @@ def test_a_budgeted_shared_config_records_the_thresholds_it_ran_with(tmp_path):
         make_specs(other, "", "narrow", [1], rollouts=1, time_limit_s=2.0)
 
 
+def test_a_risk_gate_takes_its_thresholds_only_from_a_file_of_its_own_arc(tmp_path):
+    from ditch_drake.systems.tip_risk import TipRiskConfig
+
+    values = -np.random.default_rng(5).uniform(3.0, 60.0, 400)
+    half = len(values) // 2
+    times = np.tile(np.arange(half) * 0.1, 2)
+    def risk_file(name, horizon_s):
+        return save_signals(tmp_path / name, "wide", checkpoint_digest("wide"), {"tip_risk_ahead": values},
+                            {"time_s": times, "episode": np.repeat([0, 1], half)},
+                            {"episode_environment": ["wide", "wide"], "episode_task": [1, 1], "episode_seed": [0, 1],
+                             "episode_status": ["rolled_over", "reached_goal"],
+                             "episode_end_time_s": [times[half - 1]] * 2}, tip_risk_horizon_s=horizon_s)
+    gate = SharedControlConfig(signal="tip_risk_ahead", budget=0.05, calibration=str(risk_file("h3.npz", 3.0)))
+    config = dataclasses.replace(SharedControlControllerConfig().with_checkpoint("wide"), gate=gate)
+    assert load_signals(gate.calibration)["tip_risk_horizon_s"] == 3.0
+    with pytest.raises(ConfigError, match="recorded on arcs of 3 s, the gate's policy.tip_risk.horizon_s is 2"):
+        config.resolved()
+    held = dataclasses.replace(config, policy=dataclasses.replace(config.policy, tip_risk=TipRiskConfig(horizon_s=3.0)))
+    assert held.resolved().gate.upper_threshold < 0
+    # A file that names no horizon was recorded at the default.
+    unnamed = dataclasses.replace(config, gate=dataclasses.replace(gate, calibration=str(risk_file("old.npz", None))))
+    assert "tip_risk_horizon_s" not in load_signals(unnamed.gate.calibration)
+    assert unnamed.resolved().gate.upper_threshold < 0
+    with pytest.raises(ConfigError, match="recorded on arcs of 2 s"):
+        dataclasses.replace(unnamed, policy=held.policy).resolved()
+
+
 def test_gate_signals_records_every_step_of_a_short_rollout(tmp_path, capsys):
     out = tmp_path / "signals.npz"
     argv = ["gate-signals", "--workers", "0", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1",
@@ -198,6 +225,8 @@ def test_gate_signals_refuses_a_held_out_split_or_split_options_alone(tmp_path, 
     (["--checkpoint", "no_such.pt"], "no_such.pt"),
     (["--time-limit", "-1"], "--time-limit"),
     (["--workers", "-1"], "--workers=-1"),
+    (["--risk", "--risk-horizon", "0.05"], "--risk-horizon 0.05: expected at least one control period"),
+    (["--risk-horizon", "3"], "--risk-horizon 3 without --risk"),
 ])
 def test_gate_signals_refuses_bad_input_with_exit_2(tmp_path, capsys, options, message):
     out = tmp_path / "s.npz"

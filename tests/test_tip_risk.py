@@ -94,6 +94,14 @@ def test_gate_signals_risk_records_two_more_signals_and_changes_nothing_else(tmp
         assert values.shape == (80,) and np.all(np.isfinite(values)) and np.all(values <= 0.0), name
     # On the flat start the chassis is level; the arc reaches the presumed drop at the edge later.
     assert risk["tip_risk_now"][10] == pytest.approx(-FORE_AFT_TIP_DEG, abs=1.0)
+    # A longer arc covers the shorter one: its least margin ahead is no larger, on the same drive.
+    assert main([*argv, "--risk", "--risk-horizon", "4", "--out", str(tmp_path / "risk4.npz")]) == 0
+    longer = load_signals(tmp_path / "risk4.npz")
+    assert (risk["tip_risk_horizon_s"], longer["tip_risk_horizon_s"]) == (2.0, 4.0)
+    for name in ("mean_softmax_entropy", "tip_risk_now", "time_s"):
+        np.testing.assert_array_equal(longer[name], risk[name], err_msg=name)
+    assert np.all(longer["tip_risk_ahead"] >= risk["tip_risk_ahead"] - 1e-9)
+    assert np.any(longer["tip_risk_ahead"] > risk["tip_risk_ahead"] + 1.0)
 
 
 def test_a_risk_gate_reads_the_tip_risk_of_the_policys_command_and_hands_over_near_the_edge():
