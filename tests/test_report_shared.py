@@ -206,6 +206,17 @@ def test_an_expert_fallback_that_replans_is_its_own_series_and_row():
     facing = RolloutRecord(**{**latched.__dict__, "controller_config": latched.controller_config.replace(
         "expert:\n  style_seed: null\n", "expert:\n  style_seed: null\n  variation: {keep_facing_side: true}\n")})
     assert gate_words(facing) == "gate tip_risk_ahead, budget 0.2, fallback expert, keeping the facing side"
+    # A tip risk on arcs of another length than the default is its own series and row.
+    def on_arcs(record, text):
+        config = record.controller_config
+        assert config.count("\ngate:") == 1
+        return RolloutRecord(**{**record.__dict__, "controller_config": config.replace("\ngate:", text + "\ngate:")})
+    shorter = on_arcs(gated(3, "tip_risk_ahead", 0.2), "\n  tip_risk: {horizon_s: 1.0, presume_drops: true}")
+    default = on_arcs(gated(4, "tip_risk_ahead", 0.2), "\n  tip_risk: {horizon_s: 2.0, presume_drops: true}")
+    assert [gate_words(r) for r in (shorter, default)] == [
+        "gate tip_risk_ahead on 1 s arcs, budget 0.2, fallback expert", "gate tip_risk_ahead, budget 0.2, fallback expert"]
+    curves = handover_curves({"1 s": [shorter], "2 s": [default]})["k5 on wide"]
+    assert sorted(curves) == ["tip_risk_ahead on 1 s arcs, fallback expert", "tip_risk_ahead, fallback expert"]
     curves = handover_curves({"latched": [latched, other], "replanning": [replanning]})["k5 on wide"]
     assert {series: [p.summary.successes for p in points] for series, points in curves.items()} == {
         "tip_risk_ahead, fallback expert": [1], "tip_risk_ahead, fallback expert, replanning": [0],

@@ -118,15 +118,36 @@ def fallback_words(record: RolloutRecord, gate: dict) -> str:
     return ", ".join([fallback, *options])
 
 
+def signal_words(record: RolloutRecord, gate: dict) -> str:
+    """A shared-control record's gate signal, e.g. "angular_rate_spread"; a tip-risk signal on
+    arcs of another length than the default with it, e.g. "tip_risk_ahead on 1 s arcs" (the
+    `tip_risk:` line of its config's `policy:` section)."""
+    import yaml
+
+    from ditch_drake.systems.tip_risk import TipRiskConfig
+
+    signal = str(gate.get("signal"))
+    section = config_section(record, "policy")
+    try:
+        policy = yaml.safe_load("\n".join(section))["policy"] if section else None
+    except yaml.YAMLError:
+        policy = None
+    tip_risk = policy.get("tip_risk") if isinstance(policy, dict) else None
+    horizon = tip_risk.get("horizon_s") if isinstance(tip_risk, dict) else None
+    if isinstance(horizon, (int, float)) and horizon != TipRiskConfig.horizon_s:
+        return f"{signal} on {horizon:g} s arcs"
+    return signal
+
+
 def gate_words(record: RolloutRecord) -> str:
-    """A shared-control record's gate: its signal, budget (where one set the thresholds) and
-    fallback (`fallback_words`), e.g. "gate angular_rate_spread, budget 0.05, fallback expert",
-    from the `gate:` line of its config; "" for any other record."""
+    """A shared-control record's gate: its signal (`signal_words`), budget (where one set the
+    thresholds) and fallback (`fallback_words`), e.g. "gate angular_rate_spread, budget 0.05,
+    fallback expert", from the `gate:` line of its config; "" for any other record."""
     gate = gate_settings(record)
     if not gate:
         return ""
     budget = f", budget {gate['budget']:g}" if gate_budget(gate) is not None else ""
-    return f"gate {gate.get('signal')}{budget}, fallback {fallback_words(record, gate)}"
+    return f"gate {signal_words(record, gate)}{budget}, fallback {fallback_words(record, gate)}"
 
 
 def record_marks(record: RolloutRecord) -> list[str]:

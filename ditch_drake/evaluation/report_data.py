@@ -257,7 +257,13 @@ def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[st
     same place, where the results hold them. Error records count nowhere; a panel without any
     gated run is left out."""
     from ditch_drake.diagrams.controllers import privileged_words
-    from ditch_drake.evaluation.model_labels import fallback_words, gate_budget, gate_settings, gate_words
+    from ditch_drake.evaluation.model_labels import (
+        fallback_words,
+        gate_budget,
+        gate_settings,
+        gate_words,
+        signal_words,
+    )
 
     every = [record for records in records_by_study.values() for record in records]
     name_of = controller_labels(every, marks=False)
@@ -270,7 +276,8 @@ def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[st
             panel = handover_panel(record, name_of(record))
             if is_shared_control(record):
                 gate = gate_settings(record)
-                series = f"{gate.get('signal')}, fallback {fallback_words(record, gate)}" if gate else record.controller
+                series = f"{signal_words(record, gate)}, fallback {fallback_words(record, gate)}" if gate else (
+                    record.controller)
                 if record.privileged:
                     series += f" (privileged: {privileged_words(record.privileged)})"
                 runs[(panel, series, gate_words(record), study)].append(record)
