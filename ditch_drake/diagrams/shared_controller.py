@@ -154,16 +154,14 @@ class SharedControlControllerConfig:
 
         Raises:
             ConfigError: as `SharedControlConfig.resolved`, or a calibration file of another
-                checkpoint than the policy's (`check_calibration_policy`) or, for a risk signal,
-                of another tip-risk horizon (`check_calibration_risk`).
+                checkpoint than the policy's or, for a risk signal, of another tip-risk arc
+                (`check_calibration`).
         """
         gate = self.gate.resolved()
         if gate is self.gate:
             return self
-        if self.policy.checkpoint and gate.calibration:
-            check_calibration_policy(gate.calibration, self.policy.checkpoint)
-        if gate.calibration and gate.signal in RISK_SIGNALS:
-            check_calibration_risk(gate.calibration, self.policy.tip_risk or TipRiskConfig())
+        if gate.calibration:
+            check_calibration(gate.calibration, self.policy.checkpoint, _calibrated_tip_risk(self))
         return dataclasses.replace(self, gate=gate)
 
 
@@ -220,9 +218,7 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     config.validate(meshcat)
     checkpoint = config.policy.checkpoint or environment_model(scene.environment.based_on or scene.environment_name)
     if config.gate.calibration:
-        check_calibration_policy(config.gate.calibration, checkpoint)
-        if config.gate.signal in RISK_SIGNALS:
-            check_calibration_risk(config.gate.calibration, config.policy.tip_risk or TipRiskConfig())
+        check_calibration(config.gate.calibration, checkpoint, _calibrated_tip_risk(config))
     random_gate = config.gate.signal == RANDOM_SIGNAL
     risk_gate = config.gate.signal in RISK_SIGNALS
     # These gates read no uncertainty of the policy's; the one every checkpoint has is reported.
@@ -279,28 +275,32 @@ def random_draw_key(scene: DitchScene) -> str:
     return f"{scene.environment_name}/task{scene.task_index}"
 
 
-def check_calibration_policy(calibration: str, checkpoint: str) -> None:
+def check_calibration(calibration: str, checkpoint: str, tip_risk: TipRiskConfig | None = None) -> None:
     """Raises ConfigError unless the signals file `calibration` was recorded with `checkpoint`'s
-    file (by digest): another policy's signal says nothing of this one's."""
-    recorded = load_signals(calibration, "gate.calibration")["checkpoint_sha256"]
-    digest = checkpoint_digest(checkpoint)
-    if recorded != digest:
-        raise ConfigError(f"gate.calibration {calibration}: recorded with checkpoint digest {recorded}, the gated "
-                          f"policy {checkpoint!r} has {digest}; expected a signals file of this policy "
-                          f"(ditch-drake gate-signals --checkpoint {checkpoint})")
-
-
-def check_calibration_risk(calibration: str, tip_risk: TipRiskConfig) -> None:
-    """Raises ConfigError unless the signals file `calibration` recorded its tip risk on arcs of
-    the gate's horizon (`tip_risk.horizon_s`; a file that names none was recorded at the
-    default): a longer arc predicts a smaller margin, so another horizon's quantiles would hand
-    over another share of the steps than the budget."""
-    recorded = float(load_signals(calibration, "gate.calibration").get("tip_risk_horizon_s",
-                                                                       TipRiskConfig.horizon_s))
-    if recorded != tip_risk.horizon_s:
-        raise ConfigError(f"gate.calibration {calibration}: its tip risk was recorded on arcs of {recorded:g} s, the "
+    file (by digest; "" checks none): another policy's signal says nothing of this one's; and,
+    with `tip_risk`, its tip risk on arcs of `tip_risk.horizon_s` (a file that names none was
+    recorded at the default): a longer arc predicts a smaller margin, so another arc's quantiles
+    would hand over another share of the steps than the budget."""
+    signals = load_signals(calibration, "gate.calibration")
+    if checkpoint:
+        recorded, digest = signals["checkpoint_sha256"], checkpoint_digest(checkpoint)
+        if recorded != digest:
+            raise ConfigError(f"gate.calibration {calibration}: recorded with checkpoint digest {recorded}, the gated "
+                              f"policy {checkpoint!r} has {digest}; expected a signals file of this policy "
+                              f"(ditch-drake gate-signals --checkpoint {checkpoint})")
+    if tip_risk is None:
+        return
+    arc_s = float(signals.get("tip_risk_horizon_s", TipRiskConfig.horizon_s))
+    if arc_s != tip_risk.horizon_s:
+        raise ConfigError(f"gate.calibration {calibration}: its tip risk was recorded on arcs of {arc_s:g} s, the "
                           f"gate's policy.tip_risk.horizon_s is {tip_risk.horizon_s:g}; expected a signals file "
                           f"recorded with ditch-drake gate-signals --risk --risk-horizon {tip_risk.horizon_s:g}")
+
+
+def _calibrated_tip_risk(config: SharedControlControllerConfig) -> TipRiskConfig | None:
+    """The tip risk whose arc a risk gate's calibration file must have been recorded on; None for
+    a gate on another signal."""
+    return (config.policy.tip_risk or TipRiskConfig()) if config.gate.signal in RISK_SIGNALS else None
 
 
 def _add_fallback(builder: DiagramBuilder, scene: DitchScene, config: SharedControlControllerConfig,
