@@ -379,15 +379,15 @@ def add_gate_signals(commands: Commands) -> None:
 def _check_risk_horizon(args) -> None:
     """Raises ConfigError for a --risk-horizon shorter than a control period (or not a number),
     or one set without --risk."""
-    import math
-
     from ditch_drake.spec import robot
     from ditch_drake.systems.tip_risk import TipRiskConfig
 
     horizon = args.risk_horizon
-    if not (math.isfinite(horizon) and horizon >= robot.CONTROL_PERIOD_S):
+    try:
+        TipRiskConfig(horizon_s=horizon).validate()  # The block's own bound, named by the option here.
+    except ConfigError:
         raise ConfigError(f"--risk-horizon {horizon!r}: expected at least one control period, "
-                          f"{robot.CONTROL_PERIOD_S} s")
+                          f"{robot.CONTROL_PERIOD_S} s") from None
     if not args.risk and horizon != TipRiskConfig.horizon_s:
         raise ConfigError(f"--risk-horizon {horizon:g} without --risk: it sets the tip-risk signals' arc; expected "
                           "--risk too")

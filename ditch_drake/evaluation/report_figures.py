@@ -289,7 +289,8 @@ def _figure_study(study: str, summaries: dict, path: Path, number: int) -> Figur
 
 # How a shared-control series is drawn: its fallback's marker; random handover (the chance
 # control) hollow and dashed, so that each gate can be read against it.
-_FALLBACK_MARKERS = {"expert": "o", "expert, replanning": "P", "mppi": "s", "teleop": "^"}
+_FALLBACK_MARKERS = {"expert": "o", "expert, replanning": "P", "expert, keeping the facing side": "D", "mppi": "s",
+                     "teleop": "^"}
 _RANDOM_SIGNAL = "random"
 
 
