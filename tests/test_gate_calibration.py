@@ -267,6 +267,30 @@ def test_rollover_warnings_time_the_last_handover_before_each_rollover(tmp_path,
     assert row[header.index("rollovers_warned")] in ("0/1", "1/1")
 
 
+def test_the_signal_before_each_rollover_is_drawn_with_the_budgets_thresholds(tmp_path, capsys):
+    from ditch_drake.learning.gate_calibration import load_signals, signal_before_rollovers
+    from ditch_drake.learning.uncertainty import GATE_SIGNALS, SIGNAL_UNITS
+
+    # Episode 0 rolls over at 9.9 s; episode 1 reaches the goal and is not drawn.
+    rolled = np.arange(100) / 100.0
+    path = _signals_file(tmp_path / "s.npz", np.concatenate([rolled, np.full(100, 5.0)]))
+    traces = signal_before_rollovers(load_signals(path), "mean_softmax_entropy", 1.0)
+    assert len(traces) == 1
+    before_s, values = traces[0]
+    assert before_s == pytest.approx(np.arange(-1.0, 0.05, 0.1)) and values == pytest.approx(rolled[-11:])
+    assert main(["gate-thresholds", str(path), "--signal", "mean_softmax_entropy", "--budget", "0.05", "0.2",
+                 "--figure", str(tmp_path / "f.png"), "--window", "2"]) == 0
+    assert (tmp_path / "f.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert capsys.readouterr().out.splitlines()[-1] == f"figure: {tmp_path / 'f.png'}"
+    assert set(SIGNAL_UNITS) == set(GATE_SIGNALS)  # Every signal a gate reads has its axis label.
+    for options, message in ((["--window", "2"], "--window 2 without --figure"),
+                             (["--figure", str(tmp_path / "g.png"), "--window", "-1"], "--window=-1.0: expected"),
+                             (["--figure", str(tmp_path / "g.png"), "--window", "nan"], "--window=nan: expected")):
+        assert main(["gate-thresholds", str(path), "--signal", "mean_softmax_entropy", *options]) == 2
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "g.png").exists()
+
+
 def test_gate_thresholds_prints_what_the_gate_would_set(tmp_path, capsys):
     values = np.random.default_rng(3).gamma(4.0, 0.3, 1000)
     path = _signals_file(tmp_path / "s.npz", values)

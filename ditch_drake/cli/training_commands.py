@@ -2,6 +2,7 @@
 gate-thresholds."""
 
 import json
+import os
 import sys
 
 from ditch_drake.cli.options import (
@@ -332,6 +333,9 @@ GATE = "ditch_drake.systems.shared_control:SharedControlConfig"
 TIP_RISK = "ditch_drake.systems.tip_risk:TipRiskConfig"
 # The budgets `gate-thresholds` prints by default: the shared-control study's.
 STUDY_BUDGETS = (0.01, 0.02, 0.05, 0.1, 0.2)
+# gate-thresholds --figure: seconds before each rollover drawn, twice the AUC's failure horizon, so that
+# the steps the AUC counts as coming failures show beside those before them.
+FIGURE_WINDOW_S = 4.0
 
 
 def add_gate_signals(commands: Commands) -> None:
@@ -499,6 +503,12 @@ def add_gate_thresholds(commands: Commands) -> None:
                             help="the gate's hysteresis: calm control steps before it hands back")
     thresholds.add_argument("--warmup-steps", type=int, default=ConfigDefault(GATE, "warmup_steps"),
                             help="control steps at each episode's start whose signal the gate ignores")
+    thresholds.add_argument("--figure", metavar="PNG",
+                            help="also draw the signal before each rollover of the file, with each budget's upper "
+                                 "threshold, into this PNG")
+    thresholds.add_argument("--window", type=float, metavar="S",
+                            help=f"with --figure: the seconds before each rollover it draws (default "
+                                 f"{FIGURE_WINDOW_S:g})")
     thresholds.set_defaults(run=cmd_gate_thresholds)
 
 
@@ -508,15 +518,21 @@ def cmd_gate_thresholds(args) -> int:
     over its episodes, beside what the quantiles at the budget itself (no hysteresis counted) would."""
     import numpy as np
 
+    from ditch_drake.common.checks import check_finite_positive
     from ditch_drake.learning.gate_calibration import (
         calibration_values,
         load_signals,
         quantile_thresholds,
         replay_fallback_share,
         rollover_warnings,
+        signal_before_rollovers,
     )
     from ditch_drake.systems.shared_control import SharedControlConfig
 
+    if args.window is not None and not args.figure:
+        raise ConfigError(f"--window {args.window:g} without --figure: it sets the figure's span; expected --figure PNG "
+                          "beside it")
+    window = check_finite_positive(FIGURE_WINDOW_S if args.window is None else args.window, "--window")
     gates = [SharedControlConfig(signal=args.signal, budget=budget, calibration=args.signals, calm_steps=args.calm_steps,
                                  warmup_steps=args.warmup_steps).resolved() for budget in args.budget]
     episodes = calibration_values(args.signals, args.signal)
@@ -540,6 +556,13 @@ def cmd_gate_thresholds(args) -> int:
           "rollovers_warned: of the episodes that rolled over, those whose last step the replayed gate handed the "
           "fallback; median_warning_s, least_warning_s: the median and the least time from that handover to the "
           "rollover, over those (on the policy's own path: a real handover changes what follows).")
+    if args.figure:
+        from ditch_drake.evaluation.gate_figure import rollover_signal_figure
+
+        traces = signal_before_rollovers(signals, args.signal, window)
+        rollover_signal_figure(traces, args.signal, [(g.budget, g.upper_threshold) for g in gates], args.figure,
+                               f"{args.signal} before the {len(traces)} rollovers of {os.path.basename(args.signals)}")
+        print(f"figure: {args.figure}")
     return 0
 
 

@@ -220,6 +220,24 @@ def rollover_warnings(signals: dict, signal: str, upper_threshold: float, lower_
     return np.asarray(warnings, dtype=float)
 
 
+def signal_before_rollovers(signals: dict, signal: str, window_s: float) -> list[tuple[np.ndarray, np.ndarray]]:
+    """What a gate reading `signal` saw coming: for each episode that rolled over, in episode
+    order, its steps within `window_s` (> 0) of the episode's end as (time before the end (s,
+    <= 0), the signal's value), in time order. On the path the policy alone took, as
+    `rollover_warnings`.
+    """
+    values, times = np.asarray(signals[signal], dtype=float), np.asarray(signals["time_s"], dtype=float)
+    episode = np.asarray(signals["episode"], dtype=int)
+    traces = []
+    for index in np.flatnonzero(np.asarray(signals["episode_status"]) == ROLLED_OVER):
+        steps = np.flatnonzero(episode == index)
+        steps = steps[np.argsort(times[steps], kind="stable")]
+        before = times[steps] - float(signals["episode_end_time_s"][index])
+        kept = before >= -window_s
+        traces.append((before[kept], values[steps][kept]))
+    return traces
+
+
 def quantile_thresholds(values, share: float) -> tuple[float, float]:
     """(upper, lower): the (1 - share) quantile of `values` (`threshold_for_budget`), above which
     `share` of them lie, and the (1 - 2 share) quantile, the smallest value for shares of 0.5

@@ -106,6 +106,9 @@ RISK_SIGNALS = ("tip_risk_now", "tip_risk_ahead")
 # What a shared-control gate may read (`SharedControlConfig.signal`): the policy's uncertainty
 # signals, the risk signals, or the draw.
 GATE_SIGNALS = (*UNCERTAINTY_SIGNALS, *RISK_SIGNALS, RANDOM_SIGNAL)
+# The unit each of them is in, for a table's or a figure's label.
+SIGNAL_UNITS = {"angular_rate_spread": "rad/s", "vote_entropy": "nats", "mean_softmax_entropy": "nats",
+                "tip_risk_now": "deg", "tip_risk_ahead": "deg", RANDOM_SIGNAL: "draw in [0, 1)"}
 
 
 def uncertainty_signal(name: str) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
