@@ -204,19 +204,15 @@ def rollover_warnings(signals: dict, signal: str, upper_threshold: float, lower_
     Returns:
         One time per episode that rolled over, in episode order.
     """
-    values, times = np.asarray(signals[signal], dtype=float), np.asarray(signals["time_s"], dtype=float)
-    episode = np.asarray(signals["episode"], dtype=int)
     warnings = []
-    for index in np.flatnonzero(np.asarray(signals["episode_status"]) == ROLLED_OVER):
-        steps = np.flatnonzero(episode == index)
-        steps = steps[np.argsort(times[steps], kind="stable")]
+    for times, values, end_time in _rolled_over_episodes(signals, signal):
         driver, calm, spell_start = POLICY, 0, math.nan
-        for step, (value, time) in enumerate(zip(values[steps].tolist(), times[steps].tolist())):
+        for step, (value, time) in enumerate(zip(values.tolist(), times.tolist())):
             value = math.nan if step < warmup_steps else value
             driver, calm, switched = gate_step(driver, calm, value, upper_threshold, lower_threshold, calm_steps)
             if switched:
                 spell_start = time if driver == FALLBACK else math.nan
-        warnings.append(float(signals["episode_end_time_s"][index]) - spell_start)
+        warnings.append(end_time - spell_start)
     return np.asarray(warnings, dtype=float)
 
 
@@ -226,16 +222,23 @@ def signal_before_rollovers(signals: dict, signal: str, window_s: float) -> list
     <= 0), the signal's value), in time order. On the path the policy alone took, as
     `rollover_warnings`.
     """
+    traces = []
+    for times, values, end_time in _rolled_over_episodes(signals, signal):
+        before = times - end_time
+        kept = before >= -window_s
+        traces.append((before[kept], values[kept]))
+    return traces
+
+
+def _rolled_over_episodes(signals: dict, signal: str):
+    """Each episode of a signals file that rolled over, in episode order, as (its steps' times
+    (s), `signal` at them, in time order; the episode's end time (s))."""
     values, times = np.asarray(signals[signal], dtype=float), np.asarray(signals["time_s"], dtype=float)
     episode = np.asarray(signals["episode"], dtype=int)
-    traces = []
     for index in np.flatnonzero(np.asarray(signals["episode_status"]) == ROLLED_OVER):
         steps = np.flatnonzero(episode == index)
         steps = steps[np.argsort(times[steps], kind="stable")]
-        before = times[steps] - float(signals["episode_end_time_s"][index])
-        kept = before >= -window_s
-        traces.append((before[kept], values[steps][kept]))
-    return traces
+        yield times[steps], values[steps], float(signals["episode_end_time_s"][index])
 
 
 def quantile_thresholds(values, share: float) -> tuple[float, float]:
