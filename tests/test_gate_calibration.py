@@ -285,7 +285,8 @@ def test_the_signal_before_each_rollover_is_drawn_with_the_budgets_thresholds(tm
     assert set(SIGNAL_UNITS) == set(GATE_SIGNALS)  # Every signal a gate reads has its axis label.
     for options, message in ((["--window", "2"], "--window 2 without --figure"),
                              (["--figure", str(tmp_path / "g.png"), "--window", "-1"], "--window=-1.0: expected"),
-                             (["--figure", str(tmp_path / "g.png"), "--window", "nan"], "--window=nan: expected")):
+                             (["--figure", str(tmp_path / "g.png"), "--window", "nan"], "--window=nan: expected"),
+                             (["--figure", str(tmp_path / "f.png" / "g.png")], "--figure " + str(tmp_path / "f.png"))):
         assert main(["gate-thresholds", str(path), "--signal", "mean_softmax_entropy", *options]) == 2
         assert message in capsys.readouterr().err
     assert not (tmp_path / "g.png").exists()

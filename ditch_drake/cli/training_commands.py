@@ -519,6 +519,7 @@ def cmd_gate_thresholds(args) -> int:
     import numpy as np
 
     from ditch_drake.common.checks import check_finite_positive
+    from ditch_drake.common.files import prepare_output
     from ditch_drake.learning.gate_calibration import (
         calibration_values,
         load_signals,
@@ -533,6 +534,8 @@ def cmd_gate_thresholds(args) -> int:
         raise ConfigError(f"--window {args.window:g} without --figure: it sets the figure's span; expected --figure PNG "
                           "beside it")
     window = check_finite_positive(FIGURE_WINDOW_S if args.window is None else args.window, "--window")
+    if args.figure:
+        prepare_output(args.figure, "--figure")
     gates = [SharedControlConfig(signal=args.signal, budget=budget, calibration=args.signals, calm_steps=args.calm_steps,
                                  warmup_steps=args.warmup_steps).resolved() for budget in args.budget]
     episodes = calibration_values(args.signals, args.signal)
