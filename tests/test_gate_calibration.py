@@ -292,6 +292,29 @@ def test_the_signal_before_each_rollover_is_drawn_with_the_budgets_thresholds(tm
     assert not (tmp_path / "g.png").exists()
 
 
+def test_gate_auc_prints_each_signals_auc_at_each_horizon_from_the_file(tmp_path, capsys):
+    from ditch_drake.learning.gate_calibration import load_signals, signal_aucs
+
+    # The signal rises over the last second of the episode that rolls over: it foresees a
+    # rollover within 1 s well, and within 3 s less well.
+    rolled = np.zeros(100)
+    rolled[90:] = 1.0
+    path = _signals_file(tmp_path / "s.npz", np.concatenate([rolled, np.zeros(100)]))
+    assert main(["gate-auc", str(path), "--horizon", "1", "3"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    header, rows = lines[0].split(), [line.split() for line in lines[1:3]]
+    assert header[:3] == ["horizon_s", "signal", "auc"]
+    assert [(row[0], row[1]) for row in rows] == [("1", "mean_softmax_entropy"), ("3", "mean_softmax_entropy")]
+    expected = [signal_aucs(load_signals(path), horizon)[0]["auc"] for horizon in (1.0, 3.0)]
+    assert [float(row[2]) for row in rows] == pytest.approx(expected, abs=5e-4)
+    assert expected[0] > 0.9 > 0.7 > expected[1]
+    for options, message in ((["--horizon", "0"], "--horizon=0.0: expected"),
+                             (["--seed", "-1"], "--seed=-1: expected")):
+        assert main(["gate-auc", str(path), *options]) == 2
+        assert message in capsys.readouterr().err
+    assert main(["gate-auc", str(tmp_path / "nowhere.npz")]) == 2
+
+
 def test_gate_thresholds_prints_what_the_gate_would_set(tmp_path, capsys):
     values = np.random.default_rng(3).gamma(4.0, 0.3, 1000)
     path = _signals_file(tmp_path / "s.npz", values)

@@ -404,8 +404,6 @@ def cmd_gate_signals(args) -> int:
     continues; with other settings it is refused (exit 2). The signals file and its report are
     written once all have finished, and the folder is then removed: a finished --out is refused.
     """
-    import math
-
     from ditch_drake.common.checks import check_count, check_finite_positive
     from ditch_drake.common.files import exclusive_use, prepare_output
     from ditch_drake.common.parallel import worker_count
@@ -464,13 +462,52 @@ def cmd_gate_signals(args) -> int:
                   file=sys.stderr)
             return interrupt_exit_code(error)
 
+    _print_auc_rows(report["rows"])
+    print(f"signals: {out}\nAUC of a rollover within {args.horizon} s: {report_path}")
+    return 0
+
+
+def _print_auc_rows(rows: list[dict], first: tuple[str, ...] = ()) -> None:
+    """The AUC table of `signal_aucs` rows, the columns `first` before the signal's."""
+    import math
+
     def number(value: float) -> str:
         return "-" if math.isnan(value) else f"{value:.3f}"
 
     print_table([{**row, "auc": number(row["auc"]), "95% interval": f"[{number(row['ci_low'])}, "
-                  f"{number(row['ci_high'])}]"} for row in report["rows"]],
-                ["signal", "auc", "95% interval", "positive_steps", "steps", "rolled_over_episodes", "episodes"])
-    print(f"signals: {out}\nAUC of a rollover within {args.horizon} s: {report_path}")
+                  f"{number(row['ci_high'])}]"} for row in rows],
+                [*first, "signal", "auc", "95% interval", "positive_steps", "steps", "rolled_over_episodes", "episodes"])
+
+
+def add_gate_auc(commands: Commands) -> None:
+    auc = commands.add("gate-auc", "how far ahead each signal of a signals file foresees a rollover: the AUC of "
+                                   "\"a rollover within H s\" for each horizon H, from the file as recorded")
+    auc.add_argument("signals", help="a signals file of ditch-drake gate-signals")
+    auc.add_argument("--horizon", type=float, nargs="+", default=ConfigDefault(AUC, "horizon_s"),
+                     help="seconds: a step is labelled a coming failure where its episode rolls over within this "
+                          "long after it (one table row per signal and horizon)")
+    auc.add_argument("--seed", type=int, default=ConfigDefault(AUC, "seed"),
+                     help="seed of the bootstrap over the episodes that gives each interval")
+    auc.set_defaults(run=cmd_gate_auc)
+
+
+def cmd_gate_auc(args) -> int:
+    """Prints `signal_aucs` of the file at each --horizon: what `gate-signals` reports at its one
+    horizon, without recording the rollouts again."""
+    from ditch_drake.common.checks import check_finite_positive
+    from ditch_drake.learning.gate_calibration import load_signals, signal_aucs
+
+    given = args.horizon if isinstance(args.horizon, list) else [args.horizon]  # The default is one number.
+    horizons = [check_finite_positive(horizon, "--horizon") for horizon in given]
+    check_seed(args.seed, where="--seed")
+    signals = load_signals(args.signals)
+    rows = []
+    for done, horizon in enumerate(horizons, start=1):  # Each horizon bootstraps every signal: seconds apiece.
+        rows += [{"horizon_s": f"{horizon:g}", **row} for row in signal_aucs(signals, horizon, args.seed)]
+        print(f"gate-auc: {done}/{len(horizons)} horizons", file=sys.stderr, flush=True)
+    _print_auc_rows(rows, ("horizon_s",))
+    print(f"{args.signals}: {len(signals['episode_status'])} episodes, checkpoint {signals['checkpoint']}; 95% "
+          "intervals from resampling the episodes")
     return 0
 
 
