@@ -100,9 +100,10 @@ def test_the_paper_study_plans_a_k5_ensemble_per_ditch_its_gates_their_random_co
     assert len(evaluations) == 26
 
 
-def test_the_mppi_experiment_is_the_paper_studys_mppi_part_on_the_same_ensembles():
+@pytest.mark.parametrize("fallback", ["expert", "mppi"])
+def test_each_fallbacks_experiment_is_that_part_of_the_paper_study_on_the_same_ensembles(fallback):
     paper = load_experiment("experiments/paper.yaml")
-    config = load_experiment("experiments/shared_control_mppi.yaml")
+    config = load_experiment(f"experiments/shared_control_{fallback}.yaml")
     models, evaluations = plan(config)
     # The same recipe, demonstrations and files: paper.yaml's study then reuses these ensembles.
     assert (config.training, config.seed, config.demos_dir, config.rollouts, config.time_limit_s) == (
@@ -110,16 +111,17 @@ def test_the_mppi_experiment_is_the_paper_studys_mppi_part_on_the_same_ensembles
     assert [str(model_path(config, m)) for m in models] == [f"models/paper/{env}_40_k5.pt" for env in PAPER]
     _, paper_evaluations = plan(paper, only_studies=["shared_control"])
 
-    def mppi_part(evaluations):
+    def fallback_part(evaluations):
         return [(e.environment, e.controller, e.seed, e.config.policy.checkpoint, replace(e.config.gate, calibration=""))
                 if e.controller == "shared" else (e.environment, e.controller, e.seed, e.config)
-                for e in evaluations if e.controller == "shared" and e.config.gate.fallback == "mppi"
+                for e in evaluations if e.controller == "shared" and e.config.gate.fallback == fallback
                 or e.controller == "learned" and e.config.checkpoint.endswith("_k5.pt")]
 
-    assert mppi_part(evaluations) == mppi_part(paper_evaluations)
+    assert fallback_part(evaluations) == fallback_part(paper_evaluations)
     assert len(evaluations) == 4 * (1 + 5 * 2)
     assert {e.config.gate.calibration for e in evaluations if e.controller == "shared"
-            and e.config.gate.signal != "random"} == {f"results/shared_control_mppi/gate/{env}_40_k5.npz" for env in PAPER}
+            and e.config.gate.signal != "random"} == {
+        f"results/shared_control_{fallback}/gate/{env}_40_k5.npz" for env in PAPER}
 
 
 def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_its_name():
