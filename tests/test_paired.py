@@ -64,3 +64,40 @@ def test_bad_inputs_exit_2_naming_the_file(tmp_path, capsys):
     apart = _write(tmp_path / "apart.jsonl", [record("elsewhere", 0, True)])
     assert main(["paired", first, apart]) == 2
     assert "share no rollout" in capsys.readouterr().err
+
+
+def gated(env: str, success: bool, signal: str, budget: float, fallback: str = "mppi") -> RolloutRecord:
+    """A shared-control record of `env` task 0 seed 0 whose config's gate has these values; each
+    environment's series has a config (thresholds) of its own, as an experiment's have."""
+    from dataclasses import replace
+
+    config = f"policy: {{checkpoint: {env}_k5.pt}}\ngate:\n  signal: {signal}\n  budget: {budget}\n  fallback: {fallback}\n"
+    return replace(record(env, 0, success), controller_config=config, controller_sha256=f"{env}{signal}{budget}")
+
+
+def test_where_takes_one_series_from_a_file_of_several(tmp_path, capsys):
+    # Four environments; at 5 % the gate crosses d0-d2 and random handover d0 and d3; the 20 %
+    # series and an ungated run are in the same file and are left out.
+    study = ([gated(f"d{i}", i < 3, "angular_rate_spread", 0.05) for i in range(4)]
+             + [gated(f"d{i}", i in (0, 3), "random", 0.05) for i in range(4)]
+             + [gated(f"d{i}", False, "random", 0.2) for i in range(4)]
+             + [record(f"d{i}", 0, True, controller="learned") for i in range(4)])
+    path = _write(tmp_path / "study.jsonl", study)
+    assert main(["paired", path, path, "--a-where", "signal=angular_rate_spread", "--b-where",
+                 "signal=random,budget=0.050,fallback=mppi"]) == 0
+    printed = json.loads(capsys.readouterr().out)
+    assert (printed["matched"], printed["both"], printed["neither"], printed["only_a"], printed["only_b"]) == (
+        4, 1, 0, 2, 1)
+    assert (printed["a_where"], printed["b_where"]) == ("signal=angular_rate_spread", "signal=random,budget=0.050,fallback=mppi")
+    assert main(["paired", path, path, "--a-where", "controller=learned", "--b-where", "budget=0.2"]) == 0
+    assert json.loads(capsys.readouterr().out)["only_a"] == 4
+    # Without a selection the file holds several runs; a selection of two runs, or of none, or
+    # a term that is not KEY=VALUE of a known key, is refused, naming what was given.
+    for where, words in ((None, "or --a-where to select one"),
+                         ("signal=random", "selects 4 rollouts of"),
+                         ("fallback=expert", "no record of"),
+                         ("checkpoint=x", "'checkpoint=x' is not KEY=VALUE with KEY one of controller"),
+                         ("budget=five", "budget 'five' is not a number")):
+        assert main(["paired", path, path, *(["--a-where", where] if where else []), "--b-where",
+                     "controller=learned"]) == 2
+        assert words in capsys.readouterr().err

@@ -282,32 +282,61 @@ def add_paired(commands: Commands) -> None:
     paired = commands.add("paired", "two runs on the same rollouts compared rollout by rollout (McNemar's exact test)")
     paired.add_argument("a", help="the first results file (*.jsonl)")
     paired.add_argument("b", help="the second results file, with rollouts of the same environments, tasks and seeds")
+    for side in ("a", "b"):
+        paired.add_argument(f"--{side}-where", default=None, metavar="KEY=VALUE[,KEY=VALUE]",
+                            help=f"compare only the records of {side} with these values, to take one run from a file "
+                                 "of several (an experiment's): KEY is controller, environment, or a gate's signal, "
+                                 "budget or fallback, e.g. signal=random,budget=0.05,fallback=mppi")
     paired.set_defaults(run=cmd_paired)
 
 
 def cmd_paired(args) -> int:
     """Prints one JSON object: the rollouts both files have an outcome of, where both, neither,
-    or only one reached the goal, and McNemar's exact p-value (`paired_comparison`)."""
+    or only one reached the goal, and McNemar's exact p-value (`paired_comparison`). Without
+    `--a-where` a file must hold one run; with it, the selected records one outcome per rollout
+    (a series of an experiment runs each environment with thresholds, so a config, of its own)."""
     import dataclasses
+    from collections import Counter
     from pathlib import Path
 
+    from ditch_drake.evaluation.model_labels import parse_selection, record_matches
     from ditch_drake.evaluation.results import read_records
     from ditch_drake.evaluation.statistics import paired_comparison
 
+    selections = {side: parse_selection(where, f"--{side}-where") if where is not None else None
+                  for side, where in (("a", args.a_where), ("b", args.b_where))}
     for path in (args.a, args.b):
         if not Path(path).is_file():
             raise ConfigError(f"no results file at {path}; expected a .jsonl of evaluate or benchmark")
-    (a, _), (b, _) = read_records(args.a), read_records(args.b)
-    for path, records in ((args.a, a), (args.b, b)):
-        runs = {(r.controller, r.controller_sha256, r.checkpoint) for r in records}
-        if len(runs) > 1:
-            raise ConfigError(f"{path} holds rollouts of {len(runs)} controllers or checkpoints; expected one run per "
-                              "file (a benchmark's or an evaluate's --out)")
-    comparison = paired_comparison(a, b)
+    compared = {}
+    for side, path in (("a", args.a), ("b", args.b)):
+        records, _ = read_records(path)
+        selection = selections[side]
+        if selection is None:
+            runs = {(r.controller, r.controller_sha256, r.checkpoint) for r in records}
+            if len(runs) > 1:
+                raise ConfigError(f"{path} holds rollouts of {len(runs)} controllers or checkpoints; expected one run "
+                                  f"per file (a benchmark's or an evaluate's --out), or --{side}-where to select one")
+        else:
+            records = [r for r in records if record_matches(r, selection)]
+            if not records:
+                raise ConfigError(f"no record of {path} has --{side}-where {getattr(args, f'{side}_where')!r}; "
+                                  "expected a selection that some records match")
+            repeated = [key for key, count in Counter((r.environment, r.task, r.seed) for r in records
+                                                      if not r.is_error).items() if count > 1]
+            if repeated:
+                environment, task, seed = repeated[0]
+                raise ConfigError(f"--{side}-where {getattr(args, f'{side}_where')!r} selects {len(repeated)} rollouts "
+                                  f"of {path} more than once (e.g. {environment} task {task} seed {seed}); expected "
+                                  "one run: add a key, e.g. signal, budget or fallback")
+        compared[side] = records
+    comparison = paired_comparison(compared["a"], compared["b"])
     if comparison.matched == 0:
         raise ConfigError(f"{args.a} and {args.b} share no rollout (environment, task, seed) with an outcome; "
                           "expected two runs on the same rollouts")
-    print(json.dumps({"a": args.a, "b": args.b, **dataclasses.asdict(comparison)}))
+    where = {f"{side}_where": getattr(args, f"{side}_where") for side in ("a", "b")
+             if getattr(args, f"{side}_where") is not None}
+    print(json.dumps({"a": args.a, "b": args.b, **where, **dataclasses.asdict(comparison)}))
     return 0
 
 

@@ -100,6 +100,48 @@ def gate_budget(gate: dict) -> float | None:
     return float(budget) if isinstance(budget, (int, float)) and not isinstance(budget, bool) else None
 
 
+# What `record_matches` can select records by: the record's own fields, and a gated record's gate.
+RECORD_FIELDS = ("controller", "environment")
+GATE_FIELDS = ("signal", "budget", "fallback")
+
+
+def parse_selection(text: str, option: str) -> dict[str, str]:
+    """"signal=random,budget=0.05" as {"signal": "random", "budget": "0.05"}; raises ConfigError
+    naming `option` for a term that is not KEY=VALUE with a key of `RECORD_FIELDS` or
+    `GATE_FIELDS`, or a budget that is not a number."""
+    from ditch_drake.common.errors import ConfigError
+
+    selection = {}
+    for term in text.split(","):
+        key, equals, value = (part.strip() for part in term.partition("="))
+        if not equals or not value or key not in RECORD_FIELDS + GATE_FIELDS:
+            raise ConfigError(f"{option} {text!r}: {term.strip()!r} is not KEY=VALUE with KEY one of "
+                              f"{', '.join(RECORD_FIELDS + GATE_FIELDS)}")
+        if key == "budget":
+            try:
+                float(value)
+            except ValueError:
+                raise ConfigError(f"{option} {text!r}: budget {value!r} is not a number") from None
+        selection[key] = value
+    return selection
+
+
+def record_matches(record: RolloutRecord, selection: dict[str, str]) -> bool:
+    """Whether a record has every value of a `parse_selection`; a gate's key matches only a
+    shared-control record whose gate has that value (a budget compared as a number)."""
+    gate = gate_settings(record)
+    for key, value in selection.items():
+        if key in RECORD_FIELDS:
+            if str(getattr(record, key)) != value:
+                return False
+        elif key == "budget":
+            if gate_budget(gate) is None or gate_budget(gate) != float(value):
+                return False
+        elif str(gate.get(key)) != value:
+            return False
+    return True
+
+
 # The expert's options (`ExpertVariation`) that change how it takes over, as a row names them.
 EXPERT_TAKEOVER_WORDS = {"replan_each_step": "replanning", "keep_facing_side": "keeping the facing side"}
 
