@@ -4,6 +4,7 @@ who drove at their end), no such table where no
 record is of shared control, the Models row of an ensemble file, and success against the fallback's share of
 the steps (the points of each gated run beside the policy alone, and the figure)."""
 
+import re
 from pathlib import Path
 
 import torch
@@ -189,6 +190,17 @@ def test_a_page_with_gated_runs_draws_success_against_the_fallbacks_share(tmp_pa
     assert (tmp_path / "img" / "fig_shared_control.png").stat().st_size > 0
     plain = write(tmp_path / "plain" / "plain.jsonl", [record(i, controller="dwa") for i in range(2)])
     assert "fig_shared_control" not in write_report([plain], tmp_path / "plain.md", tmp_path / "plain_img").read_text()
+
+
+def test_an_experiments_shared_control_file_keeps_its_success_bars_beside_the_handover_figure(tmp_path):
+    # The experiment writes its shared_control study to shared_control.jsonl, whose bars take the
+    # name the handover figure has on other pages.
+    records = [r for rs in curve_records().values() for r in rs]
+    results = write(tmp_path / "results" / "shared_control.jsonl", records)
+    page = write_report([results], tmp_path / "page.md", tmp_path / "img").read_text()
+    drawn = re.findall(r"!\[[^]]*\]\((img/[^)]+)\)", page)
+    assert drawn == ["img/fig_shared_control.png", "img/fig_shared_control_handover.png"]
+    assert all((tmp_path / path).stat().st_size > 0 for path in drawn)
 
 
 def test_an_expert_fallback_that_replans_is_its_own_series_and_row():

@@ -398,5 +398,9 @@ def draw_figures(data: ReportData, figures_dir: Path,
         name = re.sub(r"[^A-Za-z0-9_.+-]", "_", study)
         figures.append(_figure_study(study, summaries[study], figures_dir / f"fig_{name}.png", len(figures) + 1))
     if curves := handover_curves(data.records):
-        figures.append(_figure_shared_control(curves, figures_dir / "fig_shared_control.png", len(figures) + 1))
+        # An experiment's study named shared_control has drawn its success bars at this name already.
+        path = figures_dir / "fig_shared_control.png"
+        if any(figure.path == path for figure in figures):
+            path = figures_dir / "fig_shared_control_handover.png"
+        figures.append(_figure_shared_control(curves, path, len(figures) + 1))
     return figures, missing
