@@ -303,39 +303,37 @@ def cmd_paired(args) -> int:
     from ditch_drake.evaluation.results import read_records
     from ditch_drake.evaluation.statistics import paired_comparison
 
-    selections = {side: parse_selection(where, f"--{side}-where") if where is not None else None
-                  for side, where in (("a", args.a_where), ("b", args.b_where))}
+    wheres = {"a": args.a_where, "b": args.b_where}
+    selections = {side: parse_selection(where, f"--{side}-where") for side, where in wheres.items() if where is not None}
     for path in (args.a, args.b):
         if not Path(path).is_file():
             raise ConfigError(f"no results file at {path}; expected a .jsonl of evaluate or benchmark")
     compared = {}
     for side, path in (("a", args.a), ("b", args.b)):
         records, _ = read_records(path)
-        selection = selections[side]
-        if selection is None:
+        if side not in selections:
             runs = {(r.controller, r.controller_sha256, r.checkpoint) for r in records}
             if len(runs) > 1:
                 raise ConfigError(f"{path} holds rollouts of {len(runs)} controllers or checkpoints; expected one run "
                                   f"per file (a benchmark's or an evaluate's --out), or --{side}-where to select one")
         else:
-            records = [r for r in records if record_matches(r, selection)]
+            records = [r for r in records if record_matches(r, selections[side])]
             if not records:
-                raise ConfigError(f"no record of {path} has --{side}-where {getattr(args, f'{side}_where')!r}; "
-                                  "expected a selection that some records match")
+                raise ConfigError(f"no record of {path} has --{side}-where {wheres[side]!r}; expected a selection "
+                                  "that some records match")
             repeated = [key for key, count in Counter((r.environment, r.task, r.seed) for r in records
                                                       if not r.is_error).items() if count > 1]
             if repeated:
                 environment, task, seed = repeated[0]
-                raise ConfigError(f"--{side}-where {getattr(args, f'{side}_where')!r} selects {len(repeated)} rollouts "
-                                  f"of {path} more than once (e.g. {environment} task {task} seed {seed}); expected "
-                                  "one run: add a key, e.g. signal, budget or fallback")
+                raise ConfigError(f"--{side}-where {wheres[side]!r} selects {len(repeated)} rollouts of {path} more "
+                                  f"than once (e.g. {environment} task {task} seed {seed}); expected one run: add a "
+                                  "key, e.g. signal, budget or fallback")
         compared[side] = records
     comparison = paired_comparison(compared["a"], compared["b"])
     if comparison.matched == 0:
         raise ConfigError(f"{args.a} and {args.b} share no rollout (environment, task, seed) with an outcome; "
                           "expected two runs on the same rollouts")
-    where = {f"{side}_where": getattr(args, f"{side}_where") for side in ("a", "b")
-             if getattr(args, f"{side}_where") is not None}
+    where = {f"{side}_where": wheres[side] for side in selections}
     print(json.dumps({"a": args.a, "b": args.b, **where, **dataclasses.asdict(comparison)}))
     return 0
 
