@@ -233,3 +233,20 @@ def test_an_expert_fallback_that_replans_is_its_own_series_and_row():
     assert {series: [p.summary.successes for p in points] for series, points in curves.items()} == {
         "tip_risk_ahead, fallback expert": [1], "tip_risk_ahead, fallback expert, replanning": [0],
         "tip_risk_ahead, fallback mppi": [1]}
+
+
+def test_a_study_of_one_model_per_environment_draws_a_bar_per_gate_not_per_model():
+    from ditch_drake.evaluation.report_figures import bar_series
+
+    gated = "gate random, budget 0.05, fallback mppi"
+    per_ditch = {(f"{env}_40_k5", env): env for env in ("crater", "wide")} | {
+        (f"{env}_40_k5 ({gated})", env): f"{env} gated" for env in ("crater", "wide")}
+    series, bars = bar_series(per_ditch)
+    assert series == ["each environment's model alone", gated]
+    assert bars[(gated, "wide")] == "wide gated" and bars[("each environment's model alone", "crater")] == "crater"
+    # Models evaluated in several environments, or two of one environment without marks, keep a
+    # bar each, as before.
+    across = {("wide", "wide"): 1, ("wide", "narrow"): 2, ("narrow", "narrow"): 3}
+    assert bar_series(across) == (["narrow", "wide"], across)
+    clash = {("a", "wide"): 1, ("b", "wide"): 2, ("c", "narrow"): 3}
+    assert bar_series(clash) == (["a", "b", "c"], clash)

@@ -264,17 +264,42 @@ def _figure_amalgam(env: str, amalgam: dict, singles: dict, path: Path, number: 
     return Figure(path, caption)
 
 
-def _figure_study(study: str, summaries: dict, path: Path, number: int) -> Figure:
-    """Any other results file: success rate per model (bars) and environment (groups)."""
-    envs = sorted({e for (_, e) in summaries})
+# The series of bars of the rows without marks where each environment has a model of its own.
+UNMARKED_SERIES = "each environment's model alone"
+
+
+def _marks(label: str) -> str:
+    """A row label's marks, e.g. "gate random, budget 0.05, fallback mppi" of "crater_40_k5 (gate
+    random, budget 0.05, fallback mppi)"; `UNMARKED_SERIES` for a label without any."""
+    _, bracket, marks = label.partition(" (")
+    return marks.removesuffix(")") if bracket else UNMARKED_SERIES
+
+
+def bar_series(summaries: dict) -> tuple[list[str], dict]:
+    """The series of a study's bars and the summaries by (series, environment): a series per
+    model; but where every model ran in one environment only (an experiment's ensemble per
+    ditch, each gated several ways), a series per row marks (`_marks`, the ungated first), so
+    that no group holds the other environments' models as empty bars."""
+    envs = {e for (_, e) in summaries}
     models = sorted({m for (m, _) in summaries})
+    by_marks = {(_marks(m), e): summary for (m, e), summary in summaries.items()}
+    if len(envs) > 1 and len(models) == len(summaries) == len(by_marks):
+        return sorted({m for (m, _) in by_marks}, key=lambda m: (m != UNMARKED_SERIES, m)), by_marks
+    return models, summaries
+
+
+def _figure_study(study: str, summaries: dict, path: Path, number: int) -> Figure:
+    """Any other results file: success rate per series of `bar_series` (bars) and environment
+    (groups)."""
+    envs = sorted({e for (_, e) in summaries})
+    models, bars = bar_series(summaries)
     width = 0.8 / len(models)
     fig, ax = plt.subplots(figsize=(max(6.0, 1.2 + 0.5 * len(envs) * len(models)), 3.8))
-    colours = plt.get_cmap("tab10")
+    colours, count = (plt.get_cmap("tab10"), 10) if len(models) <= 10 else (plt.get_cmap("tab20"), 20)
     for j, model in enumerate(models):
-        style = _AMALGAM if "+" in model else {"color": colours(j % 10)}
+        style = _AMALGAM if "+" in model else {"color": colours(j % count)}
         _bars(ax, [i + (j - (len(models) - 1) / 2) * width for i in range(len(envs))],
-              [summaries.get((model, env)) for env in envs], width, label=model, **style)
+              [bars.get((model, env)) for env in envs], width, label=model, **style)
     ax.set_xticks(range(len(envs)), envs)
     ax.set_title(f"{study}: success per model and environment")
     _success_axis(ax)
