@@ -218,6 +218,13 @@ def unmarked(label: str) -> str:
     return label.split(" (", 1)[0]
 
 
+def label_marks(label: str) -> str:
+    """A `controller_labels` label's marks, the rest of `unmarked` ("generalist (oracle side)" ->
+    "oracle side"); "" for a label without any."""
+    _, bracket, marks = label.partition(" (")
+    return marks.removesuffix(")") if bracket else ""
+
+
 def controller_labels(records: list[RolloutRecord], marks: bool = True) -> Callable[[RolloutRecord], str]:
     """Each record's controller as the page names it: `model_label` (the checkpoint's file
     stem), preceded by its folder where checkpoints of one stem lie in several, followed by its

@@ -23,7 +23,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
 from ditch_drake.common.files import save_figure
-from ditch_drake.evaluation.model_labels import model_demos, model_environments
+from ditch_drake.evaluation.model_labels import label_marks, model_demos, model_environments
 from ditch_drake.evaluation.paper_findings import CONTROLLER_NAMES, DWA, PAPER_MOVE_BASE, MustCross
 from ditch_drake.evaluation.report_data import ALONE, STUDIES, HandoverPoint, ReportData, handover_curves
 from ditch_drake.evaluation.statistics import counted
@@ -268,21 +268,14 @@ def _figure_amalgam(env: str, amalgam: dict, singles: dict, path: Path, number: 
 UNMARKED_SERIES = "each environment's model alone"
 
 
-def _marks(label: str) -> str:
-    """A row label's marks, e.g. "gate random, budget 0.05, fallback mppi" of "crater_40_k5 (gate
-    random, budget 0.05, fallback mppi)"; `UNMARKED_SERIES` for a label without any."""
-    _, bracket, marks = label.partition(" (")
-    return marks.removesuffix(")") if bracket else UNMARKED_SERIES
-
-
 def bar_series(summaries: dict) -> tuple[list[str], dict]:
     """The series of a study's bars and the summaries by (series, environment): a series per
     model; but where every model ran in one environment only (an experiment's ensemble per
-    ditch, each gated several ways), a series per row marks (`_marks`, the ungated first), so
+    ditch, each gated several ways), a series per row marks (`label_marks`, the ungated first), so
     that no group holds the other environments' models as empty bars."""
     envs = {e for (_, e) in summaries}
     models = sorted({m for (m, _) in summaries})
-    by_marks = {(_marks(m), e): summary for (m, e), summary in summaries.items()}
+    by_marks = {(label_marks(m) or UNMARKED_SERIES, e): summary for (m, e), summary in summaries.items()}
     if len(envs) > 1 and len(models) == len(summaries) == len(by_marks):
         return sorted({m for (m, _) in by_marks}, key=lambda m: (m != UNMARKED_SERIES, m)), by_marks
     return models, summaries
