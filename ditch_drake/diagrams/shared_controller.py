@@ -20,7 +20,9 @@ in place of the policy's uncertainty: the chance handover a gate is compared wit
 (`AddRandomHandoverDraw`). With a risk signal
 ("tip_risk_now", "tip_risk_ahead") it reads a "tip_risk" block (`TipRisk`) on an
 "elevation_mapper" of the policy's lidar and the policy's command: how near the robot is to
-tipping, now or along the arc the policy commands, rather than how unsure the policy is.
+tipping, now or along the arc the policy commands, rather than how unsure the policy is. With
+"command_reversals" it reads a "command_reversals" block (`CommandReversals`) on the policy's
+command: how often its turn reversed over the last second.
 """
 
 import dataclasses
@@ -48,7 +50,8 @@ from ditch_drake.diagrams.rollout import (
 from ditch_drake.learning.checkpoint import GENERALIST_ENSEMBLE, checkpoint_digest, environment_model
 from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.learning.inference import is_ensemble
-from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, RISK_SIGNALS
+from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, REVERSAL_SIGNAL, RISK_SIGNALS
+from ditch_drake.systems.command_reversals import CommandReversals
 from ditch_drake.systems.driver_indicator import DriverIndicator
 from ditch_drake.systems.keyed_uniform import KeyedUniform
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
@@ -221,8 +224,9 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
         check_calibration(config.gate.calibration, checkpoint, _calibrated_tip_risk(config))
     random_gate = config.gate.signal == RANDOM_SIGNAL
     risk_gate = config.gate.signal in RISK_SIGNALS
+    reversal_gate = config.gate.signal == REVERSAL_SIGNAL
     # These gates read no uncertainty of the policy's; the one every checkpoint has is reported.
-    signal = DEFAULT_UNCERTAINTY_SIGNAL if random_gate or risk_gate else config.gate.signal
+    signal = DEFAULT_UNCERTAINTY_SIGNAL if random_gate or risk_gate or reversal_gate else config.gate.signal
     policy = AddLearnedPolicy(builder, scene, observation, checkpoint, config.policy.crossing_side,
                               config.policy.runtime, uncertainty_signal=signal,
                               precision=config.policy.precision)
@@ -238,6 +242,12 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
         risk = AddTipRisk(builder, scene, AddElevationMapper(builder, scene, observation), policy.GetOutputPort("command"),
                           config.policy.tip_risk or TipRiskConfig())
         builder.Connect(risk.GetOutputPort(config.gate.signal), gate.GetInputPort("uncertainty"))
+    elif reversal_gate:
+        # Between the controllers' tick and the gate's, so the gate reads this step's count.
+        reversals = builder.AddNamedSystem("command_reversals", CommandReversals(
+            schedule.control_period_s, offset_s=(3 * schedule.controller_offset_s + schedule.recorder_offset_s) / 4))
+        builder.Connect(policy.GetOutputPort("command"), reversals.GetInputPort("command"))
+        builder.Connect(reversals.GetOutputPort(REVERSAL_SIGNAL), gate.GetInputPort("uncertainty"))
     else:
         builder.Connect(policy.GetOutputPort("uncertainty"), gate.GetInputPort("uncertainty"))
     builder.Connect(fallback, gate.GetInputPort("fallback_command"))

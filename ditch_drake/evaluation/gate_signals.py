@@ -7,7 +7,10 @@ called once per control step, reads its block's inputs and decision: it runs the
 stacker tick), so it gets every member's probabilities, checks that the label is the one the
 block chose, and evaluates every signal of `ditch_drake.learning.uncertainty` the checkpoint
 has (all three for an ensemble, "mean_softmax_entropy" for a single clone) on them. The extra
-forward pass per step is the price of not changing the policy block's ports. With `risk`, the
+forward pass per step is the price of not changing the policy block's ports. It also counts the
+reversals of the policy's commanded turn over the last second ("command_reversals",
+`ditch_drake.systems.command_reversals`), from the commands it has seen: the count that block
+gives a gate at the same step. With `risk`, the
 diagram also has a "tip_risk" block (`ditch_drake.systems.tip_risk`), and the watch records its
 two signals, minus the tip margin now and along the commanded arc, at the same steps.
 
@@ -40,8 +43,9 @@ from ditch_drake.common.parallel import WorkerPool, check_workers, deferred_inte
 from ditch_drake.common.progress import log_progress
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.diagrams.rollout import LearnedPolicyConfig, MakeRolloutDiagram, RolloutConfig, RunEpisode
-from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, RISK_SIGNALS, UNCERTAINTY_SIGNALS
+from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, REVERSAL_SIGNAL, RISK_SIGNALS, UNCERTAINTY_SIGNALS
 from ditch_drake.spec.schedule import ScheduleConfig
+from ditch_drake.systems.command_reversals import REVERSAL_WINDOW_STEPS, count_reversals
 from ditch_drake.systems.episode_monitor import EpisodeConfig
 from ditch_drake.systems.policy import LearnedPolicy
 from ditch_drake.systems.tip_risk import TipRisk, TipRiskConfig
@@ -75,8 +79,9 @@ class SignalWatch:
         self._offset_s = schedule.controller_offset_s
         self._uncertainty = supported_signals(policy.members)
         self._risk = list(RISK_SIGNALS) if tip_risk is not None else []
-        self.signals = self._uncertainty + self._risk
+        self.signals = self._uncertainty + [REVERSAL_SIGNAL] + self._risk
         self._rates = policy.action_commands[:, 1]
+        self._commanded_rates: list[float] = []
         self.time_s: list[float] = []
         self.values: dict[str, list[float]] = {name: [] for name in self.signals}
 
@@ -97,6 +102,8 @@ class SignalWatch:
         self.time_s.append(tick_s)
         for name in self._uncertainty:
             self.values[name].append(float(UNCERTAINTY_SIGNALS[name](decision.member_probabilities, self._rates)))
+        self._commanded_rates.append(float(self._policy.GetOutputPort("command").Eval(context)[1]))
+        self.values[REVERSAL_SIGNAL].append(float(count_reversals(self._commanded_rates[-REVERSAL_WINDOW_STEPS:])))
         if self._risk:
             risk_context = self._tip_risk.GetMyContextFromRoot(root_context)
             for name in self._risk:
@@ -151,7 +158,7 @@ class GateSignals:
 
 # The schema of an `EpisodeParts` folder's header.
 PARTS_SCHEMA = "ditch_drake.gate_signals.parts"
-PARTS_VERSION = 1
+PARTS_VERSION = 2  # 2: every episode has "command_reversals".
 PARTS_HEADER = "header.json"
 
 

@@ -10,7 +10,7 @@ from pydrake.systems.framework import DiscreteValues, LeafSystem
 from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, budget_thresholds, calibration_values, gate_step
-from ditch_drake.learning.uncertainty import GATE_SIGNALS, RANDOM_SIGNAL, UNCERTAINTY_SIGNALS
+from ditch_drake.learning.uncertainty import GATE_SIGNALS, RANDOM_SIGNAL, REVERSAL_SIGNAL, UNCERTAINTY_SIGNALS
 from ditch_drake.spec import robot
 from ditch_drake.spec.observation_layout import STACK_DEPTH
 from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S
@@ -29,13 +29,15 @@ class SharedControlConfig:
     Attributes:
         signal: the uncertainty signal the policy reports (`ditch_drake.learning.uncertainty`),
             a risk signal ("tip_risk_now", "tip_risk_ahead": minus the tip margin now or along
-            the policy's commanded arc, `ditch_drake.systems.tip_risk`), or "random"
+            the policy's commanded arc, `ditch_drake.systems.tip_risk`), "command_reversals" (how
+            often the policy's turn reversed over the last second,
+            `ditch_drake.systems.command_reversals`), or "random"
             (`RANDOM_SIGNAL`): a uniform draw in [0, 1) each control step, seeded by the
             episode's seed and keyed by its environment and task, in its place (the chance
             handover a gate is compared with).
         upper_threshold: hand over when the signal is above this (the signal's unit: rad/s for
             "angular_rate_spread", nats for the entropies, deg for the risk signals, in [0, 1]
-            for "random"). With a budget, set from it.
+            for "random", a count for "command_reversals"). With a budget, set from it.
         lower_threshold: hand back only after the signal has stayed below this ...
         calm_steps: ... for this many consecutive control steps (hysteresis: fewer switches).
         warmup_steps: control steps at each episode's start whose signal the gate ignores (the
@@ -91,7 +93,7 @@ class SharedControlConfig:
             budget = self.budget
             if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0.0 < budget < 1.0:
                 raise ConfigError(f"shared control budget {budget!r}: expected a share of control steps in (0, 1)")
-        if self.signal in UNCERTAINTY_SIGNALS and self.budget is None:
+        if (self.signal in UNCERTAINTY_SIGNALS or self.signal == REVERSAL_SIGNAL) and self.budget is None:
             for key in ("upper_threshold", "lower_threshold"):
                 if getattr(self, key) < 0.0:
                     raise ConfigError(f"shared control {key} {getattr(self, key)!r} with signal {self.signal!r}, "
