@@ -51,7 +51,7 @@ from ditch_drake.learning.checkpoint import GENERALIST_ENSEMBLE, checkpoint_dige
 from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.learning.inference import is_ensemble
 from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, REVERSAL_SIGNAL, RISK_SIGNALS
-from ditch_drake.systems.command_reversals import CommandReversals
+from ditch_drake.systems.command_reversals import CommandReversals, reversals_offset_s
 from ditch_drake.systems.driver_indicator import DriverIndicator
 from ditch_drake.systems.keyed_uniform import KeyedUniform
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
@@ -243,9 +243,8 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
                           config.policy.tip_risk or TipRiskConfig())
         builder.Connect(risk.GetOutputPort(config.gate.signal), gate.GetInputPort("uncertainty"))
     elif reversal_gate:
-        # Between the controllers' tick and the gate's, so the gate reads this step's count.
         reversals = builder.AddNamedSystem("command_reversals", CommandReversals(
-            schedule.control_period_s, offset_s=(3 * schedule.controller_offset_s + schedule.recorder_offset_s) / 4))
+            schedule.control_period_s, reversals_offset_s(schedule.controller_offset_s, schedule.recorder_offset_s)))
         builder.Connect(policy.GetOutputPort("command"), reversals.GetInputPort("command"))
         builder.Connect(reversals.GetOutputPort(REVERSAL_SIGNAL), gate.GetInputPort("uncertainty"))
     else:
