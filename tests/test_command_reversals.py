@@ -12,6 +12,7 @@ from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.controllers import controller_config, get_controller
 from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
 from ditch_drake.evaluation.gate_signals import SignalWatch
 from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, load_signals
 from ditch_drake.learning.uncertainty import REVERSAL_SIGNAL
@@ -53,7 +54,7 @@ def test_the_block_counts_over_the_window_ending_with_the_last_command():
     assert block.GetOutputPort(REVERSAL_SIGNAL).Eval(context)[0] == 1
 
 
-def _reversal_gate(upper: float, lower: float) -> object:
+def _reversal_gate(upper: float, lower: float) -> SharedControlControllerConfig:
     config = controller_config("shared")
     return dataclasses.replace(config, policy=dataclasses.replace(config.policy, checkpoint="wide_bc40"),
                                gate=dataclasses.replace(config.gate, signal=REVERSAL_SIGNAL, upper_threshold=upper,
@@ -119,3 +120,20 @@ def test_gate_signals_records_the_reversals_of_a_single_clone(tmp_path):
     counts = signals[REVERSAL_SIGNAL]
     assert counts.shape == signals["time_s"].shape
     assert np.all((counts >= 0) & (counts <= REVERSAL_WINDOW_STEPS - 1) & (counts == np.round(counts)))
+
+
+def test_a_reversal_gate_on_a_recording_made_before_the_signal_is_refused_naming_it(tmp_path, capsys):
+    out = tmp_path / "signals.npz"
+    assert main(["gate-signals", "--workers", "0", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1",
+                 "--rollouts", "1", "--seed", "4", "--time-limit", "1", "--out", str(out)]) == 0
+    recorded = dict(np.load(out))
+    del recorded[REVERSAL_SIGNAL]
+    recorded["signals"] = np.array(["mean_softmax_entropy"])
+    np.savez(tmp_path / "older.npz", **recorded)
+    override = ("{controller: !SharedControlControllerConfig {policy: {checkpoint: wide_bc40}, gate: {signal: "
+                f"command_reversals, budget: 0.05, calibration: {tmp_path / 'older.npz'}}}}}}}")
+    capsys.readouterr()
+    assert main(["evaluate", "--override", override, "--env", "wide", "--task", "1", "--rollouts", "1",
+                 "--out", str(tmp_path / "r.jsonl")]) == 2
+    err = capsys.readouterr().err
+    assert "has no signal 'command_reversals'" in err and "record it again" in err, err

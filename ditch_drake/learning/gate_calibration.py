@@ -357,7 +357,8 @@ def calibration_values(path: str | os.PathLike, signal: str, what: str = "gate.c
     if signal not in signals["signals"]:
         raise ConfigError(f"{what} {path!s} has no signal {signal!r}: it recorded {signals['signals']}; expected a "
                           "file of the gated policy (an ensemble's for the disagreement signals, one recorded with "
-                          "gate-signals --risk for the risk signals)")
+                          "gate-signals --risk for the risk signals, one recorded since gate-signals records "
+                          "command_reversals for that signal: record it again)")
     values, episode = np.asarray(signals[signal], dtype=float), np.asarray(signals["episode"], dtype=int)
     order = np.lexsort((np.asarray(signals["time_s"], dtype=float), episode))
     values, episode = values[order], episode[order]
