@@ -8,7 +8,7 @@ import pytest
 from ditch_drake.cli import main
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.evaluation import gate_signals
-from ditch_drake.evaluation.gate_signals import EpisodeParts, EpisodeSignals, parts_folder, parts_header
+from ditch_drake.evaluation.gate_signals import PARTS_VERSION, EpisodeParts, EpisodeSignals, parts_folder, parts_header
 from ditch_drake.learning import gate_calibration
 
 ARGV = ["gate-signals", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1", "--rollouts", "2", "--seed", "4",
@@ -114,6 +114,20 @@ def test_a_rerun_with_other_settings_is_refused(tmp_path, monkeypatch, capsys, o
     assert main([*ARGV, *options, "--out", str(out)]) == 2
     err = capsys.readouterr().err
     assert f"{parts_folder(out)} holds the episodes of a recording with other settings ({mismatch}" in err, err
+    assert seeds == [] and not out.exists()
+
+
+def test_a_folder_of_another_parts_version_is_refused_naming_the_version(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "signals.npz"
+    _stop_after(monkeypatch, 0)
+    assert main([*ARGV, "--out", str(out)]) == 130
+    header = parts_folder(out) / "header.json"
+    header.write_text(header.read_text().replace(f'"version": {PARTS_VERSION}', '"version": 1'))
+    capsys.readouterr()
+    seeds = _stop_after(monkeypatch, 99)
+    assert main([*ARGV, "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert f"(parts version 1 there, {PARTS_VERSION} now" in err and f"delete {parts_folder(out)}" in err, err
     assert seeds == [] and not out.exists()
 
 

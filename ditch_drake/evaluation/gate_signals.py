@@ -222,6 +222,11 @@ class EpisodeParts:
         except (OSError, ValueError) as error:
             raise ConfigError(f"{path} is unreadable ({error}); expected the header of a gate-signals recording "
                               f"(delete {folder} to start afresh)") from error
+        if found.get("version") != header["version"]:
+            raise ConfigError(f"{folder} holds the episodes of a recording begun by another version of ditch-drake "
+                              f"(parts version {found.get('version')!r} there, {header['version']!r} now: its "
+                              f"episodes lack signals this one records); expected a folder of this version: delete "
+                              f"{folder} to start afresh")
         differ = [f"{key} {found.get(key)!r} there, {value!r} now" for key, value in header.items()
                   if found.get(key) != value]
         if differ:
