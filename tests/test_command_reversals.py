@@ -14,7 +14,7 @@ from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
 from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
 from ditch_drake.evaluation.gate_signals import SignalWatch
-from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, load_signals
+from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, load_signals, save_signals
 from ditch_drake.learning.uncertainty import REVERSAL_SIGNAL
 from ditch_drake.systems.command_reversals import REVERSAL_WINDOW_STEPS, CommandReversals, count_reversals
 from ditch_drake.systems.shared_control import SharedControlConfig
@@ -122,18 +122,12 @@ def test_gate_signals_records_the_reversals_of_a_single_clone(tmp_path):
     assert np.all((counts >= 0) & (counts <= REVERSAL_WINDOW_STEPS - 1) & (counts == np.round(counts)))
 
 
-def test_a_reversal_gate_on_a_recording_made_before_the_signal_is_refused_naming_it(tmp_path, capsys):
-    out = tmp_path / "signals.npz"
-    assert main(["gate-signals", "--workers", "0", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1",
-                 "--rollouts", "1", "--seed", "4", "--time-limit", "1", "--out", str(out)]) == 0
-    recorded = dict(np.load(out))
-    del recorded[REVERSAL_SIGNAL]
-    recorded["signals"] = np.array(["mean_softmax_entropy"])
-    np.savez(tmp_path / "older.npz", **recorded)
-    override = ("{controller: !SharedControlControllerConfig {policy: {checkpoint: wide_bc40}, gate: {signal: "
-                f"command_reversals, budget: 0.05, calibration: {tmp_path / 'older.npz'}}}}}}}")
-    capsys.readouterr()
-    assert main(["evaluate", "--override", override, "--env", "wide", "--task", "1", "--rollouts", "1",
-                 "--out", str(tmp_path / "r.jsonl")]) == 2
-    err = capsys.readouterr().err
-    assert "has no signal 'command_reversals'" in err and "record it again" in err, err
+def test_a_reversal_gate_on_a_recording_made_before_the_signal_is_refused_naming_it(tmp_path):
+    # A file as gate-signals wrote them before it recorded the reversals: the uncertainty signal only.
+    older = save_signals(tmp_path / "older.npz", "wide_bc40", "0" * 16, {"mean_softmax_entropy": [0.1, 0.2]},
+                         {"time_s": [0.003, 0.103], "episode": [0, 0]},
+                         {"episode_environment": ["wide"], "episode_task": [1], "episode_seed": [4],
+                          "episode_status": ["timeout"], "episode_end_time_s": [0.2]})
+    gate = SharedControlConfig(signal=REVERSAL_SIGNAL, budget=0.05, calibration=str(older))
+    with pytest.raises(ConfigError, match="has no signal 'command_reversals'.*record it again"):
+        gate.resolved()
