@@ -45,6 +45,7 @@ COMMANDS = (
     training_commands.add_gate_signals,
     training_commands.add_gate_thresholds,
     training_commands.add_gate_auc,
+    training_commands.add_gate_peaks,
     tool_commands.add_figure,
     tool_commands.add_bench,
     tool_commands.add_reference,

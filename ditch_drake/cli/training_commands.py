@@ -511,6 +511,38 @@ def cmd_gate_auc(args) -> int:
     return 0
 
 
+def add_gate_peaks(commands: Commands) -> None:
+    peaks = commands.add("gate-peaks", "each signal's largest value per episode of a signals file, by how the "
+                                       "episodes ended: where a fixed threshold (a watchdog's) would separate them")
+    peaks.add_argument("signals", help="a signals file of ditch-drake gate-signals")
+    peaks.add_argument("--signal", nargs="+", default=None,
+                       help="the signals to show (default: every one the file recorded)")
+    peaks.add_argument("--warmup-steps", type=int, default=ConfigDefault(GATE, "warmup_steps"),
+                       help="control steps at each episode's start left out, as the gate ignores them")
+    peaks.set_defaults(run=cmd_gate_peaks)
+
+
+def cmd_gate_peaks(args) -> int:
+    """Prints `episode_peaks` for each signal: per outcome, how many episodes, and the least,
+    median and largest of their peaks."""
+    from ditch_drake.common.checks import check_count
+    from ditch_drake.learning.gate_calibration import episode_peaks, load_signals
+
+    signals = load_signals(args.signals)
+    names = args.signal or signals["signals"]
+    unknown = [name for name in names if name not in signals["signals"]]
+    if unknown:
+        raise ConfigError(f"--signal {unknown[0]}: {args.signals} did not record it; expected one of "
+                          f"{signals['signals']}")
+    check_count(args.warmup_steps, "--warmup-steps", lowest=0)
+    rows = [{**row, **{key: f"{row[key]:.4g}" for key in ("least_peak", "median_peak", "largest_peak")}}
+            for name in names for row in episode_peaks(signals, name, args.warmup_steps)]
+    print_table(rows, list(rows[0]))
+    print(f"{args.signals}: {len(signals['episode_status'])} episodes, checkpoint {signals['checkpoint']}; each "
+          f"episode's largest value after its first {args.warmup_steps} steps")
+    return 0
+
+
 def _write_split_ditches(args, out) -> str:
     """The environments file of `--split`'s ditches (its first `--geometries`, drawn from
     `--ranges`), written as `<out stem>.ditches.yaml`; refuses --environments beside it."""

@@ -22,7 +22,10 @@ in place of the policy's uncertainty: the chance handover a gate is compared wit
 "elevation_mapper" of the policy's lidar and the policy's command: how near the robot is to
 tipping, now or along the arc the policy commands, rather than how unsure the policy is. With
 "command_reversals" it reads a "command_reversals" block (`CommandReversals`) on the policy's
-command: how often its turn reversed over the last second.
+command: how often its turn reversed over the last second. With "seconds_without_progress",
+or with a progress watchdog beside any signal (`gate.progress_limit_s`), a "goal_progress"
+block (`GoalProgress`) on the distances to the goal the policy saw: how long the robot has come
+no nearer its goal.
 """
 
 import dataclasses
@@ -50,9 +53,11 @@ from ditch_drake.diagrams.rollout import (
 from ditch_drake.learning.checkpoint import GENERALIST_ENSEMBLE, checkpoint_digest, environment_model
 from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.learning.inference import is_ensemble
-from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, REVERSAL_SIGNAL, RISK_SIGNALS
-from ditch_drake.systems.command_reversals import CommandReversals, reversals_offset_s
+from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, PROGRESS_SIGNAL, REVERSAL_SIGNAL, RISK_SIGNALS
+from ditch_drake.spec.schedule import gate_signal_offset_s
+from ditch_drake.systems.command_reversals import CommandReversals
 from ditch_drake.systems.driver_indicator import DriverIndicator
+from ditch_drake.systems.goal_progress import GoalProgress
 from ditch_drake.systems.keyed_uniform import KeyedUniform
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
 from ditch_drake.systems.policy import DEFAULT_UNCERTAINTY_SIGNAL
@@ -225,8 +230,10 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     random_gate = config.gate.signal == RANDOM_SIGNAL
     risk_gate = config.gate.signal in RISK_SIGNALS
     reversal_gate = config.gate.signal == REVERSAL_SIGNAL
+    progress_gate = config.gate.signal == PROGRESS_SIGNAL
     # These gates read no uncertainty of the policy's; the one every checkpoint has is reported.
-    signal = DEFAULT_UNCERTAINTY_SIGNAL if random_gate or risk_gate or reversal_gate else config.gate.signal
+    signal = (DEFAULT_UNCERTAINTY_SIGNAL if random_gate or risk_gate or reversal_gate or progress_gate
+              else config.gate.signal)
     policy = AddLearnedPolicy(builder, scene, observation, checkpoint, config.policy.crossing_side,
                               config.policy.runtime, uncertainty_signal=signal,
                               precision=config.policy.precision)
@@ -236,6 +243,12 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
         config.gate, period_s=schedule.control_period_s,
         offset_s=(schedule.controller_offset_s + schedule.recorder_offset_s) / 2))
     builder.Connect(policy.GetOutputPort("command"), gate.GetInputPort("policy_command"))
+    signal_offset_s = gate_signal_offset_s(schedule.controller_offset_s, schedule.recorder_offset_s)
+    if progress_gate or config.gate.progress_limit_s is not None:
+        progress = builder.AddNamedSystem("goal_progress", GoalProgress(schedule.control_period_s, signal_offset_s))
+        builder.Connect(observation.stacker.GetOutputPort("distance_stack"), progress.GetInputPort("distance_stack"))
+        builder.Connect(progress.GetOutputPort(PROGRESS_SIGNAL), gate.GetInputPort(
+            "uncertainty" if progress_gate else PROGRESS_SIGNAL))
     if random_gate:
         AddRandomHandoverDraw(builder, gate, schedule.control_period_s, random_draw_key(scene))
     elif risk_gate:
@@ -243,11 +256,11 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
                           config.policy.tip_risk or TipRiskConfig())
         builder.Connect(risk.GetOutputPort(config.gate.signal), gate.GetInputPort("uncertainty"))
     elif reversal_gate:
-        reversals = builder.AddNamedSystem("command_reversals", CommandReversals(
-            schedule.control_period_s, reversals_offset_s(schedule.controller_offset_s, schedule.recorder_offset_s)))
+        reversals = builder.AddNamedSystem("command_reversals", CommandReversals(schedule.control_period_s,
+                                                                                 signal_offset_s))
         builder.Connect(policy.GetOutputPort("command"), reversals.GetInputPort("command"))
         builder.Connect(reversals.GetOutputPort(REVERSAL_SIGNAL), gate.GetInputPort("uncertainty"))
-    else:
+    elif not progress_gate:
         builder.Connect(policy.GetOutputPort("uncertainty"), gate.GetInputPort("uncertainty"))
     builder.Connect(fallback, gate.GetInputPort("fallback_command"))
     if config.gate.fallback == "teleop":

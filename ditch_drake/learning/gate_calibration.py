@@ -138,26 +138,29 @@ def auc_report(signals: dict, horizon_s: float = FAILURE_HORIZON_S, seed: int = 
 
 
 def gate_step(driver: int, calm: int, uncertainty: float, upper_threshold: float, lower_threshold: float,
-              calm_steps: int) -> tuple[int, int, bool]:
+              calm_steps: int, forced: bool = False) -> tuple[int, int, bool]:
     """One control step of the gate's hysteresis (`ditch_drake.systems.shared_control.SharedControl`).
 
     While the policy drives, an uncertainty above `upper_threshold` hands over to the fallback.
     While the fallback drives, a step below `lower_threshold` counts one calm step and any other
     step (a NaN too) resets the count; the step on which it reaches `calm_steps` hands back.
+    A `forced` step (the gate's progress watchdog firing) hands over whatever the uncertainty,
+    and is never calm.
 
     Args:
         driver: who drove the step before, `POLICY` or `FALLBACK`.
         calm: calm steps counted so far.
         uncertainty: this step's signal.
+        forced: whether something besides the signal demands the fallback at this step.
 
     Returns:
         (who drives this step, the calm count after it, whether it switched).
     """
     if driver == POLICY:
-        if uncertainty > upper_threshold:
+        if forced or uncertainty > upper_threshold:
             return FALLBACK, 0, True
         return POLICY, calm, False
-    calm = calm + 1 if uncertainty < lower_threshold else 0
+    calm = calm + 1 if uncertainty < lower_threshold and not forced else 0
     if calm >= calm_steps:
         return POLICY, 0, True
     return FALLBACK, calm, False
@@ -239,6 +242,31 @@ def _rolled_over_episodes(signals: dict, signal: str):
         steps = np.flatnonzero(episode == index)
         steps = steps[np.argsort(times[steps], kind="stable")]
         yield times[steps], values[steps], float(signals["episode_end_time_s"][index])
+
+
+def episode_peaks(signals: dict, signal: str, warmup_steps: int = 0) -> list[dict]:
+    """`signal`'s largest value in each episode of a signals file, by how the episodes ended: one
+    row per outcome (in the order of first appearance), with how many episodes ended so and the
+    least, median and largest of their peaks. The first `warmup_steps` of each episode are left
+    out, as the gate ignores them. What a fixed threshold on a signal that grows while something
+    goes wrong (a watchdog's) must lie between: above the peaks of the episodes that succeeded,
+    below those of the ones that failed.
+
+    Raises:
+        ConfigError: the file has no `signal`.
+    """
+    if signal not in signals["signals"]:
+        raise ConfigError(f"signals file has no signal {signal!r}: it recorded {signals['signals']}")
+    values, episode = np.asarray(signals[signal], dtype=float), np.asarray(signals["episode"], dtype=int)
+    times = np.asarray(signals["time_s"], dtype=float)
+    peaks: dict[str, list[float]] = {}
+    for index, status in enumerate(np.asarray(signals["episode_status"]).tolist()):
+        steps = np.flatnonzero(episode == index)
+        kept = values[steps[np.argsort(times[steps], kind="stable")]][warmup_steps:]
+        peaks.setdefault(str(status), []).append(float(kept.max()) if kept.size else math.nan)
+    return [{"signal": signal, "status": status, "episodes": len(found), "least_peak": float(np.min(found)),
+             "median_peak": float(np.median(found)), "largest_peak": float(np.max(found))}
+            for status, found in peaks.items()]
 
 
 def quantile_thresholds(values, share: float) -> tuple[float, float]:
@@ -358,7 +386,7 @@ def calibration_values(path: str | os.PathLike, signal: str, what: str = "gate.c
         raise ConfigError(f"{what} {path!s} has no signal {signal!r}: it recorded {signals['signals']}; expected a "
                           "file of the gated policy (an ensemble's for the disagreement signals, one recorded with "
                           "gate-signals --risk for the risk signals, one recorded since gate-signals records "
-                          "command_reversals for that signal: record it again)")
+                          "command_reversals or seconds_without_progress for those signals: record it again)")
     values, episode = np.asarray(signals[signal], dtype=float), np.asarray(signals["episode"], dtype=int)
     order = np.lexsort((np.asarray(signals["time_s"], dtype=float), episode))
     values, episode = values[order], episode[order]

@@ -48,3 +48,11 @@ class ScheduleConfig:
         if not offsets == sorted(offsets):
             raise ConfigError(f"schedule {self}: the stages must run in order, lidar <= stacker <= controller "
                               "<= recorder")
+
+
+def gate_signal_offset_s(controller_offset_s: float, recorder_offset_s: float) -> float:
+    """When in the control period a block that gives the shared-control gate its signal ticks
+    (s): after the controllers' tick, so it reads this step's command and observation, and
+    before the gate's: midway between the controllers' tick and the gate's, which is midway
+    between the controllers' and the recorder's."""
+    return (3 * controller_offset_s + recorder_offset_s) / 4

@@ -12,17 +12,11 @@ import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from ditch_drake.spec import robot
-from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S
+from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S, gate_signal_offset_s
 
 # One second of control steps: long enough for "repeatedly", short enough that a reversal
 # counted is one the robot is still driving through.
 REVERSAL_WINDOW_STEPS = round(1.0 / robot.CONTROL_PERIOD_S)
-
-
-def reversals_offset_s(controller_offset_s: float, recorder_offset_s: float) -> float:
-    """When in the control period the block samples the command (s): after the controllers'
-    tick, before the shared-control gate's (midway between the controllers' and the recorder's)."""
-    return (3 * controller_offset_s + recorder_offset_s) / 4
 
 
 def count_reversals(angular_rates) -> int:
@@ -56,7 +50,7 @@ class CommandReversals(LeafSystem):
         command_reversals: [count] reversals of the sign of w in the window.
     """
 
-    def __init__(self, period_s: float = robot.CONTROL_PERIOD_S, offset_s: float = reversals_offset_s(CONTROLLER_OFFSET_S, RECORDER_OFFSET_S)):
+    def __init__(self, period_s: float = robot.CONTROL_PERIOD_S, offset_s: float = gate_signal_offset_s(CONTROLLER_OFFSET_S, RECORDER_OFFSET_S)):
         super().__init__()
         self._command_port = self.DeclareVectorInputPort("command", 2)
         window = self.DeclareDiscreteState(REVERSAL_WINDOW_STEPS)  # Oldest first.

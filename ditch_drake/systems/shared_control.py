@@ -10,7 +10,13 @@ from pydrake.systems.framework import DiscreteValues, LeafSystem
 from ditch_drake.common.config_yaml import WRITTEN_WHEN_SET
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, budget_thresholds, calibration_values, gate_step
-from ditch_drake.learning.uncertainty import GATE_SIGNALS, RANDOM_SIGNAL, REVERSAL_SIGNAL, UNCERTAINTY_SIGNALS
+from ditch_drake.learning.uncertainty import (
+    GATE_SIGNALS,
+    PROGRESS_SIGNAL,
+    RANDOM_SIGNAL,
+    REVERSAL_SIGNAL,
+    UNCERTAINTY_SIGNALS,
+)
 from ditch_drake.spec import robot
 from ditch_drake.spec.observation_layout import STACK_DEPTH
 from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S
@@ -31,13 +37,15 @@ class SharedControlConfig:
             a risk signal ("tip_risk_now", "tip_risk_ahead": minus the tip margin now or along
             the policy's commanded arc, `ditch_drake.systems.tip_risk`), "command_reversals" (how
             often the policy's turn reversed over the last second,
-            `ditch_drake.systems.command_reversals`), or "random"
+            `ditch_drake.systems.command_reversals`), "seconds_without_progress" (how long
+            the robot has come no nearer its goal, `ditch_drake.systems.goal_progress`), or "random"
             (`RANDOM_SIGNAL`): a uniform draw in [0, 1) each control step, seeded by the
             episode's seed and keyed by its environment and task, in its place (the chance
             handover a gate is compared with).
         upper_threshold: hand over when the signal is above this (the signal's unit: rad/s for
             "angular_rate_spread", nats for the entropies, deg for the risk signals, in [0, 1]
-            for "random", a count for "command_reversals"). With a budget, set from it.
+            for "random", a count for "command_reversals", s for "seconds_without_progress").
+            With a budget, set from it.
         lower_threshold: hand back only after the signal has stayed below this ...
         calm_steps: ... for this many consecutive control steps (hysteresis: fewer switches).
         warmup_steps: control steps at each episode's start whose signal the gate ignores (the
@@ -58,6 +66,13 @@ class SharedControlConfig:
             rollouts (`ditch-drake gate-signals`) whose values of `signal` set the thresholds
             (none with signal "random").
         fallback: who takes over, one of `FALLBACKS`.
+        progress_limit_s: a watchdog beside the signal: where set, the gate also hands over
+            once the robot has come no nearer its goal for more than this many seconds
+            ("seconds_without_progress", `ditch_drake.systems.goal_progress`), whatever the
+            signal says, and a step counts calm only where that is back within the limit, so
+            the fallback keeps control until the robot is nearer the goal than it had been. It
+            reads the pose and the goal only. A budget's thresholds are set for the signal as
+            without it: the watchdog's handovers come on top. None: no watchdog.
     """
 
     signal: str = "angular_rate_spread"
@@ -68,6 +83,7 @@ class SharedControlConfig:
     budget: float | None = None
     fallback: str = "expert"
     calibration: str = field(default="", metadata=WRITTEN_WHEN_SET)
+    progress_limit_s: float | None = field(default=None, metadata=WRITTEN_WHEN_SET)
 
     def validate(self) -> None:
         """Raises ConfigError naming the first bad value.
@@ -93,7 +109,9 @@ class SharedControlConfig:
             budget = self.budget
             if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0.0 < budget < 1.0:
                 raise ConfigError(f"shared control budget {budget!r}: expected a share of control steps in (0, 1)")
-        if (self.signal in UNCERTAINTY_SIGNALS or self.signal == REVERSAL_SIGNAL) and self.budget is None:
+        self._validate_progress_limit()
+        if (self.signal in UNCERTAINTY_SIGNALS or self.signal in (REVERSAL_SIGNAL, PROGRESS_SIGNAL)) and (
+                self.budget is None):
             for key in ("upper_threshold", "lower_threshold"):
                 if getattr(self, key) < 0.0:
                     raise ConfigError(f"shared control {key} {getattr(self, key)!r} with signal {self.signal!r}, "
@@ -134,6 +152,20 @@ class SharedControlConfig:
         upper, lower = budget_thresholds(calibration_values(self.calibration, self.signal), self.budget,
                                          self.calm_steps, self.warmup_steps)
         return dataclasses.replace(self, upper_threshold=upper, lower_threshold=lower)
+
+    def _validate_progress_limit(self) -> None:
+        """A watchdog limit, where set: a finite number of seconds > 0, beside a signal other than
+        the progress itself (a gate on it has its thresholds for that)."""
+        limit = self.progress_limit_s
+        if limit is None:
+            return
+        if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not 0.0 < limit < math.inf:
+            raise ConfigError(f"shared control progress_limit_s {limit!r}: expected a number of seconds > 0 without "
+                              "progress toward the goal, or none")
+        if self.signal == PROGRESS_SIGNAL:
+            raise ConfigError(f"shared control progress_limit_s {limit!r} with signal {PROGRESS_SIGNAL!r}: the gate "
+                              "already reads the progress, with its thresholds; expected another signal, or no "
+                              "progress_limit_s")
 
     def _validate_random(self) -> None:
         """The thresholds of the random draw: in [0, 1], where a draw in [0, 1) can cross them
@@ -237,7 +269,9 @@ class SharedControl(LeafSystem):
 
     A NaN uncertainty is neither above nor below a threshold: it hands nothing over and resets
     the calm count; the first `warmup_steps` updates read the uncertainty as NaN (the policy
-    drives while its observation stacks fill). The update stores who drives, the calm count, the number of switches (either
+    drives while its observation stacks fill). With `config.progress_limit_s`, a step whose
+    `seconds_without_progress` is above the limit hands over too, and is not calm
+    (`gate_step`'s `forced`; none in the warm-up). The update stores who drives, the calm count, the number of switches (either
     way) and the command of whoever drives after it, which the outputs read, so the command
     changes only at the gate's ticks. The same update is declared as a forced discrete update,
     so `CalcForcedDiscreteVariableUpdate` runs one step too. Until the first update the policy
@@ -253,6 +287,7 @@ class SharedControl(LeafSystem):
         - policy_command
         - uncertainty
         - fallback_command
+        - seconds_without_progress (optional)
         output_ports:
         - command
         - who_drives
@@ -264,6 +299,8 @@ class SharedControl(LeafSystem):
             signal "random", the draw in [0, 1) that `AddSharedControl` connects instead, and
             with a risk signal the `TipRisk` block's output of that name.
         fallback_command: [v m/s, w rad/s] the fallback commands.
+        seconds_without_progress: (only with `config.progress_limit_s`) [s] since the robot
+            last came nearer its goal (`GoalProgress`).
         command: [v m/s, w rad/s] the executed command.
         who_drives: [0] the policy, [1] the fallback (a float).
         switches: [handovers plus handbacks so far] (a float).
@@ -296,6 +333,8 @@ class SharedControl(LeafSystem):
         self._policy_port = self.DeclareVectorInputPort("policy_command", 2)
         self._uncertainty_port = self.DeclareVectorInputPort("uncertainty", 1)
         self._fallback_port = self.DeclareVectorInputPort("fallback_command", 2)
+        self._progress_port = (self.DeclareVectorInputPort("seconds_without_progress", 1)
+                               if config.progress_limit_s is not None else None)
         self._command_index = self.DeclareDiscreteState(2)
         self._driver_index = self.DeclareDiscreteState(np.array([float(POLICY)]))
         self._calm_index = self.DeclareDiscreteState(1)
@@ -314,12 +353,15 @@ class SharedControl(LeafSystem):
 
     def _update(self, context, discrete_state: DiscreteValues) -> None:
         step = int(context.get_discrete_state(self._step_index).get_value()[0])
-        uncertainty = float(self._uncertainty_port.Eval(context)[0]) if step >= self._config.warmup_steps else math.nan
+        warm = step >= self._config.warmup_steps
+        uncertainty = float(self._uncertainty_port.Eval(context)[0]) if warm else math.nan
+        stalled = warm and self._progress_port is not None and (
+            float(self._progress_port.Eval(context)[0]) > self._config.progress_limit_s)
         driver = int(context.get_discrete_state(self._driver_index).get_value()[0])
         calm = int(context.get_discrete_state(self._calm_index).get_value()[0])
         switches = context.get_discrete_state(self._switches_index).get_value()[0]
         driver, calm, switched = gate_step(driver, calm, uncertainty, self._config.upper_threshold,
-                                           self._config.lower_threshold, self._config.calm_steps)
+                                           self._config.lower_threshold, self._config.calm_steps, stalled)
         switches += switched
         source = self._fallback_port if driver == FALLBACK else self._policy_port
         discrete_state.set_value(self._command_index, source.Eval(context))

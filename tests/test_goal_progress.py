@@ -1,0 +1,185 @@
+"""The seconds without progress toward the goal: the count, the block that gives it a gate, the
+gate's progress watchdog beside another signal, and `gate-signals`, which records the same count."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from pydrake.systems.analysis import Simulator
+
+from ditch_drake.common.config_yaml import config_to_yaml
+from ditch_drake.common.errors import ConfigError
+from ditch_drake.diagrams.controllers import controller_config, get_controller
+from ditch_drake.diagrams.ditch_scene import SceneConfig
+from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
+from ditch_drake.evaluation.gate_signals import SignalWatch
+from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, gate_step
+from ditch_drake.learning.uncertainty import PROGRESS_SIGNAL
+from ditch_drake.spec import robot
+from ditch_drake.spec.observation_layout import STACK_DEPTH
+from ditch_drake.systems.goal_progress import PROGRESS_STEP_M, GoalProgress, progress_step
+from ditch_drake.systems.shared_control import SharedControl, SharedControlConfig
+
+PERIOD = robot.CONTROL_PERIOD_S
+
+
+def _fold(distances) -> list[float]:
+    """`progress_step` over `distances`, from no anchor: the count after each step."""
+    anchor, stalled, counts = math.inf, 0.0, []
+    for distance in distances:
+        anchor, stalled = progress_step(anchor, stalled, distance, PERIOD)
+        counts.append(stalled)
+    return counts
+
+
+def test_progress_is_a_fall_of_a_quarter_metre_below_where_it_was_last_seen():
+    assert PROGRESS_STEP_M == 0.25
+    # 0.1 m nearer each step: progress every third step.
+    np.testing.assert_allclose(_fold([10.0, 9.9, 9.8, 9.7, 9.6, 9.5, 9.4]), [0, 0.1, 0.2, 0, 0.1, 0.2, 0])
+    # Past the goal and back: the count grows until the robot is nearer than the anchor by the step.
+    counts = _fold([2.0, 1.0, 1.5, 2.0, 1.5, 1.0, 0.8, 0.7])
+    np.testing.assert_allclose(counts, [0, 0, 0.1, 0.2, 0.3, 0.4, 0.5, 0])
+    # Circling at a constant distance never progresses.
+    assert _fold([3.0] * 11)[-1] == pytest.approx(1.0)
+
+
+def _tick(block, context, distance: float) -> float:
+    """One control step: the stack with `distance` newest, the block's tick, its count after it."""
+    block.GetInputPort("distance_stack").FixValue(context, [distance] + [99.0] * (STACK_DEPTH - 1))
+    context.SetDiscreteState(block.EvalUniquePeriodicDiscreteUpdate(context).value())
+    return block.GetOutputPort(PROGRESS_SIGNAL).Eval(context)[0]
+
+
+def test_the_block_counts_from_the_newest_distance_and_holds_between_ticks():
+    block = GoalProgress()
+    context = block.CreateDefaultContext()
+    assert block.GetOutputPort(PROGRESS_SIGNAL).Eval(context)[0] == 0  # Before any tick.
+    distances = [5.0, 4.9, 4.8, 4.7, 4.9, 5.2, 5.0, 4.6, 4.4]
+    assert [_tick(block, context, distance) for distance in distances] == _fold(distances)
+    block.GetInputPort("distance_stack").FixValue(context, [0.0] * STACK_DEPTH)
+    assert block.GetOutputPort(PROGRESS_SIGNAL).Eval(context)[0] == _fold(distances)[-1]
+
+
+def test_the_watchdog_hands_over_past_the_limit_whatever_the_signal_and_back_once_within_it():
+    config = SharedControlConfig(upper_threshold=0.5, lower_threshold=0.2, calm_steps=2, warmup_steps=0,
+                                 progress_limit_s=1.0)
+    gate = SharedControl(config)
+    context = gate.CreateDefaultContext()
+    gate.GetInputPort("policy_command").FixValue(context, [1.0, 0.1])
+    gate.GetInputPort("fallback_command").FixValue(context, [0.5, -0.3])
+    state = gate.AllocateDiscreteVariables()
+    script = [  # (uncertainty, seconds without progress, who drives after the step)
+        (0.1, 0.0, POLICY),
+        (0.1, 1.0, POLICY),  # At the limit, not past it.
+        (0.1, 1.1, FALLBACK),  # Past it: handover, the signal calm.
+        (0.1, 1.2, FALLBACK),  # Still past it: not a calm step.
+        (0.1, 0.0, FALLBACK),  # Calm 1.
+        (0.1, 0.1, POLICY),  # Calm 2: handback.
+        (0.9, 0.0, FALLBACK),  # The signal alone still hands over.
+    ]
+    for step, (uncertainty, stalled, driver) in enumerate(script):
+        gate.GetInputPort("uncertainty").FixValue(context, [uncertainty])
+        gate.GetInputPort(PROGRESS_SIGNAL).FixValue(context, [stalled])
+        gate.CalcForcedDiscreteVariableUpdate(context, state)
+        context.SetDiscreteState(state)
+        assert gate.GetOutputPort("who_drives").Eval(context)[0] == driver, f"step {step}"
+    assert gate.GetOutputPort("switches").Eval(context)[0] == 3
+    # The same rule for replays: forced hands over, and is never calm.
+    assert gate_step(POLICY, 0, 0.0, 0.5, 0.2, 2, forced=True) == (FALLBACK, 0, True)
+    assert gate_step(FALLBACK, 1, 0.0, 0.5, 0.2, 2, forced=True) == (FALLBACK, 0, False)
+    # Without a limit the gate has no such input, and its config's text is as before the watchdog.
+    assert not SharedControl(SharedControlConfig()).HasInputPort(PROGRESS_SIGNAL)
+    assert "progress_limit_s" not in config_to_yaml(SharedControlConfig())
+    assert "progress_limit_s: 1.0" in config_to_yaml(config)
+
+
+@pytest.mark.parametrize("fields, message", [
+    ({"progress_limit_s": 0.0}, r"progress_limit_s 0.0: expected a number of seconds > 0"),
+    ({"progress_limit_s": math.inf}, r"progress_limit_s inf: expected"),
+    ({"progress_limit_s": True}, r"progress_limit_s True: expected"),
+    ({"progress_limit_s": 5.0, "signal": PROGRESS_SIGNAL},
+     r"progress_limit_s 5.0 with signal 'seconds_without_progress': the gate already reads"),
+    ({"signal": PROGRESS_SIGNAL, "upper_threshold": -1.0, "lower_threshold": -2.0},
+     r"upper_threshold -1.0 with signal 'seconds_without_progress', which is never negative"),
+])
+def test_bad_progress_settings_are_refused_naming_the_value(fields, message):
+    with pytest.raises(ConfigError, match=message):
+        SharedControlConfig(**fields).validate()
+
+
+def _shared(**gate) -> SharedControlControllerConfig:
+    config = controller_config("shared")
+    return dataclasses.replace(config, policy=dataclasses.replace(config.policy, checkpoint="wide_bc40"),
+                               gate=dataclasses.replace(config.gate, fallback="expert", **gate))
+
+
+def test_a_progress_gate_reads_the_count_gate_signals_records_at_each_step():
+    # Thresholds above any count in 20 s: the policy drives throughout, as in an ungated recording.
+    config = _shared(signal=PROGRESS_SIGNAL, upper_threshold=100.0, lower_threshold=50.0)
+    diagram, built = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="wide", task=1),
+                                                      controller=get_controller("shared").for_seed(config, 4)))
+    gate, progress = diagram.GetSubsystemByName("shared_control"), diagram.GetSubsystemByName("goal_progress")
+    policy = diagram.GetSubsystemByName("learned_policy")
+    recorder = SignalWatch(policy, built.schedule)
+    assert PROGRESS_SIGNAL in recorder.signals
+    read = []
+
+    def watch(root) -> bool:
+        recorder(root)
+        gate_context = gate.GetMyContextFromRoot(root)
+        np.testing.assert_array_equal(gate.GetInputPort("uncertainty").Eval(gate_context),
+                                      progress.GetOutputPort(PROGRESS_SIGNAL).Eval(progress.GetMyContextFromRoot(root)))
+        read.append(gate.GetInputPort("uncertainty").Eval(gate_context)[0])
+        assert gate.GetOutputPort("who_drives").Eval(gate_context)[0] == POLICY
+        return False
+
+    RunEpisode(Simulator(diagram), diagram, built, 4, watch=watch, watch_period_s=built.schedule.control_period_s,
+               end_time_s=20.0)
+    recorded = recorder.values[PROGRESS_SIGNAL]
+    assert len(recorded) == len(recorder.time_s) >= 190
+    assert recorded == read[-len(recorded):]
+    # The crossing's run along the ditch holds the robot at one distance for more than a second.
+    assert max(recorded) > 1.0 and min(recorded) == 0.0
+
+
+def test_the_watchdog_in_a_built_diagram_hands_over_at_the_first_step_past_its_limit():
+    # A signal that never hands over, and a limit that the approach's steps between progress cross.
+    config = _shared(signal="mean_softmax_entropy", upper_threshold=100.0, lower_threshold=50.0,
+                     progress_limit_s=0.15)
+    diagram, _ = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="wide", task=1),
+                                                  controller=get_controller("shared").for_seed(config, 4)))
+    gate, progress = diagram.GetSubsystemByName("shared_control"), diagram.GetSubsystemByName("goal_progress")
+    simulator = Simulator(diagram)
+    steps = []
+    for t in np.arange(0.1, 3.0, PERIOD):
+        simulator.AdvanceTo(t)
+        root = simulator.get_context()
+        steps.append((progress.GetOutputPort(PROGRESS_SIGNAL).Eval(progress.GetMyContextFromRoot(root))[0],
+                      gate.GetOutputPort("who_drives").Eval(gate.GetMyContextFromRoot(root))[0]))
+    warmup = config.gate.warmup_steps
+    first = next(k for k, (stalled, _) in enumerate(steps) if k >= warmup and stalled > 0.15)
+    assert all(driver == POLICY for _, driver in steps[:first]) and steps[first][1] == FALLBACK, steps
+
+
+def test_gate_peaks_prints_each_outcomes_peaks_past_the_warm_up(tmp_path, capsys):
+    from ditch_drake.cli import main
+    from ditch_drake.learning.gate_calibration import episode_peaks, load_signals, save_signals
+
+    # Three episodes of four steps: two that reached the goal, one that timed out circling.
+    stalled = [9.0, 0.0, 0.5, 1.0, 9.0, 0.2, 2.0, 0.1, 9.0, 3.0, 6.0, 9.5]
+    path = save_signals(tmp_path / "s.npz", "wide_bc40", "0" * 16, {PROGRESS_SIGNAL: stalled},
+                        {"time_s": [0.003, 0.103, 0.203, 0.303] * 3, "episode": [0] * 4 + [1] * 4 + [2] * 4},
+                        {"episode_environment": ["wide"] * 3, "episode_task": [1] * 3, "episode_seed": [0, 1, 2],
+                         "episode_status": ["reached_goal", "reached_goal", "timeout"],
+                         "episode_end_time_s": [0.4, 0.4, 120.0]})
+    rows = episode_peaks(load_signals(path), PROGRESS_SIGNAL, warmup_steps=1)
+    assert [(row["status"], row["episodes"], row["least_peak"], row["median_peak"], row["largest_peak"])
+            for row in rows] == [("reached_goal", 2, 1.0, 1.5, 2.0), ("timeout", 1, 9.5, 9.5, 9.5)]
+    assert episode_peaks(load_signals(path), PROGRESS_SIGNAL)[0]["least_peak"] == 9.0  # The first steps counted.
+    assert main(["gate-peaks", str(path), "--warmup-steps", "1"]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert printed[1].split() == [PROGRESS_SIGNAL, "reached_goal", "2", "1", "1.5", "2"]
+    assert main(["gate-peaks", str(path), "--signal", "tip_risk_ahead"]) == 2
+    assert "--signal tip_risk_ahead" in capsys.readouterr().err
