@@ -218,6 +218,13 @@ def test_an_expert_fallback_that_replans_is_its_own_series_and_row():
     facing = RolloutRecord(**{**latched.__dict__, "controller_config": latched.controller_config.replace(
         "expert:\n  style_seed: null\n", "expert:\n  style_seed: null\n  variation: {keep_facing_side: true}\n")})
     assert gate_words(facing) == "gate tip_risk_ahead, budget 0.2, fallback expert, keeping the facing side"
+    # A progress watchdog beside the signal is its own series and row.
+    guarded = RolloutRecord(**{**latched.__dict__, "controller_config": latched.controller_config.replace(
+        "fallback: expert", "fallback: expert, progress_limit_s: 20.0")})
+    assert latched.controller_config != guarded.controller_config
+    assert gate_words(guarded) == "gate tip_risk_ahead, budget 0.2, watchdog 20 s, fallback expert"
+    both = handover_curves({"with": [guarded], "without": [latched]})
+    assert sorted(both["k5 on wide"]) == ["tip_risk_ahead, fallback expert", "tip_risk_ahead, watchdog 20 s, fallback expert"]
     # A tip risk on arcs of another length than the default is its own series and row.
     def on_arcs(record, text):
         config = record.controller_config
@@ -250,3 +257,14 @@ def test_a_study_of_one_model_per_environment_draws_a_bar_per_gate_not_per_model
     assert bar_series(across) == (["narrow", "wide"], across)
     clash = {("a", "wide"): 1, ("b", "wide"): 2, ("c", "narrow"): 3}
     assert bar_series(clash) == (["a", "b", "c"], clash)
+
+
+def test_a_gate_with_a_progress_watchdog_is_drawn_beside_the_same_signal_without_one(tmp_path):
+    without = gated(0, "tip_risk_ahead", 0.02)
+    guarded = RolloutRecord(**{**gated(1, "tip_risk_ahead", 0.02).__dict__, "controller_config": without.controller_config
+                               .replace("fallback: expert", "fallback: expert, progress_limit_s: 20.0")})
+    results = write(tmp_path / "results" / "watchdog.jsonl", [without, guarded])
+    page = write_report([results], tmp_path / "page.md", tmp_path / "img").read_text()
+    assert "gate tip_risk_ahead, budget 0.02, watchdog 20 s, fallback expert" in page
+    drawn = re.findall(r"!\[[^]]*\]\((img/[^)]+)\)", page)
+    assert "img/fig_shared_control.png" in drawn and (tmp_path / "img/fig_shared_control.png").stat().st_size > 0

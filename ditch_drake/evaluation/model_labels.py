@@ -10,7 +10,8 @@ reads beyond its sensors, pose and goal ("privileged: analytic terrain":
 an MPPI's nose-up threshold where set ("climb margin 11 deg")
 and, for a gated policy, its gate's signal, budget and fallback, e.g. "expert (privileged:
 analytic terrain)", "generalist (oracle side; privileged: analytic terrain)" or "crater_40_k5
-(gate random, budget 0.05, fallback mppi)". Records that differ in any are different rows.
+(gate random, budget 0.05, fallback mppi)", "sine_40_k5 (gate tip_risk_ahead, budget 0.02,
+watchdog 20 s, fallback expert)". Records that differ in any are different rows.
 """
 
 import itertools
@@ -183,13 +184,21 @@ def signal_words(record: RolloutRecord, gate: dict) -> str:
 
 def gate_words(record: RolloutRecord) -> str:
     """A shared-control record's gate: its signal (`signal_words`), budget (where one set the
-    thresholds) and fallback (`fallback_words`), e.g. "gate angular_rate_spread, budget 0.05,
-    fallback expert", from the `gate:` line of its config; "" for any other record."""
+    thresholds), progress watchdog (where set) and fallback (`fallback_words`), e.g. "gate
+    angular_rate_spread, budget 0.05, watchdog 20 s, fallback expert", from the `gate:` line of
+    its config; "" for any other record."""
     gate = gate_settings(record)
     if not gate:
         return ""
     budget = f", budget {gate['budget']:g}" if gate_budget(gate) is not None else ""
-    return f"gate {signal_words(record, gate)}{budget}, fallback {fallback_words(record, gate)}"
+    return f"gate {signal_words(record, gate)}{budget}{watchdog_words(gate)}, fallback {fallback_words(record, gate)}"
+
+
+def watchdog_words(gate: dict) -> str:
+    """A gate's progress watchdog (`SharedControlConfig.progress_limit_s`), e.g. ", watchdog 20 s";
+    "" for a gate without one."""
+    limit = gate.get("progress_limit_s")
+    return f", watchdog {limit:g} s" if isinstance(limit, (int, float)) and not isinstance(limit, bool) else ""
 
 
 def record_marks(record: RolloutRecord) -> list[str]:

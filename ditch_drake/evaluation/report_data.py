@@ -263,6 +263,7 @@ def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[st
         gate_settings,
         gate_words,
         signal_words,
+        watchdog_words,
     )
 
     every = [record for records in records_by_study.values() for record in records]
@@ -276,8 +277,8 @@ def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[st
             panel = handover_panel(record, name_of(record))
             if is_shared_control(record):
                 gate = gate_settings(record)
-                series = f"{signal_words(record, gate)}, fallback {fallback_words(record, gate)}" if gate else (
-                    record.controller)
+                series = (f"{signal_words(record, gate)}{watchdog_words(gate)}, fallback {fallback_words(record, gate)}"
+                          if gate else record.controller)
                 if record.privileged:
                     series += f" (privileged: {privileged_words(record.privileged)})"
                 runs[(panel, series, gate_words(record), study)].append(record)

@@ -318,7 +318,9 @@ def _figure_shared_control(curves: dict[str, dict[str, list[HandoverPoint]]], pa
     columns = min(2, len(curves))
     rows = -(-len(curves) // columns)
     fig, axes = plt.subplots(rows, columns, figsize=(5.2 * columns, 3.6 * rows + 0.6), squeeze=False)
-    signals = sorted({series.split(",")[0] for panel in curves.values() for series in panel} - {ALONE, _RANDOM_SIGNAL})
+    # A signal with a progress watchdog beside it ("tip_risk_ahead, watchdog 20 s") is a colour of its own.
+    signals = sorted({series.partition(", fallback ")[0] for panel in curves.values() for series in panel}
+                     - {ALONE, _RANDOM_SIGNAL})
     colours = plt.get_cmap("tab10")
     handles: dict[str, object] = {}
     for ax, (panel, series_points) in zip(axes.flat, curves.items()):
