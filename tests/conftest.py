@@ -78,3 +78,52 @@ def random_demonstration():
     """`random_demonstration(seed, steps)`: a seeded Demonstration of `steps` random frames and
     scalars, 60 % of its labels straight ahead, for the training and dataset tests."""
     return _random_demonstration
+
+
+@pytest.fixture
+def tick_block():
+    """A function that fixes `value` at a block's `input_name`, runs its one periodic update on
+    `context` and returns its `output_name` after it: one control step of a signal block."""
+    def tick(block, context, input_name: str, value, output_name: str) -> float:
+        block.GetInputPort(input_name).FixValue(context, value)
+        context.SetDiscreteState(block.EvalUniquePeriodicDiscreteUpdate(context).value())
+        return block.GetOutputPort(output_name).Eval(context)[0]
+    return tick
+
+
+@pytest.fixture
+def watched_gate_drive():
+    """A function that drives a `shared` controller config whose gate never hands over, on wide
+    task 1 with seed 4, for `end_time_s`, with `gate-signals`' watch (`SignalWatch`) beside it.
+    At every control step it checks that the gate's `uncertainty` input is the output `signal`
+    of the block named `block_name` and that the policy drives. Returns the watch, the gate's
+    input at each step and the policy's commanded turn rate at each step."""
+    from pydrake.systems.analysis import Simulator
+
+    from ditch_drake.diagrams.controllers import get_controller
+    from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+    from ditch_drake.evaluation.gate_signals import SignalWatch
+    from ditch_drake.learning.gate_calibration import POLICY
+
+    def drive(config, block_name: str, signal: str, end_time_s: float):
+        diagram, built = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="wide", task=1),
+                                                          controller=get_controller("shared").for_seed(config, 4)))
+        gate, block = diagram.GetSubsystemByName("shared_control"), diagram.GetSubsystemByName(block_name)
+        policy = diagram.GetSubsystemByName("learned_policy")
+        recorder = SignalWatch(policy, built.schedule)
+        read, commanded = [], []
+
+        def watch(root) -> bool:
+            recorder(root)
+            commanded.append(policy.GetOutputPort("command").Eval(policy.GetMyContextFromRoot(root))[1])
+            gate_context = gate.GetMyContextFromRoot(root)
+            np.testing.assert_array_equal(gate.GetInputPort("uncertainty").Eval(gate_context),
+                                          block.GetOutputPort(signal).Eval(block.GetMyContextFromRoot(root)))
+            read.append(gate.GetInputPort("uncertainty").Eval(gate_context)[0])
+            assert gate.GetOutputPort("who_drives").Eval(gate_context)[0] == POLICY
+            return False
+
+        RunEpisode(Simulator(diagram), diagram, built, 4, watch=watch, watch_period_s=built.schedule.control_period_s,
+                   end_time_s=end_time_s)
+        return recorder, read, commanded
+    return drive

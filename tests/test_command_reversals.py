@@ -11,9 +11,8 @@ from ditch_drake.cli import main
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.controllers import controller_config, get_controller
 from ditch_drake.diagrams.ditch_scene import SceneConfig
-from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig
 from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
-from ditch_drake.evaluation.gate_signals import SignalWatch
 from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, load_signals, save_signals
 from ditch_drake.learning.uncertainty import PROGRESS_SIGNAL, REVERSAL_SIGNAL
 from ditch_drake.systems.command_reversals import REVERSAL_WINDOW_STEPS, CommandReversals, count_reversals
@@ -30,19 +29,12 @@ def test_a_reversal_is_a_change_of_the_turns_sign_straight_commands_skipped(rate
     assert count_reversals(rates) == expected
 
 
-def _tick(block, context, rate: float) -> float:
-    """One control step: the command `rate`, the block's tick, its count after it."""
-    block.GetInputPort("command").FixValue(context, [0.5, rate])
-    context.SetDiscreteState(block.EvalUniquePeriodicDiscreteUpdate(context).value())
-    return block.GetOutputPort(REVERSAL_SIGNAL).Eval(context)[0]
-
-
-def test_the_block_counts_over_the_window_ending_with_the_last_command():
+def test_the_block_counts_over_the_window_ending_with_the_last_command(tick_block):
     block = CommandReversals()
     context = block.CreateDefaultContext()
     assert block.GetOutputPort(REVERSAL_SIGNAL).Eval(context)[0] == 0  # Before any command.
     rates = [0.3, -0.3] * 8 + [0.3] * 12 + [0.0, -0.3]
-    seen = [_tick(block, context, rate) for rate in rates]
+    seen = [tick_block(block, context, "command", [0.5, rate], REVERSAL_SIGNAL) for rate in rates]
     assert seen == [count_reversals(rates[max(0, step + 1 - REVERSAL_WINDOW_STEPS):step + 1])
                     for step in range(len(rates))]
     # Alternating turns fill the 1 s window with 9 reversals; 10 steps of one turn clear it; left,
@@ -61,29 +53,11 @@ def _reversal_gate(upper: float, lower: float) -> SharedControlControllerConfig:
                                                         lower_threshold=lower, fallback="expert"))
 
 
-def test_a_reversal_gate_reads_the_count_gate_signals_records_at_each_step():
+def test_a_reversal_gate_reads_the_count_gate_signals_records_at_each_step(watched_gate_drive):
     # Thresholds above any count: the policy drives throughout, as in an ungated recording.
-    config = _reversal_gate(upper=100.0, lower=50.0)
-    diagram, built = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="wide", task=1),
-                                                      controller=get_controller("shared").for_seed(config, 4)))
-    gate, reversals = diagram.GetSubsystemByName("shared_control"), diagram.GetSubsystemByName(REVERSAL_SIGNAL)
-    policy = diagram.GetSubsystemByName("learned_policy")
-    recorder = SignalWatch(policy, built.schedule)
-    assert REVERSAL_SIGNAL in recorder.signals
-    commanded, read = [], []
-
-    def watch(root) -> bool:
-        recorder(root)
-        commanded.append(policy.GetOutputPort("command").Eval(policy.GetMyContextFromRoot(root))[1])
-        gate_context = gate.GetMyContextFromRoot(root)
-        np.testing.assert_array_equal(gate.GetInputPort("uncertainty").Eval(gate_context),
-                                      reversals.GetOutputPort(REVERSAL_SIGNAL).Eval(reversals.GetMyContextFromRoot(root)))
-        read.append(gate.GetInputPort("uncertainty").Eval(gate_context)[0])
-        assert gate.GetOutputPort("who_drives").Eval(gate_context)[0] == POLICY
-        return False
-
-    RunEpisode(Simulator(diagram), diagram, built, 4, watch=watch, watch_period_s=built.schedule.control_period_s,
-               end_time_s=25.0)  # This drive's turn first reverses after about 20 s.
+    # This drive's turn first reverses after about 20 s.
+    recorder, read, commanded = watched_gate_drive(_reversal_gate(upper=100.0, lower=50.0), REVERSAL_SIGNAL,
+                                                   REVERSAL_SIGNAL, end_time_s=25.0)
     recorded = recorder.values[REVERSAL_SIGNAL]
     assert len(recorded) == len(recorder.time_s) >= 200 and max(recorded) >= 1
     # The watch sees the gate's input once its tick has passed: what it recorded at each step.

@@ -12,9 +12,8 @@ from ditch_drake.common.config_yaml import config_to_yaml
 from ditch_drake.common.errors import ConfigError
 from ditch_drake.diagrams.controllers import controller_config, get_controller
 from ditch_drake.diagrams.ditch_scene import SceneConfig
-from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig, RunEpisode
+from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig
 from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
-from ditch_drake.evaluation.gate_signals import SignalWatch
 from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, gate_step
 from ditch_drake.learning.uncertainty import PROGRESS_SIGNAL
 from ditch_drake.spec import robot
@@ -45,19 +44,13 @@ def test_progress_is_a_fall_of_a_quarter_metre_below_where_it_was_last_seen():
     assert _fold([3.0] * 11)[-1] == pytest.approx(1.0)
 
 
-def _tick(block, context, distance: float) -> float:
-    """One control step: the stack with `distance` newest, the block's tick, its count after it."""
-    block.GetInputPort("distance_stack").FixValue(context, [distance] + [99.0] * (STACK_DEPTH - 1))
-    context.SetDiscreteState(block.EvalUniquePeriodicDiscreteUpdate(context).value())
-    return block.GetOutputPort(PROGRESS_SIGNAL).Eval(context)[0]
-
-
-def test_the_block_counts_from_the_newest_distance_and_holds_between_ticks():
+def test_the_block_counts_from_the_newest_distance_and_holds_between_ticks(tick_block):
     block = GoalProgress()
     context = block.CreateDefaultContext()
     assert block.GetOutputPort(PROGRESS_SIGNAL).Eval(context)[0] == 0  # Before any tick.
     distances = [5.0, 4.9, 4.8, 4.7, 4.9, 5.2, 5.0, 4.6, 4.4]
-    assert [_tick(block, context, distance) for distance in distances] == _fold(distances)
+    stacks = [[distance] + [99.0] * (STACK_DEPTH - 1) for distance in distances]  # Newest first.
+    assert [tick_block(block, context, "distance_stack", stack, PROGRESS_SIGNAL) for stack in stacks] == _fold(distances)
     block.GetInputPort("distance_stack").FixValue(context, [0.0] * STACK_DEPTH)
     assert block.GetOutputPort(PROGRESS_SIGNAL).Eval(context)[0] == _fold(distances)[-1]
 
@@ -115,28 +108,10 @@ def _shared(**gate) -> SharedControlControllerConfig:
                                gate=dataclasses.replace(config.gate, fallback="expert", **gate))
 
 
-def test_a_progress_gate_reads_the_count_gate_signals_records_at_each_step():
+def test_a_progress_gate_reads_the_count_gate_signals_records_at_each_step(watched_gate_drive):
     # Thresholds above any count in 20 s: the policy drives throughout, as in an ungated recording.
     config = _shared(signal=PROGRESS_SIGNAL, upper_threshold=100.0, lower_threshold=50.0)
-    diagram, built = MakeRolloutDiagram(RolloutConfig(scene=SceneConfig(environment="wide", task=1),
-                                                      controller=get_controller("shared").for_seed(config, 4)))
-    gate, progress = diagram.GetSubsystemByName("shared_control"), diagram.GetSubsystemByName("goal_progress")
-    policy = diagram.GetSubsystemByName("learned_policy")
-    recorder = SignalWatch(policy, built.schedule)
-    assert PROGRESS_SIGNAL in recorder.signals
-    read = []
-
-    def watch(root) -> bool:
-        recorder(root)
-        gate_context = gate.GetMyContextFromRoot(root)
-        np.testing.assert_array_equal(gate.GetInputPort("uncertainty").Eval(gate_context),
-                                      progress.GetOutputPort(PROGRESS_SIGNAL).Eval(progress.GetMyContextFromRoot(root)))
-        read.append(gate.GetInputPort("uncertainty").Eval(gate_context)[0])
-        assert gate.GetOutputPort("who_drives").Eval(gate_context)[0] == POLICY
-        return False
-
-    RunEpisode(Simulator(diagram), diagram, built, 4, watch=watch, watch_period_s=built.schedule.control_period_s,
-               end_time_s=20.0)
+    recorder, read, _ = watched_gate_drive(config, "goal_progress", PROGRESS_SIGNAL, end_time_s=20.0)
     recorded = recorder.values[PROGRESS_SIGNAL]
     assert len(recorded) == len(recorder.time_s) >= 190
     assert recorded == read[-len(recorded):]
