@@ -53,7 +53,13 @@ from ditch_drake.diagrams.rollout import (
 from ditch_drake.learning.checkpoint import GENERALIST_ENSEMBLE, checkpoint_digest, environment_model
 from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.learning.inference import is_ensemble
-from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, PROGRESS_SIGNAL, REVERSAL_SIGNAL, RISK_SIGNALS
+from ditch_drake.learning.uncertainty import (
+    DISAGREEMENT_SIGNALS,
+    PROGRESS_SIGNAL,
+    REVERSAL_SIGNAL,
+    RISK_SIGNALS,
+    UNCERTAINTY_SIGNALS,
+)
 from ditch_drake.spec.schedule import gate_signal_offset_s
 from ditch_drake.systems.command_reversals import CommandReversals
 from ditch_drake.systems.driver_indicator import DriverIndicator
@@ -231,9 +237,8 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     risk_gate = config.gate.signal in RISK_SIGNALS
     reversal_gate = config.gate.signal == REVERSAL_SIGNAL
     progress_gate = config.gate.signal == PROGRESS_SIGNAL
-    # These gates read no uncertainty of the policy's; the one every checkpoint has is reported.
-    signal = (DEFAULT_UNCERTAINTY_SIGNAL if random_gate or risk_gate or reversal_gate or progress_gate
-              else config.gate.signal)
+    # The other gates read no uncertainty of the policy's; the one every checkpoint has is reported.
+    signal = config.gate.signal if config.gate.signal in UNCERTAINTY_SIGNALS else DEFAULT_UNCERTAINTY_SIGNAL
     policy = AddLearnedPolicy(builder, scene, observation, checkpoint, config.policy.crossing_side,
                               config.policy.runtime, uncertainty_signal=signal,
                               precision=config.policy.precision)

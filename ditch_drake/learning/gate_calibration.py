@@ -236,12 +236,20 @@ def signal_before_rollovers(signals: dict, signal: str, window_s: float) -> list
 def _rolled_over_episodes(signals: dict, signal: str):
     """Each episode of a signals file that rolled over, in episode order, as (its steps' times
     (s), `signal` at them, in time order; the episode's end time (s))."""
+    for index, times, values in _episodes(signals, signal):
+        if signals["episode_status"][index] == ROLLED_OVER:
+            yield times, values, float(signals["episode_end_time_s"][index])
+
+
+def _episodes(signals: dict, signal: str):
+    """Every episode of a signals file, in episode order, as (its index, its steps' times (s),
+    `signal` at them, in time order)."""
     values, times = np.asarray(signals[signal], dtype=float), np.asarray(signals["time_s"], dtype=float)
     episode = np.asarray(signals["episode"], dtype=int)
-    for index in np.flatnonzero(np.asarray(signals["episode_status"]) == ROLLED_OVER):
+    for index in range(len(signals["episode_status"])):
         steps = np.flatnonzero(episode == index)
         steps = steps[np.argsort(times[steps], kind="stable")]
-        yield times[steps], values[steps], float(signals["episode_end_time_s"][index])
+        yield index, times[steps], values[steps]
 
 
 def episode_peaks(signals: dict, signal: str, warmup_steps: int = 0) -> list[dict]:
@@ -257,13 +265,10 @@ def episode_peaks(signals: dict, signal: str, warmup_steps: int = 0) -> list[dic
     """
     if signal not in signals["signals"]:
         raise ConfigError(f"signals file has no signal {signal!r}: it recorded {signals['signals']}")
-    values, episode = np.asarray(signals[signal], dtype=float), np.asarray(signals["episode"], dtype=int)
-    times = np.asarray(signals["time_s"], dtype=float)
     peaks: dict[str, list[float]] = {}
-    for index, status in enumerate(np.asarray(signals["episode_status"]).tolist()):
-        steps = np.flatnonzero(episode == index)
-        kept = values[steps[np.argsort(times[steps], kind="stable")]][warmup_steps:]
-        peaks.setdefault(str(status), []).append(float(kept.max()) if kept.size else math.nan)
+    for index, _, values in _episodes(signals, signal):
+        kept = values[warmup_steps:]
+        peaks.setdefault(str(signals["episode_status"][index]), []).append(float(kept.max()) if kept.size else math.nan)
     return [{"signal": signal, "status": status, "episodes": len(found), "least_peak": float(np.min(found)),
              "median_peak": float(np.median(found)), "largest_peak": float(np.max(found))}
             for status, found in peaks.items()]

@@ -50,7 +50,8 @@ class CommandReversals(LeafSystem):
         command_reversals: [count] reversals of the sign of w in the window.
     """
 
-    def __init__(self, period_s: float = robot.CONTROL_PERIOD_S, offset_s: float = gate_signal_offset_s(CONTROLLER_OFFSET_S, RECORDER_OFFSET_S)):
+    def __init__(self, period_s: float = robot.CONTROL_PERIOD_S,
+                 offset_s: float = gate_signal_offset_s(CONTROLLER_OFFSET_S, RECORDER_OFFSET_S)):
         super().__init__()
         self._command_port = self.DeclareVectorInputPort("command", 2)
         window = self.DeclareDiscreteState(REVERSAL_WINDOW_STEPS)  # Oldest first.
