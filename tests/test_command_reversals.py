@@ -14,7 +14,7 @@ from ditch_drake.diagrams.ditch_scene import SceneConfig
 from ditch_drake.diagrams.rollout import MakeRolloutDiagram, RolloutConfig
 from ditch_drake.diagrams.shared_controller import SharedControlControllerConfig
 from ditch_drake.learning.gate_calibration import FALLBACK, POLICY, load_signals, save_signals
-from ditch_drake.learning.uncertainty import PROGRESS_SIGNAL, REVERSAL_SIGNAL
+from ditch_drake.learning.uncertainty import PROGRESS_SIGNAL, REGRESS_SIGNAL, REVERSAL_SIGNAL
 from ditch_drake.systems.command_reversals import REVERSAL_WINDOW_STEPS, CommandReversals, count_reversals
 from ditch_drake.systems.shared_control import SharedControlConfig
 
@@ -90,7 +90,7 @@ def test_gate_signals_records_the_reversals_of_a_single_clone(tmp_path):
     assert main(["gate-signals", "--workers", "0", "--checkpoint", "wide_bc40", "--env", "wide", "--task", "1",
                  "--rollouts", "1", "--seed", "4", "--time-limit", "4", "--out", str(out)]) == 0
     signals = load_signals(out)
-    assert signals["signals"] == ["mean_softmax_entropy", REVERSAL_SIGNAL, PROGRESS_SIGNAL]
+    assert signals["signals"] == ["mean_softmax_entropy", REVERSAL_SIGNAL, PROGRESS_SIGNAL, REGRESS_SIGNAL]
     counts = signals[REVERSAL_SIGNAL]
     assert counts.shape == signals["time_s"].shape
     assert np.all((counts >= 0) & (counts <= REVERSAL_WINDOW_STEPS - 1) & (counts == np.round(counts)))

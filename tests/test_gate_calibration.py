@@ -181,7 +181,7 @@ def test_gate_signals_records_every_step_of_a_short_rollout(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "mean_softmax_entropy" in printed and "auc" in printed
     signals = load_signals(out)
-    assert signals["signals"] == ["mean_softmax_entropy", "command_reversals", "seconds_without_progress"]
+    assert signals["signals"] == ["mean_softmax_entropy", "command_reversals", "seconds_without_progress", "metres_regressed"]
     assert signals["checkpoint"] == "wide_bc40"
     assert signals["checkpoint_sha256"] == checkpoint_digest("wide_bc40")
     np.testing.assert_allclose(signals["time_s"], 0.003 + 0.1 * np.arange(10), atol=1e-9)

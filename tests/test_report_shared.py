@@ -225,6 +225,9 @@ def test_an_expert_fallback_that_replans_is_its_own_series_and_row():
     assert gate_words(guarded) == "gate tip_risk_ahead, budget 0.2, watchdog 20 s, fallback expert"
     both = handover_curves({"with": [guarded], "without": [latched]})
     assert sorted(both["k5 on wide"]) == ["tip_risk_ahead, fallback expert", "tip_risk_ahead, watchdog 20 s, fallback expert"]
+    both_watchdogs = RolloutRecord(**{**latched.__dict__, "controller_config": latched.controller_config.replace(
+        "fallback: expert", "fallback: expert, progress_limit_s: 20.0, regress_limit_m: 3.0")})
+    assert gate_words(both_watchdogs) == "gate tip_risk_ahead, budget 0.2, watchdog 20 s, 3 m, fallback expert"
     # A tip risk on arcs of another length than the default is its own series and row.
     def on_arcs(record, text):
         config = record.controller_config

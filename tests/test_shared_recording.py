@@ -97,6 +97,7 @@ def test_collect_shared_stores_each_step_with_its_driver(tmp_path, capsys):
     (["--upper-threshold", "0.5", "--lower-threshold", "0.9"], "lower_threshold 0.9 > upper_threshold 0.5"),
     (["--signal", "random", "--upper-threshold", "2.55"], "upper_threshold 2.55 with signal 'random': expected a number in"),
     (["--progress-limit", "-4"], "progress_limit_s -4.0: expected a number of seconds > 0"),
+    (["--regress-limit", "0"], "regress_limit_m 0.0: expected a number of metres > 0"),
 ])
 def test_bad_shared_collections_exit_2_naming_the_value(tmp_path, capsys, extra, message):
     code = main(["collect", "--shared", "--env", "wide", "--demos", "1", "--workers", "0",
@@ -115,9 +116,10 @@ def test_the_random_gate_is_offered_to_recording_commands():
                                           "--lower-threshold", "0.8"])
         gate = shared_config_from_options(args, "wide", fallback="expert").gate
         assert (gate.signal, gate.upper_threshold, gate.lower_threshold) == ("random", 0.95, 0.8)
-        assert gate.progress_limit_s is None
-        args = build_parser().parse_args([*command, "--progress-limit", "12"])
-        assert shared_config_from_options(args, "wide", fallback="expert").gate.progress_limit_s == 12.0
+        assert gate.progress_limit_s is None and gate.regress_limit_m is None
+        args = build_parser().parse_args([*command, "--progress-limit", "12", "--regress-limit", "3"])
+        gate = shared_config_from_options(args, "wide", fallback="expert").gate
+        assert (gate.progress_limit_s, gate.regress_limit_m) == (12.0, 3.0)
 
 
 def test_recording_commands_take_the_gate_from_a_budget(tmp_path):

@@ -86,9 +86,10 @@ def test_gate_signals_risk_records_two_more_signals_and_changes_nothing_else(tmp
     assert main([*argv, "--risk", "--out", str(tmp_path / "risk.npz")]) == 0
     assert "tip_risk_ahead" in capsys.readouterr().out
     plain, risk = load_signals(tmp_path / "plain.npz"), load_signals(tmp_path / "risk.npz")
-    assert risk["signals"] == ["mean_softmax_entropy", "command_reversals", "seconds_without_progress", "tip_risk_now",
-                               "tip_risk_ahead"]
-    for name in ("mean_softmax_entropy", "command_reversals", "time_s", "episode", "episode_status", "episode_end_time_s"):
+    assert risk["signals"] == ["mean_softmax_entropy", "command_reversals", "seconds_without_progress",
+                               "metres_regressed", "tip_risk_now", "tip_risk_ahead"]
+    for name in ("mean_softmax_entropy", "command_reversals", "seconds_without_progress", "metres_regressed", "time_s",
+                 "episode", "episode_status", "episode_end_time_s"):
         np.testing.assert_array_equal(risk[name], plain[name], err_msg=name)
     for name in ("tip_risk_now", "tip_risk_ahead"):
         values = risk[name]

@@ -9,7 +9,7 @@ SHARED = "ditch_drake.diagrams.shared_controller:SharedControlControllerConfig"
 
 def add_gate_options(sub: argparse.ArgumentParser, fallbacks: list[str]) -> None:
     """`--signal`, `--upper-threshold`, `--lower-threshold`, `--calm-steps`, `--budget`,
-    `--calibration`, `--progress-limit` and `--fallback`:
+    `--calibration`, `--progress-limit`, `--regress-limit` and `--fallback`:
     the gate of `SharedControlControllerConfig` (defaults its own: the shipped clones' gate)."""
     from ditch_drake.learning.uncertainty import GATE_SIGNALS
 
@@ -34,6 +34,10 @@ def add_gate_options(sub: argparse.ArgumentParser, fallbacks: list[str]) -> None
     gate.add_argument("--progress-limit", type=float, default=None, metavar="S",
                       help="a watchdog beside the signal: also hand over once the robot has come no nearer its "
                            "goal for more than S seconds, until it is nearer than before (default: none)")
+    gate.add_argument("--regress-limit", type=float, default=None, metavar="M",
+                      help="a watchdog beside the signal: also hand over once the robot has fallen back more "
+                           "than M metres from the goal since it last came nearer, until it is nearer than "
+                           "before (default: none)")
     if len(fallbacks) > 1:
         gate.add_argument("--fallback", choices=fallbacks, default=fallbacks[0],
                           help="who takes over where the policy is unsure (default %(default)s)")
@@ -57,7 +61,8 @@ def shared_config_from_options(args, checkpoint: str | None, fallback: str | Non
     gate = dataclasses.replace(config.gate, signal=args.signal, upper_threshold=args.upper_threshold,
                                lower_threshold=args.lower_threshold, calm_steps=args.calm_steps,
                                fallback=fallback or args.fallback, budget=args.budget,
-                               calibration=args.calibration, progress_limit_s=args.progress_limit)
+                               calibration=args.calibration, progress_limit_s=args.progress_limit,
+                               regress_limit_m=args.regress_limit)
     gate.validate()
     if gate.budget is not None:
         gate.resolved()

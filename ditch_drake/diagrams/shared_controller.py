@@ -22,10 +22,10 @@ in place of the policy's uncertainty: the chance handover a gate is compared wit
 "elevation_mapper" of the policy's lidar and the policy's command: how near the robot is to
 tipping, now or along the arc the policy commands, rather than how unsure the policy is. With
 "command_reversals" it reads a "command_reversals" block (`CommandReversals`) on the policy's
-command: how often its turn reversed over the last second. With "seconds_without_progress",
-or with a progress watchdog beside any signal (`gate.progress_limit_s`), a "goal_progress"
-block (`GoalProgress`) on the distances to the goal the policy saw: how long the robot has come
-no nearer its goal.
+command: how often its turn reversed over the last second. With "seconds_without_progress"
+or "metres_regressed", or with a watchdog beside any signal (`gate.progress_limit_s`,
+`gate.regress_limit_m`), a "goal_progress" block (`GoalProgress`) on the distances to the goal
+the policy saw: how long the robot has come no nearer its goal, and how far it has fallen back.
 """
 
 import dataclasses
@@ -55,7 +55,6 @@ from ditch_drake.learning.gate_calibration import load_signals
 from ditch_drake.learning.inference import is_ensemble
 from ditch_drake.learning.uncertainty import (
     DISAGREEMENT_SIGNALS,
-    PROGRESS_SIGNAL,
     REVERSAL_SIGNAL,
     RISK_SIGNALS,
     UNCERTAINTY_SIGNALS,
@@ -67,7 +66,7 @@ from ditch_drake.systems.goal_progress import GoalProgress
 from ditch_drake.systems.keyed_uniform import KeyedUniform
 from ditch_drake.systems.meshcat_teleop import MeshcatTeleop
 from ditch_drake.systems.policy import DEFAULT_UNCERTAINTY_SIGNAL
-from ditch_drake.systems.shared_control import RANDOM_SIGNAL, SharedControl, SharedControlConfig
+from ditch_drake.systems.shared_control import RANDOM_SIGNAL, WATCHDOGS, SharedControl, SharedControlConfig
 from ditch_drake.systems.teleop import ActionQuantizer
 from ditch_drake.systems.tip_risk import TipRiskConfig
 
@@ -236,7 +235,7 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
     random_gate = config.gate.signal == RANDOM_SIGNAL
     risk_gate = config.gate.signal in RISK_SIGNALS
     reversal_gate = config.gate.signal == REVERSAL_SIGNAL
-    progress_gate = config.gate.signal == PROGRESS_SIGNAL
+    progress_gate = config.gate.signal in WATCHDOGS
     # The other gates read no uncertainty of the policy's; the one every checkpoint has is reported.
     signal = config.gate.signal if config.gate.signal in UNCERTAINTY_SIGNALS else DEFAULT_UNCERTAINTY_SIGNAL
     policy = AddLearnedPolicy(builder, scene, observation, checkpoint, config.policy.crossing_side,
@@ -249,11 +248,14 @@ def AddSharedControl(builder: DiagramBuilder, scene: DitchScene, config: SharedC
         offset_s=(schedule.controller_offset_s + schedule.recorder_offset_s) / 2))
     builder.Connect(policy.GetOutputPort("command"), gate.GetInputPort("policy_command"))
     signal_offset_s = gate_signal_offset_s(schedule.controller_offset_s, schedule.recorder_offset_s)
-    if progress_gate or config.gate.progress_limit_s is not None:
+    watched = list(config.gate.watchdog_limits())
+    if progress_gate or watched:
         progress = builder.AddNamedSystem("goal_progress", GoalProgress(schedule.control_period_s, signal_offset_s))
         builder.Connect(observation.stacker.GetOutputPort("distance_stack"), progress.GetInputPort("distance_stack"))
-        builder.Connect(progress.GetOutputPort(PROGRESS_SIGNAL), gate.GetInputPort(
-            "uncertainty" if progress_gate else PROGRESS_SIGNAL))
+        if progress_gate:
+            builder.Connect(progress.GetOutputPort(config.gate.signal), gate.GetInputPort("uncertainty"))
+        for name in watched:
+            builder.Connect(progress.GetOutputPort(name), gate.GetInputPort(name))
     if random_gate:
         AddRandomHandoverDraw(builder, gate, schedule.control_period_s, random_draw_key(scene))
     elif risk_gate:

@@ -11,8 +11,9 @@ forward pass per step is the price of not changing the policy block's ports. It 
 reversals of the policy's commanded turn over the last second ("command_reversals",
 `ditch_drake.systems.command_reversals`), from the commands it has seen: the count that block
 gives a gate at the same step; and the seconds since the robot last came nearer its goal
-("seconds_without_progress", `ditch_drake.systems.goal_progress`), from the distances to the
-goal the policy read: the count that block gives a gate. With `risk`, the
+("seconds_without_progress", `ditch_drake.systems.goal_progress`), and the most it has fallen
+back from the goal since ("metres_regressed"), from the distances to the goal the policy read:
+the counts that block gives a gate. With `risk`, the
 diagram also has a "tip_risk" block (`ditch_drake.systems.tip_risk`), and the watch records its
 two signals, minus the tip margin now and along the commanded arc, at the same steps.
 
@@ -48,6 +49,7 @@ from ditch_drake.diagrams.rollout import LearnedPolicyConfig, MakeRolloutDiagram
 from ditch_drake.learning.uncertainty import (
     DISAGREEMENT_SIGNALS,
     PROGRESS_SIGNAL,
+    REGRESS_SIGNAL,
     REVERSAL_SIGNAL,
     RISK_SIGNALS,
     UNCERTAINTY_SIGNALS,
@@ -55,7 +57,7 @@ from ditch_drake.learning.uncertainty import (
 from ditch_drake.spec.schedule import ScheduleConfig
 from ditch_drake.systems.command_reversals import REVERSAL_WINDOW_STEPS, count_reversals
 from ditch_drake.systems.episode_monitor import EpisodeConfig
-from ditch_drake.systems.goal_progress import progress_step
+from ditch_drake.systems.goal_progress import Progress, progress_step
 from ditch_drake.systems.policy import LearnedPolicy
 from ditch_drake.systems.tip_risk import TipRisk, TipRiskConfig
 
@@ -88,10 +90,10 @@ class SignalWatch:
         self._offset_s = schedule.controller_offset_s
         self._uncertainty = supported_signals(policy.members)
         self._risk = list(RISK_SIGNALS) if tip_risk is not None else []
-        self.signals = self._uncertainty + [REVERSAL_SIGNAL, PROGRESS_SIGNAL] + self._risk
+        self.signals = self._uncertainty + [REVERSAL_SIGNAL, PROGRESS_SIGNAL, REGRESS_SIGNAL] + self._risk
         self._rates = policy.action_commands[:, 1]
         self._commanded_rates: list[float] = []
-        self._progress = (math.inf, 0.0)  # `progress_step`'s (anchor m, seconds without progress).
+        self._progress = Progress()
         self.time_s: list[float] = []
         self.values: dict[str, list[float]] = {name: [] for name in self.signals}
 
@@ -115,8 +117,9 @@ class SignalWatch:
         self._commanded_rates.append(float(self._policy.GetOutputPort("command").Eval(context)[1]))
         self.values[REVERSAL_SIGNAL].append(float(count_reversals(self._commanded_rates[-REVERSAL_WINDOW_STEPS:])))
         distance_m = float(stacks[STACK_PORTS.index("distance_stack")][0])  # This step's, newest first.
-        self._progress = progress_step(*self._progress, distance_m, self._period_s)
-        self.values[PROGRESS_SIGNAL].append(self._progress[1])
+        self._progress = progress_step(self._progress, distance_m, self._period_s)
+        self.values[PROGRESS_SIGNAL].append(self._progress.stalled_s)
+        self.values[REGRESS_SIGNAL].append(self._progress.regressed_m)
         if self._risk:
             risk_context = self._tip_risk.GetMyContextFromRoot(root_context)
             for name in self._risk:
@@ -171,7 +174,7 @@ class GateSignals:
 
 # The schema of an `EpisodeParts` folder's header.
 PARTS_SCHEMA = "ditch_drake.gate_signals.parts"
-PARTS_VERSION = 3  # 2: every episode has "command_reversals"; 3: and "seconds_without_progress".
+PARTS_VERSION = 4  # 2: every episode has "command_reversals"; 3: "seconds_without_progress"; 4: "metres_regressed".
 PARTS_HEADER = "header.json"
 
 

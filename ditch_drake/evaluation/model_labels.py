@@ -22,6 +22,8 @@ from pathlib import Path
 
 from ditch_drake.diagrams.controllers import privileged_words
 from ditch_drake.evaluation.results import RolloutRecord
+from ditch_drake.learning.uncertainty import SIGNAL_UNITS
+from ditch_drake.systems.shared_control import WATCHDOGS
 from ditch_drake.systems.window_search import WindowSearchConfig
 
 # What a page says beside a table with a marked row.
@@ -184,7 +186,7 @@ def signal_words(record: RolloutRecord, gate: dict) -> str:
 
 def gate_words(record: RolloutRecord) -> str:
     """A shared-control record's gate: its signal (`signal_words`), budget (where one set the
-    thresholds), progress watchdog (where set) and fallback (`fallback_words`), e.g. "gate
+    thresholds), watchdogs (where set) and fallback (`fallback_words`), e.g. "gate
     angular_rate_spread, budget 0.05, watchdog 20 s, fallback expert", from the `gate:` line of
     its config; "" for any other record."""
     gate = gate_settings(record)
@@ -195,10 +197,11 @@ def gate_words(record: RolloutRecord) -> str:
 
 
 def watchdog_words(gate: dict) -> str:
-    """A gate's progress watchdog (`SharedControlConfig.progress_limit_s`), e.g. ", watchdog 20 s";
-    "" for a gate without one."""
-    limit = gate.get("progress_limit_s")
-    return f", watchdog {limit:g} s" if isinstance(limit, (int, float)) and not isinstance(limit, bool) else ""
+    """A gate's watchdogs (`SharedControlConfig.progress_limit_s`, `regress_limit_m`), e.g.
+    ", watchdog 20 s" or ", watchdog 20 s, 3 m"; "" for a gate without one."""
+    limits = [f"{limit:g} {SIGNAL_UNITS[signal]}" for signal, key in WATCHDOGS.items()
+              if isinstance(limit := gate.get(key), (int, float)) and not isinstance(limit, bool)]
+    return f", watchdog {', '.join(limits)}" if limits else ""
 
 
 def record_marks(record: RolloutRecord) -> list[str]:

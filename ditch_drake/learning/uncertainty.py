@@ -109,13 +109,16 @@ REVERSAL_SIGNAL = "command_reversals"
 # A signal of the robot's progress, from its pose and goal alone: the seconds since it last came
 # nearer the goal (`ditch_drake.systems.goal_progress`), for the failures after the crossing.
 PROGRESS_SIGNAL = "seconds_without_progress"
+# Its companion in metres: the most the robot has fallen back from the goal since it last came
+# nearer, for a policy that drives away from its goal after the crossing.
+REGRESS_SIGNAL = "metres_regressed"
 # What a shared-control gate may read (`SharedControlConfig.signal`): the policy's uncertainty
 # signals, the risk signals, the reversals, the progress, or the draw.
-GATE_SIGNALS = (*UNCERTAINTY_SIGNALS, *RISK_SIGNALS, REVERSAL_SIGNAL, PROGRESS_SIGNAL, RANDOM_SIGNAL)
+GATE_SIGNALS = (*UNCERTAINTY_SIGNALS, *RISK_SIGNALS, REVERSAL_SIGNAL, PROGRESS_SIGNAL, REGRESS_SIGNAL, RANDOM_SIGNAL)
 # The unit each of them is in, for a table's or a figure's label.
 SIGNAL_UNITS = {"angular_rate_spread": "rad/s", "vote_entropy": "nats", "mean_softmax_entropy": "nats",
                 "tip_risk_now": "deg", "tip_risk_ahead": "deg", REVERSAL_SIGNAL: "reversals in 1 s",
-                PROGRESS_SIGNAL: "s", RANDOM_SIGNAL: "draw in [0, 1)"}
+                PROGRESS_SIGNAL: "s", REGRESS_SIGNAL: "m", RANDOM_SIGNAL: "draw in [0, 1)"}
 
 
 def uncertainty_signal(name: str) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:

@@ -1,4 +1,5 @@
-"""How long the robot has come no nearer its goal: a watchdog for a policy that has lost its way.
+"""How long, and how far, the robot has come no nearer its goal: watchdogs for a policy that has
+lost its way.
 
 On the paper's ditches the retrained clones' failures that no tip or uncertainty signal
 foresees come after the crossing: the robot, past the ditch, drives on past the goal or circles
@@ -8,9 +9,15 @@ seconds since the distance to the goal last fell by `PROGRESS_STEP_M` below wher
 such fall left it. Driving at the policy's speed toward the goal keeps it under a few tenths
 of a second; driving along the ditch before the climb lets it grow for a while; past the goal,
 or circling, it grows until the robot is nearer the goal than ever before.
+
+The same anchor gives a second count, in metres: the most the distance has risen above the
+anchor since it was set. A robot that drives away from its goal at 1 m/s takes 20 s to pass a
+20 s limit and is 20 m off by then, at the field's edge on sine; the metres pass a limit of a
+few metres in a few seconds. Like the seconds, they fall back to 0 only with progress.
 """
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
@@ -24,30 +31,44 @@ from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S, ga
 PROGRESS_STEP_M = 0.25
 
 
-def progress_step(anchor_m: float, stalled_s: float, distance_m: float, period_s: float) -> tuple[float, float]:
-    """One control step of the watchdog: (the new anchor (m), the seconds without progress).
+class Progress(NamedTuple):
+    """The watchdogs' state after a control step (`progress_step`).
 
-    The anchor is the distance where progress was last seen (inf before the first step). A
-    distance `PROGRESS_STEP_M` or more below it is progress: it becomes the anchor and the
-    count restarts at 0; otherwise the count grows by `period_s`. The first step only sets the
-    anchor.
+    Attributes:
+        anchor_m: the distance to the goal where progress was last seen (inf before the first step).
+        stalled_s: the seconds since then.
+        regressed_m: the most the distance has risen above the anchor since then (>= 0).
     """
-    if math.isinf(anchor_m):
-        return distance_m, 0.0
-    if distance_m <= anchor_m - PROGRESS_STEP_M:
-        return distance_m, 0.0
-    return anchor_m, stalled_s + period_s
+
+    anchor_m: float = math.inf
+    stalled_s: float = 0.0
+    regressed_m: float = 0.0
+
+
+def progress_step(state: Progress, distance_m: float, period_s: float) -> Progress:
+    """One control step of the watchdogs, from `state` and this step's distance to the goal.
+
+    A distance `PROGRESS_STEP_M` or more below the anchor is progress: it becomes the anchor
+    and both counts restart at 0. Otherwise the seconds grow by `period_s` and the metres are
+    the larger of theirs and how far the distance now lies above the anchor. The first step
+    only sets the anchor.
+    """
+    if math.isinf(state.anchor_m) or distance_m <= state.anchor_m - PROGRESS_STEP_M:
+        return Progress(distance_m)
+    return Progress(state.anchor_m, state.stalled_s + period_s,
+                    max(state.regressed_m, distance_m - state.anchor_m))
 
 
 class GoalProgress(LeafSystem):
-    """Counts the seconds since the robot last came `PROGRESS_STEP_M` nearer its goal (module doc).
+    """Counts the seconds since the robot last came `PROGRESS_STEP_M` nearer its goal, and the
+    most it has fallen back since then (module doc).
 
     It reads the distance the policy saw this step (the newest entry of the frame stacker's
     `distance_stack`) at its tick, `offset_s` into each control period: after the stacker's and
-    the controllers' ticks, before the shared-control gate reads `seconds_without_progress`. The
-    anchor and the count are discrete state, so the output holds between ticks and `gate-signals`
+    the controllers' ticks, before the shared-control gate reads the counts. The anchor and the
+    counts are discrete state, so the outputs hold between ticks and `gate-signals`
     (`SignalWatch`), running `progress_step` over the same distances, records the values the gate
-    reads. Before the first tick the count is 0.
+    reads. Before the first tick both counts are 0.
 
     .. pydrake_system::
 
@@ -56,10 +77,12 @@ class GoalProgress(LeafSystem):
         - distance_stack
         output_ports:
         - seconds_without_progress
+        - metres_regressed
 
     Ports:
         distance_stack: [distance to the goal (m)] x stack depth, newest first (`FrameStacker`).
         seconds_without_progress: [s] since the distance last fell by `PROGRESS_STEP_M`.
+        metres_regressed: [m] the most the distance has risen above where it last fell, since then.
     """
 
     def __init__(self, period_s: float = robot.CONTROL_PERIOD_S,
@@ -67,15 +90,20 @@ class GoalProgress(LeafSystem):
         super().__init__()
         self._period_s = period_s
         self._distance_port = self.DeclareVectorInputPort("distance_stack", DISTANCE_STACK_SIZE)
-        state = self.DeclareDiscreteState(np.array([math.inf, 0.0]))  # [anchor m, seconds without progress].
+        state = self.DeclareDiscreteState(np.array(Progress()))
         self.DeclarePeriodicDiscreteUpdateEvent(period_s, offset_s, self._update)
-        self.DeclareVectorOutputPort("seconds_without_progress", BasicVector(1), self._calc,
-                                     prerequisites_of_calc={self.discrete_state_ticket(state)})
+        for name, field in (("seconds_without_progress", "stalled_s"), ("metres_regressed", "regressed_m")):
+            self.DeclareVectorOutputPort(name, BasicVector(1), self._state_entry(Progress._fields.index(field)),
+                                         prerequisites_of_calc={self.discrete_state_ticket(state)})
+
+    @staticmethod
+    def _state_entry(index: int):
+        """An output's calc that copies entry `index` of the state (`Progress`'s fields)."""
+        def calc(context, output) -> None:
+            output.SetAtIndex(0, context.get_discrete_state_vector().value()[index])
+        return calc
 
     def _update(self, context, discrete_state) -> None:
-        anchor_m, stalled_s = context.get_discrete_state_vector().value()
+        state = Progress(*context.get_discrete_state_vector().value())
         distance_m = float(self._distance_port.Eval(context)[0])
-        discrete_state.set_value(np.array(progress_step(anchor_m, stalled_s, distance_m, self._period_s)))
-
-    def _calc(self, context, output) -> None:
-        output.SetAtIndex(0, context.get_discrete_state_vector().value()[1])
+        discrete_state.set_value(np.array(progress_step(state, distance_m, self._period_s)))

@@ -14,6 +14,7 @@ from ditch_drake.learning.uncertainty import (
     GATE_SIGNALS,
     PROGRESS_SIGNAL,
     RANDOM_SIGNAL,
+    REGRESS_SIGNAL,
     REVERSAL_SIGNAL,
     UNCERTAINTY_SIGNALS,
 )
@@ -26,6 +27,9 @@ from ditch_drake.spec.schedule import CONTROLLER_OFFSET_S, RECORDER_OFFSET_S
 FALLBACKS = ("expert", "mppi", "teleop")
 # After the controllers have computed this control step's commands, before the recorder reads it.
 GATE_OFFSET_S = (CONTROLLER_OFFSET_S + RECORDER_OFFSET_S) / 2
+# The watchdogs a gate may keep beside its signal: the signal each reads (`GoalProgress`'s
+# outputs) and the config field of its limit, in the signal's unit.
+WATCHDOGS = {PROGRESS_SIGNAL: "progress_limit_s", REGRESS_SIGNAL: "regress_limit_m"}
 
 
 @dataclass
@@ -38,13 +42,15 @@ class SharedControlConfig:
             the policy's commanded arc, `ditch_drake.systems.tip_risk`), "command_reversals" (how
             often the policy's turn reversed over the last second,
             `ditch_drake.systems.command_reversals`), "seconds_without_progress" (how long
-            the robot has come no nearer its goal, `ditch_drake.systems.goal_progress`), or "random"
+            the robot has come no nearer its goal, `ditch_drake.systems.goal_progress`),
+            "metres_regressed" (the most it has fallen back from the goal since), or "random"
             (`RANDOM_SIGNAL`): a uniform draw in [0, 1) each control step, seeded by the
             episode's seed and keyed by its environment and task, in its place (the chance
             handover a gate is compared with).
         upper_threshold: hand over when the signal is above this (the signal's unit: rad/s for
             "angular_rate_spread", nats for the entropies, deg for the risk signals, in [0, 1]
-            for "random", a count for "command_reversals", s for "seconds_without_progress").
+            for "random", a count for "command_reversals", s for "seconds_without_progress", m for
+            "metres_regressed").
             With a budget, set from it.
         lower_threshold: hand back only after the signal has stayed below this ...
         calm_steps: ... for this many consecutive control steps (hysteresis: fewer switches).
@@ -73,6 +79,10 @@ class SharedControlConfig:
             the fallback keeps control until the robot is nearer the goal than it had been. It
             reads the pose and the goal only. A budget's thresholds are set for the signal as
             without it: the watchdog's handovers come on top. None: no watchdog.
+        regress_limit_m: a second watchdog, the same way: where set, the gate also hands over
+            once the robot has fallen back more than this many metres from the goal since it
+            last came nearer ("metres_regressed"), and keeps the fallback driving until it is
+            nearer the goal than it had been. None: no such watchdog.
     """
 
     signal: str = "angular_rate_spread"
@@ -84,6 +94,7 @@ class SharedControlConfig:
     fallback: str = "expert"
     calibration: str = field(default="", metadata=WRITTEN_WHEN_SET)
     progress_limit_s: float | None = field(default=None, metadata=WRITTEN_WHEN_SET)
+    regress_limit_m: float | None = field(default=None, metadata=WRITTEN_WHEN_SET)
 
     def validate(self) -> None:
         """Raises ConfigError naming the first bad value.
@@ -109,8 +120,8 @@ class SharedControlConfig:
             budget = self.budget
             if isinstance(budget, bool) or not isinstance(budget, (int, float)) or not 0.0 < budget < 1.0:
                 raise ConfigError(f"shared control budget {budget!r}: expected a share of control steps in (0, 1)")
-        self._validate_progress_limit()
-        if (self.signal in UNCERTAINTY_SIGNALS or self.signal in (REVERSAL_SIGNAL, PROGRESS_SIGNAL)) and (
+        self._validate_watchdogs()
+        if (self.signal in UNCERTAINTY_SIGNALS or self.signal in (REVERSAL_SIGNAL, *WATCHDOGS)) and (
                 self.budget is None):
             for key in ("upper_threshold", "lower_threshold"):
                 if getattr(self, key) < 0.0:
@@ -153,19 +164,24 @@ class SharedControlConfig:
                                          self.calm_steps, self.warmup_steps)
         return dataclasses.replace(self, upper_threshold=upper, lower_threshold=lower)
 
-    def _validate_progress_limit(self) -> None:
-        """A watchdog limit, where set: a finite number of seconds > 0, beside a signal other than
-        the progress itself (a gate on it has its thresholds for that)."""
-        limit = self.progress_limit_s
-        if limit is None:
-            return
-        if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not 0.0 < limit < math.inf:
-            raise ConfigError(f"shared control progress_limit_s {limit!r}: expected a number of seconds > 0 without "
-                              "progress toward the goal, or none")
-        if self.signal == PROGRESS_SIGNAL:
-            raise ConfigError(f"shared control progress_limit_s {limit!r} with signal {PROGRESS_SIGNAL!r}: the gate "
-                              "already reads the progress, with its thresholds; expected another signal, or no "
-                              "progress_limit_s")
+    def watchdog_limits(self) -> dict[str, float]:
+        """The limit of each watchdog set, by the signal it reads (`WATCHDOGS`)."""
+        return {signal: getattr(self, key) for signal, key in WATCHDOGS.items() if getattr(self, key) is not None}
+
+    def _validate_watchdogs(self) -> None:
+        """Each watchdog limit, where set: a finite number > 0 in its signal's unit, beside a
+        signal other than the one it reads (a gate on that has its thresholds for it)."""
+        expected = {PROGRESS_SIGNAL: "a number of seconds > 0 without progress toward the goal",
+                    REGRESS_SIGNAL: "a number of metres > 0 fallen back from the goal"}
+        for signal, key in WATCHDOGS.items():
+            limit = getattr(self, key)
+            if limit is None:
+                continue
+            if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not 0.0 < limit < math.inf:
+                raise ConfigError(f"shared control {key} {limit!r}: expected {expected[signal]}, or none")
+            if self.signal == signal:
+                raise ConfigError(f"shared control {key} {limit!r} with signal {signal!r}: the gate already reads "
+                                  f"it, with its thresholds; expected another signal, or no {key}")
 
     def _validate_random(self) -> None:
         """The thresholds of the random draw: in [0, 1], where a draw in [0, 1) can cross them
@@ -269,9 +285,9 @@ class SharedControl(LeafSystem):
 
     A NaN uncertainty is neither above nor below a threshold: it hands nothing over and resets
     the calm count; the first `warmup_steps` updates read the uncertainty as NaN (the policy
-    drives while its observation stacks fill). With `config.progress_limit_s`, a step whose
-    `seconds_without_progress` is above the limit hands over too, and is not calm
-    (`gate_step`'s `forced`; none in the warm-up). The update stores who drives, the calm count, the number of switches (either
+    drives while its observation stacks fill). With a watchdog (`config.progress_limit_s`,
+    `config.regress_limit_m`), a step whose watched input is above its limit hands over too,
+    and is not calm (`gate_step`'s `forced`; none in the warm-up). The update stores who drives, the calm count, the number of switches (either
     way) and the command of whoever drives after it, which the outputs read, so the command
     changes only at the gate's ticks. The same update is declared as a forced discrete update,
     so `CalcForcedDiscreteVariableUpdate` runs one step too. Until the first update the policy
@@ -288,6 +304,7 @@ class SharedControl(LeafSystem):
         - uncertainty
         - fallback_command
         - seconds_without_progress (optional)
+        - metres_regressed (optional)
         output_ports:
         - command
         - who_drives
@@ -301,6 +318,8 @@ class SharedControl(LeafSystem):
         fallback_command: [v m/s, w rad/s] the fallback commands.
         seconds_without_progress: (only with `config.progress_limit_s`) [s] since the robot
             last came nearer its goal (`GoalProgress`).
+        metres_regressed: (only with `config.regress_limit_m`) [m] the most it has fallen back
+            from the goal since (`GoalProgress`).
         command: [v m/s, w rad/s] the executed command.
         who_drives: [0] the policy, [1] the fallback (a float).
         switches: [handovers plus handbacks so far] (a float).
@@ -333,8 +352,8 @@ class SharedControl(LeafSystem):
         self._policy_port = self.DeclareVectorInputPort("policy_command", 2)
         self._uncertainty_port = self.DeclareVectorInputPort("uncertainty", 1)
         self._fallback_port = self.DeclareVectorInputPort("fallback_command", 2)
-        self._progress_port = (self.DeclareVectorInputPort("seconds_without_progress", 1)
-                               if config.progress_limit_s is not None else None)
+        self._watchdogs = [(self.DeclareVectorInputPort(signal, 1), limit)
+                           for signal, limit in config.watchdog_limits().items()]
         self._command_index = self.DeclareDiscreteState(2)
         self._driver_index = self.DeclareDiscreteState(np.array([float(POLICY)]))
         self._calm_index = self.DeclareDiscreteState(1)
@@ -355,13 +374,12 @@ class SharedControl(LeafSystem):
         step = int(context.get_discrete_state(self._step_index).get_value()[0])
         warm = step >= self._config.warmup_steps
         uncertainty = float(self._uncertainty_port.Eval(context)[0]) if warm else math.nan
-        stalled = warm and self._progress_port is not None and (
-            float(self._progress_port.Eval(context)[0]) > self._config.progress_limit_s)
+        forced = warm and any(float(port.Eval(context)[0]) > limit for port, limit in self._watchdogs)
         driver = int(context.get_discrete_state(self._driver_index).get_value()[0])
         calm = int(context.get_discrete_state(self._calm_index).get_value()[0])
         switches = context.get_discrete_state(self._switches_index).get_value()[0]
         driver, calm, switched = gate_step(driver, calm, uncertainty, self._config.upper_threshold,
-                                           self._config.lower_threshold, self._config.calm_steps, stalled)
+                                           self._config.lower_threshold, self._config.calm_steps, forced)
         switches += switched
         source = self._fallback_port if driver == FALLBACK else self._policy_port
         discrete_state.set_value(self._command_index, source.Eval(context))
