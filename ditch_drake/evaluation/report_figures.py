@@ -318,7 +318,7 @@ def _figure_shared_control(curves: dict[str, dict[str, list[HandoverPoint]]], pa
     columns = min(2, len(curves))
     rows = -(-len(curves) // columns)
     fig, axes = plt.subplots(rows, columns, figsize=(5.2 * columns, 3.6 * rows + 0.6), squeeze=False)
-    # A signal with a progress watchdog beside it ("tip_risk_ahead, watchdog 20 s") is a colour of its own.
+    # A signal with watchdogs beside it ("tip_risk_ahead, watchdog 20 s, 6 m") is a colour of its own.
     signals = sorted({series.partition(", fallback ")[0] for panel in curves.values() for series in panel}
                      - {ALONE, _RANDOM_SIGNAL})
     colours = plt.get_cmap("tab10")

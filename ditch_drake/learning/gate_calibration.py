@@ -144,7 +144,7 @@ def gate_step(driver: int, calm: int, uncertainty: float, upper_threshold: float
     While the policy drives, an uncertainty above `upper_threshold` hands over to the fallback.
     While the fallback drives, a step below `lower_threshold` counts one calm step and any other
     step (a NaN too) resets the count; the step on which it reaches `calm_steps` hands back.
-    A `forced` step (the gate's progress watchdog firing) hands over whatever the uncertainty,
+    A `forced` step (one of the gate's watchdogs firing) hands over whatever the uncertainty,
     and is never calm.
 
     Args:
@@ -391,7 +391,8 @@ def calibration_values(path: str | os.PathLike, signal: str, what: str = "gate.c
         raise ConfigError(f"{what} {path!s} has no signal {signal!r}: it recorded {signals['signals']}; expected a "
                           "file of the gated policy (an ensemble's for the disagreement signals, one recorded with "
                           "gate-signals --risk for the risk signals, one recorded since gate-signals records "
-                          "command_reversals or seconds_without_progress for those signals: record it again)")
+                          "command_reversals, seconds_without_progress or metres_regressed for those signals: "
+                          "record it again)")
     values, episode = np.asarray(signals[signal], dtype=float), np.asarray(signals["episode"], dtype=int)
     order = np.lexsort((np.asarray(signals["time_s"], dtype=float), episode))
     values, episode = values[order], episode[order]

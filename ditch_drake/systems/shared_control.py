@@ -287,9 +287,9 @@ class SharedControl(LeafSystem):
     the calm count; the first `warmup_steps` updates read the uncertainty as NaN (the policy
     drives while its observation stacks fill). With a watchdog (`config.progress_limit_s`,
     `config.regress_limit_m`), a step whose watched input is above its limit hands over too,
-    and is not calm (`gate_step`'s `forced`; none in the warm-up). The update stores who drives, the calm count, the number of switches (either
-    way) and the command of whoever drives after it, which the outputs read, so the command
-    changes only at the gate's ticks. The same update is declared as a forced discrete update,
+    and is not calm (`gate_step`'s `forced`; none in the warm-up). The update stores who drives,
+    the calm count, the number of switches (either way) and the command of whoever drives after
+    it, which the outputs read, so the command changes only at the gate's ticks. The same update is declared as a forced discrete update,
     so `CalcForcedDiscreteVariableUpdate` runs one step too. Until the first update the policy
     drives and the command is [0, 0] (stand still).
 
