@@ -177,12 +177,37 @@ def test_the_paper_studies_plan_what_they_did_before_and_a_single_clone_keeps_it
     ("split: {fallbacks: [teleop]}", r"split\.fallbacks=\['teleop'\]: expected some of \['expert', 'mppi'\]"),
     ("split: {signal: random}", r"split\.signal='random': expected one of"),
     ("split: {checkpoint: wide, signal: vote_entropy}", r"split\.checkpoint='wide': a single clone, and the signal 'vote_entropy'"),
+    ("signal: seconds_without_progress", r"studies\.shared_control\.signal='seconds_without_progress': expected one of"),
+    ("progress_limit_s: 0", r"studies\.shared_control\.progress_limit_s=0\.0: .*expected a number of seconds > 0"),
+    ("regress_limit_m: -6", r"studies\.shared_control\.regress_limit_m=-6\.0: .*expected a number of metres > 0"),
+    ("regress_limit_m: .nan", r"studies\.shared_control\.regress_limit_m=nan: .*expected a number of metres > 0"),
 ])
 def test_bad_study_values_are_refused_naming_the_key(tmp_path, values, message):
     path = tmp_path / "bad.yaml"
     path.write_text(f"rollouts: 1\nstudies:\n  shared_control: {{{values}}}\n")
     with pytest.raises(ConfigError, match=message):
         load_experiment(path)
+
+
+def test_the_watchdogs_file_gates_the_paper_ensembles_on_the_tip_risk_and_random_handover_both_beside_the_watchdogs():
+    paper = load_experiment("experiments/paper.yaml")
+    config = load_experiment("experiments/shared_control_watchdogs.yaml")
+    models, evaluations = plan(config)
+    assert (config.training, config.seed, config.demos_dir, config.rollouts, config.time_limit_s) == (
+        paper.training, paper.seed, paper.demos_dir, paper.rollouts, paper.time_limit_s)
+    assert [str(model_path(config, m)) for m in models] == [f"models/paper/{env}_40_k5.pt" for env in PAPER]
+    # The risk signal's thresholds come from a recording with the tip risk in it.
+    assert [str(gate_signals_path(config, m)) for m in models] == [
+        f"results/shared_control_watchdogs/gate/{env}_40_k5_risk.npz" for env in PAPER]
+    assert len(evaluations) == 4 * (1 + 2 * 2) and {e.seed for e in evaluations} == {300}
+    gates = [e.config.gate for e in evaluations if e.controller == "shared"]
+    assert [(g.signal, g.fallback) for g in gates[:4]] == [
+        ("tip_risk_ahead", "expert"), ("random", "expert"), ("tip_risk_ahead", "mppi"), ("random", "mppi")]
+    # The control keeps the watchdogs too: what differs from the gate is only when it hands over.
+    assert {(g.budget, g.progress_limit_s, g.regress_limit_m) for g in gates} == {(0.02, 20.0, 6.0)}
+    # Without watchdogs, the paper's study gates as before: no limits written into its records.
+    _, paper_evaluations = plan(paper, only_studies=["shared_control"])
+    assert all(e.config.gate.watchdog_limits() == {} for e in paper_evaluations if e.controller == "shared")
 
 
 def test_the_command_exits_2_on_a_bad_budget(tmp_path, capsys):
@@ -242,6 +267,23 @@ def test_a_tiny_study_calibrates_then_evaluates_and_reports_distinct_rows_and_a_
     assert signals.stat().st_mtime_ns == signals_time
     assert len(read_records(tmp_path / "results" / "shared_control.jsonl")[0]) == 3
     assert len(read_runs(tmp_path / "results")) == 2
+
+
+def test_a_tiny_study_on_the_tip_risk_records_the_risk_then_gates_beside_its_watchdogs(tmp_path):
+    path = tmp_path / "tiny.yaml"
+    path.write_text(TINY.format(root=tmp_path).replace(
+        "seed: 5}", "seed: 5, signal: tip_risk_ahead, progress_limit_s: 20, regress_limit_m: 6}"))
+    config = load_experiment(path)
+    _ensemble(tmp_path / "models" / "wide_2_k2.pt")
+    run_experiment(config, stages=("evaluate",), progress=False)
+    signals = tmp_path / "results" / "gate" / "wide_2_k2_risk.npz"
+    assert "tip_risk_ahead" in load_signals(signals)["signals"]
+    records = read_records(tmp_path / "results" / "shared_control.jsonl")[0]
+    assert all(r.status != "error" for r in records), [r.error for r in records]
+    gates = [yaml.safe_load(r.controller_config)["gate"] for r in records[1:]]
+    assert [(g["signal"], g["progress_limit_s"], g["regress_limit_m"]) for g in gates] == [
+        ("tip_risk_ahead", 20.0, 6.0), ("random", 20.0, 6.0)]
+    assert gates[0]["calibration"] == str(signals)
 
 
 def test_the_train_stage_trains_the_ensemble_that_train_ensemble_does(tmp_path, random_demonstration):

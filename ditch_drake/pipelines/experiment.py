@@ -261,8 +261,10 @@ class SharedControlStudy:
         environments: where the ensembles are trained and evaluated, each in its own.
         demos: demonstrations per model (the first ones of the environment's folder).
         ensemble: K, clones per ensemble (>= 2 for a disagreement signal).
-        signal: the uncertainty signal the gate reads (`ditch_drake.learning.uncertainty`;
-            unit: rad/s for "angular_rate_spread", nats for the entropies).
+        signal: the signal the gate reads (`ditch_drake.learning.uncertainty`): an uncertainty
+            signal (rad/s for "angular_rate_spread", nats for the entropies), or a risk signal
+            ("tip_risk_ahead", "tip_risk_now"; deg), whose signals files are then recorded with
+            the tip-risk signals (`--risk`, `<model>_risk.npz`).
         budgets: shares of control steps the fallback may drive, each in (0, 1) (dimensionless).
         fallbacks: who takes over, each "expert" or "mppi".
         calibration_rollouts: seeded ungated rollouts per task recorded for the signals file.
@@ -273,6 +275,13 @@ class SharedControlStudy:
             (dimensionless); its upper one is set by the budget.
         calm_steps: control steps (0.1 s each) the signal must stay below the lower threshold
             before a gate hands back, for both gates (and the aggregation round's).
+        progress_limit_s: None, or a watchdog beside both gates (the signal's and random
+            handover, so the control keeps it too) and the split part's: the fallback also
+            takes over after this many seconds without progress toward the goal (s;
+            `SharedControlConfig.progress_limit_s`).
+        regress_limit_m: None, or a second watchdog, the same way: once the robot has fallen
+            back this far from the goal since it last came nearer (m;
+            `SharedControlConfig.regress_limit_m`).
         aggregation: None, or one round of learning from the handovers (`AggregationRound`).
         split: None, or the same gates around one policy on a benchmark split (`SplitGating`),
             run with the study unless `--only` names environments.
@@ -289,6 +298,8 @@ class SharedControlStudy:
     seed: int = 300
     random_lower_threshold: float = 0.8
     calm_steps: int = 5
+    progress_limit_s: float | None = None
+    regress_limit_m: float | None = None
     aggregation: AggregationRound | None = None
     split: SplitGating | None = None
 
@@ -449,20 +460,21 @@ def _is_share(value) -> bool:
 
 def _check_shared_control(config: ExperimentConfig, path: Path) -> None:
     """Refuses a shared_control study whose evaluations could not run (environment names are
-    checked before), naming the key: a signal that is no uncertainty signal, a disagreement
-    signal with K < 2, a budget outside (0, 1), an unknown fallback (or `teleop`, which needs a
-    person at a Meshcat), non-positive counts, negative seeds, test seeds among the
-    calibration's, or a random gate its budget cannot hold (`SharedControlConfig.validate`)."""
-    from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, UNCERTAINTY_SIGNALS
+    checked before), naming the key: a signal that is neither an uncertainty nor a risk
+    signal, a disagreement signal with K < 2, a watchdog limit that is not a positive number, a
+    budget outside (0, 1), an unknown fallback (or `teleop`, which needs a person at a Meshcat),
+    non-positive counts, negative seeds, test seeds among the calibration's, or a random gate its
+    budget cannot hold (`SharedControlConfig.validate`)."""
+    from ditch_drake.learning.uncertainty import DISAGREEMENT_SIGNALS, RISK_SIGNALS, UNCERTAINTY_SIGNALS
 
     study = config.studies.shared_control
     if study is None:
         return
     where = f"experiment file {path}: studies.shared_control"
 
-    if study.signal not in UNCERTAINTY_SIGNALS:
-        raise ConfigError(f"{where}.signal={study.signal!r}: expected one of {list(UNCERTAINTY_SIGNALS)} (random "
-                          "handover runs beside it anyway)")
+    if study.signal not in (*UNCERTAINTY_SIGNALS, *RISK_SIGNALS):
+        raise ConfigError(f"{where}.signal={study.signal!r}: expected one of {[*UNCERTAINTY_SIGNALS, *RISK_SIGNALS]} "
+                          "(random handover runs beside it anyway)")
     if not _is_integer(study.ensemble) or study.ensemble < 1:
         raise ConfigError(f"{where}.ensemble={study.ensemble!r}: expected an integer >= 1 clones")
     if study.signal in DISAGREEMENT_SIGNALS and study.ensemble < 2:
@@ -482,9 +494,26 @@ def _check_shared_control(config: ExperimentConfig, path: Path) -> None:
                           "calibration_rollouts); expected test seeds that the thresholds never saw")
     if study.aggregation:
         _check_aggregation(study, where, tests, calibration)
+    _check_watchdogs(study, where)
     _check_gates(study, where, study.budgets, study.fallbacks)
     if study.split:
         _check_split_gating(study, f"{where}.split")
+
+
+def _check_watchdogs(study: SharedControlStudy, where: str) -> None:
+    """Refuses a watchdog limit that a gate would refuse (`SharedControlConfig.validate`), naming
+    the study's key."""
+    from ditch_drake.systems.shared_control import WATCHDOGS, SharedControlConfig
+
+    for key in WATCHDOGS.values():
+        limit = getattr(study, key)
+        if limit is None:
+            continue
+        try:  # The study's signal is checked before, so only the limit can be refused here.
+            SharedControlConfig(signal=study.signal, budget=0.5, calibration="calibration.npz",
+                                **{key: limit}).validate()
+        except ConfigError as error:
+            raise ConfigError(f"{where}.{key}={limit!r}: {error}") from error
 
 
 def _check_gates(study: SharedControlStudy, where: str, budgets: list[float], fallbacks: list[str],
@@ -599,16 +628,18 @@ def study_gates(study: SharedControlStudy, calibration: str, budgets: list[float
     """The gates of a shared-control study (`SharedControlConfig`s), for each budget and each
     fallback (the study's, or `budgets` and `fallbacks`): the gate on `study.signal` (or
     `signal`) with thresholds from the budget on `calibration` (a signals file), then random
-    handover at the same budget."""
-    from ditch_drake.systems.shared_control import RANDOM_SIGNAL, SharedControlConfig
+    handover at the same budget; both with the study's watchdogs, where it sets them."""
+    from ditch_drake.systems.shared_control import RANDOM_SIGNAL, WATCHDOGS, SharedControlConfig
 
+    watchdogs = {key: getattr(study, key) for key in WATCHDOGS.values()}
     gates = []
     for budget in study.budgets if budgets is None else budgets:
         for fallback in study.fallbacks if fallbacks is None else fallbacks:
             gates += [SharedControlConfig(signal=signal or study.signal, budget=budget, calibration=calibration,
-                                          calm_steps=study.calm_steps, fallback=fallback),
+                                          calm_steps=study.calm_steps, fallback=fallback, **watchdogs),
                       SharedControlConfig(signal=RANDOM_SIGNAL, budget=budget, calm_steps=study.calm_steps,
-                                          lower_threshold=study.random_lower_threshold, fallback=fallback)]
+                                          lower_threshold=study.random_lower_threshold, fallback=fallback,
+                                          **watchdogs)]
     return gates
 
 
@@ -731,19 +762,23 @@ def model_path(config: ExperimentConfig, model: ModelSpec) -> Path:
 
 
 def gate_signals_path(config: ExperimentConfig, model: ModelSpec) -> Path:
-    """The signals file of `model`'s own validation rollouts, which its gates are calibrated on."""
-    return Path(config.results_dir) / "gate" / f"{model.name}.npz"
+    """The signals file of `model`'s own validation rollouts, which its gates are calibrated on:
+    with the tip-risk signals beside the others (`_risk`) where the study's gates read one."""
+    from ditch_drake.learning.uncertainty import RISK_SIGNALS
+
+    risk = "_risk" if config.studies.shared_control.signal in RISK_SIGNALS else ""
+    return Path(config.results_dir) / "gate" / f"{model.name}{risk}.npz"
 
 
 def round_signals_path(config: ExperimentConfig, clone: ModelSpec) -> Path:
-    """The signals file the aggregation round's gate on `clone` is calibrated on: the study's
-    own (`gate_signals_path`) for an uncertainty signal, a recording with the tip-risk signals
-    beside it for a risk signal."""
+    """The signals file the aggregation round's gate on `clone` is calibrated on: the clone's
+    own validation rollouts (`<clone>.npz`) for an uncertainty signal, with the tip-risk
+    signals beside the others (`<clone>_risk.npz`) for a risk signal. Where the clone is the
+    study's model and its gates read the same kind, it is their file (`gate_signals_path`)."""
     from ditch_drake.learning.uncertainty import RISK_SIGNALS
 
-    path = gate_signals_path(config, clone)
-    return path.with_name(f"{clone.name}_risk.npz") if config.studies.shared_control.aggregation.signal in (
-        RISK_SIGNALS) else path
+    risk = "_risk" if config.studies.shared_control.aggregation.signal in RISK_SIGNALS else ""
+    return Path(config.results_dir) / "gate" / f"{clone.name}{risk}.npz"
 
 
 def handovers_folder(config: ExperimentConfig, clone: ModelSpec, labels: str = "executed") -> Path:
@@ -953,6 +988,7 @@ def _calibrate(config: ExperimentConfig, evaluations: list[Evaluation], progress
     """Records the signals file of each gated evaluation's model where it is missing (the
     model's ungated rollouts in its environment, on the shared-control study's calibration
     seeds), before any rollout reads it."""
+    from ditch_drake.learning.uncertainty import RISK_SIGNALS
     from ditch_drake.world.environments import get_environment
 
     study = config.studies.shared_control
@@ -966,7 +1002,7 @@ def _calibrate(config: ExperimentConfig, evaluations: list[Evaluation], progress
         tasks = config.tasks or range(len(get_environment(env, config.environments_file or None).tasks))
         record_signals_or_resume(path, str(checkpoint), [(env, task) for task in tasks], study.calibration_rollouts,
                                  study.calibration_seed, config.time_limit_s, config.environments_file, progress,
-                                 workers=config.workers)
+                                 risk=study.signal in RISK_SIGNALS, workers=config.workers)
 
 
 def split_gating_paths(config: ExperimentConfig, part: SplitGating) -> tuple[Path, Path]:
