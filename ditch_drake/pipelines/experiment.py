@@ -761,13 +761,18 @@ def model_path(config: ExperimentConfig, model: ModelSpec) -> Path:
     return Path(config.models_dir) / f"{model.name}.pt"
 
 
-def gate_signals_path(config: ExperimentConfig, model: ModelSpec) -> Path:
-    """The signals file of `model`'s own validation rollouts, which its gates are calibrated on:
-    with the tip-risk signals beside the others (`_risk`) where the study's gates read one."""
+def _signals_file(config: ExperimentConfig, stem: str, signal: str) -> Path:
+    """`<results_dir>/gate/<stem>.npz`, the recording a gate on `signal` is calibrated on; for a
+    risk signal `<stem>_risk.npz`, recorded with the tip-risk signals beside the others."""
     from ditch_drake.learning.uncertainty import RISK_SIGNALS
 
-    risk = "_risk" if config.studies.shared_control.signal in RISK_SIGNALS else ""
-    return Path(config.results_dir) / "gate" / f"{model.name}{risk}.npz"
+    return Path(config.results_dir) / "gate" / f"{stem}{'_risk' if signal in RISK_SIGNALS else ''}.npz"
+
+
+def gate_signals_path(config: ExperimentConfig, model: ModelSpec) -> Path:
+    """The signals file of `model`'s own validation rollouts, which its gates are calibrated on
+    (`_signals_file` of the study's signal)."""
+    return _signals_file(config, model.name, config.studies.shared_control.signal)
 
 
 def round_signals_path(config: ExperimentConfig, clone: ModelSpec) -> Path:
@@ -775,10 +780,7 @@ def round_signals_path(config: ExperimentConfig, clone: ModelSpec) -> Path:
     own validation rollouts (`<clone>.npz`) for an uncertainty signal, with the tip-risk
     signals beside the others (`<clone>_risk.npz`) for a risk signal. Where the clone is the
     study's model and its gates read the same kind, it is their file (`gate_signals_path`)."""
-    from ditch_drake.learning.uncertainty import RISK_SIGNALS
-
-    risk = "_risk" if config.studies.shared_control.aggregation.signal in RISK_SIGNALS else ""
-    return Path(config.results_dir) / "gate" / f"{clone.name}{risk}.npz"
+    return _signals_file(config, clone.name, config.studies.shared_control.aggregation.signal)
 
 
 def handovers_folder(config: ExperimentConfig, clone: ModelSpec, labels: str = "executed") -> Path:
@@ -1007,11 +1009,8 @@ def _calibrate(config: ExperimentConfig, evaluations: list[Evaluation], progress
 
 def split_gating_paths(config: ExperimentConfig, part: SplitGating) -> tuple[Path, Path]:
     """The split part's signals file (with the tip-risk signals for a risk signal) and results file."""
-    from ditch_drake.learning.uncertainty import RISK_SIGNALS
-
-    risk = "_risk" if part.gate_signal(config.studies.shared_control) in RISK_SIGNALS else ""
-    name = Path(part.checkpoint).stem
-    return (Path(config.results_dir) / "gate" / f"{name}_{part.calibration_split}{risk}.npz",
+    stem = f"{Path(part.checkpoint).stem}_{part.calibration_split}"
+    return (_signals_file(config, stem, part.gate_signal(config.studies.shared_control)),
             Path(config.results_dir) / f"shared_control_{part.split}.jsonl")
 
 
