@@ -228,6 +228,15 @@ def test_an_expert_fallback_that_replans_is_its_own_series_and_row():
     both_watchdogs = RolloutRecord(**{**latched.__dict__, "controller_config": latched.controller_config.replace(
         "fallback: expert", "fallback: expert, progress_limit_s: 20.0, regress_limit_m: 3.0")})
     assert gate_words(both_watchdogs) == "gate tip_risk_ahead, budget 0.2, watchdog 20 s, 3 m, fallback expert"
+    # A longer hold before handing back is its own series and row; the default hold names none.
+    def held(record, calm):
+        return RolloutRecord(**{**record.__dict__, "controller_config": record.controller_config.replace(
+            "fallback: expert", f"calm_steps: {calm}, fallback: expert, progress_limit_s: 20.0")})
+    held_longer, held_default = held(latched, 20), held(latched, 5)
+    assert [gate_words(r) for r in (held_longer, held_default)] == [
+        "gate tip_risk_ahead, budget 0.2, 20 calm steps, watchdog 20 s, fallback expert", gate_words(guarded)]
+    assert sorted(handover_curves({"20": [held_longer], "5": [held_default]})["k5 on wide"]) == [
+        "tip_risk_ahead, 20 calm steps, watchdog 20 s, fallback expert", "tip_risk_ahead, watchdog 20 s, fallback expert"]
     # A tip risk on arcs of another length than the default is its own series and row.
     def on_arcs(record, text):
         config = record.controller_config

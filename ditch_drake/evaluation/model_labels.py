@@ -23,7 +23,7 @@ from pathlib import Path
 from ditch_drake.diagrams.controllers import privileged_words
 from ditch_drake.evaluation.results import RolloutRecord
 from ditch_drake.learning.uncertainty import SIGNAL_UNITS
-from ditch_drake.systems.shared_control import WATCHDOGS
+from ditch_drake.systems.shared_control import WATCHDOGS, SharedControlConfig
 from ditch_drake.systems.window_search import WindowSearchConfig
 
 # What a page says beside a table with a marked row.
@@ -186,14 +186,25 @@ def signal_words(record: RolloutRecord, gate: dict) -> str:
 
 def gate_words(record: RolloutRecord) -> str:
     """A shared-control record's gate: its signal (`signal_words`), budget (where one set the
-    thresholds), watchdogs (where set) and fallback (`fallback_words`), e.g. "gate
+    thresholds), hold (`hold_words`), watchdogs (where set) and fallback (`fallback_words`), e.g. "gate
     angular_rate_spread, budget 0.05, watchdog 20 s, fallback expert", from the `gate:` line of
     its config; "" for any other record."""
     gate = gate_settings(record)
     if not gate:
         return ""
     budget = f", budget {gate['budget']:g}" if gate_budget(gate) is not None else ""
-    return f"gate {signal_words(record, gate)}{budget}{watchdog_words(gate)}, fallback {fallback_words(record, gate)}"
+    return (f"gate {signal_words(record, gate)}{budget}{hold_words(gate)}{watchdog_words(gate)}, "
+            f"fallback {fallback_words(record, gate)}")
+
+
+def hold_words(gate: dict) -> str:
+    """A gate's hold before it hands back (`SharedControlConfig.calm_steps`) where it differs
+    from the default, e.g. ", 20 calm steps"; "" at the default, so that the rows of every
+    gate run before the hold was varied keep their names."""
+    calm = gate.get("calm_steps")
+    if isinstance(calm, int) and not isinstance(calm, bool) and calm != SharedControlConfig.calm_steps:
+        return f", {calm} calm steps"
+    return ""
 
 
 def watchdog_words(gate: dict) -> str:

@@ -262,6 +262,7 @@ def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[st
         gate_budget,
         gate_settings,
         gate_words,
+        hold_words,
         signal_words,
         watchdog_words,
     )
@@ -277,8 +278,8 @@ def handover_curves(records_by_study: dict[str, list[RolloutRecord]]) -> dict[st
             panel = handover_panel(record, name_of(record))
             if is_shared_control(record):
                 gate = gate_settings(record)
-                series = (f"{signal_words(record, gate)}{watchdog_words(gate)}, fallback {fallback_words(record, gate)}"
-                          if gate else record.controller)
+                series = (f"{signal_words(record, gate)}{hold_words(gate)}{watchdog_words(gate)}, "
+                          f"fallback {fallback_words(record, gate)}" if gate else record.controller)
                 if record.privileged:
                     series += f" (privileged: {privileged_words(record.privileged)})"
                 runs[(panel, series, gate_words(record), study)].append(record)
